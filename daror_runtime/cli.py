@@ -1,0 +1,316 @@
+"""The ``daror`` command (DESIGN.md section 5).
+
+Exit codes: 0 success, 1 failure, 2 bad input (a file, field or value a person handed in). Bad
+input prints one line naming the file and the problem, and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import structlog
+from rich.console import Console
+
+from daror_runtime.errors import DarorError, InputError, UsageError
+from daror_runtime.logs import configure_logging
+
+log = structlog.get_logger(__name__)
+
+Handler = Callable[[argparse.Namespace, Console], int]
+
+
+def _console() -> Console:
+    return Console(highlight=False, width=120, soft_wrap=False)
+
+
+def _write_json(path: Path | str, document: dict[str, Any]) -> None:
+    from daror_runtime.util.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(document, indent=2, allow_nan=False) + "\n")
+
+
+def _at_least(minimum: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} must be at least {minimum}")
+        return value
+
+    return parse
+
+
+_positive_int = _at_least(1)
+_non_negative_int = _at_least(0)
+
+
+def _joint_angles(text: str) -> list[float]:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected four comma-separated angles in radians") from None
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected four angles (q1,q2,q3,q4), got {len(values)}")
+    return values
+
+
+def _refuse_overwriting(out: Path | str, *inputs: Path | str | None) -> None:
+    for source in inputs:
+        if source is not None and Path(out).resolve() == Path(source).resolve():
+            raise UsageError(f"{out}: refusing to overwrite an input file; choose another output path")
+
+
+# --- simulate ---------------------------------------------------------------------------
+
+
+def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.data.load import raw_log_path, write_dataset
+    from daror_runtime.data.schema import RawLog, StationaryDataset
+    from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
+    from hal.sim.scenario import load_scenario
+    from hal.sim.static_dataset import STREAM_TRAINING, generate_stationary, scenario_stops, stream
+
+    scenario = load_scenario(args.scenario)
+    points = generate_stationary(
+        scenario, args.trajectory, args.waypoints, args.sub_steps, args.samples_per_stop, args.noise_free
+    )
+    dataset = StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s)
+    write_dataset(args.out, dataset)
+    log.info(
+        "dataset written", path=str(args.out), scenario=scenario.name, trajectory=args.trajectory, points=len(dataset)
+    )
+    console.print(f"{args.out}: {len(dataset)} stationary points of scenario {scenario.name} ({args.trajectory})")
+    if args.with_raw:
+        stops = scenario_stops(scenario, args.trajectory, args.waypoints, args.sub_steps)
+        raw = quasi_static_log(scenario, stops, stream(scenario.seed, STREAM_TRAINING + 100), QuasiStaticSettings())
+        raw_path = raw_log_path(args.out)
+        write_dataset(raw_path, RawLog(raw.t_s, raw.q_rad, raw.dq_rad_s, raw.tau_nm, raw.theta_rad))
+        console.print(f"{raw_path}: raw log, {len(raw.t_s)} samples")
+    return 0
+
+
+def cmd_simulate_list(args: argparse.Namespace, console: Console) -> int:
+    from hal.sim.scenario import load_scenario, scenario_names
+
+    for name in scenario_names():
+        console.print(f"{name:16s} {load_scenario(name).summary}")
+    return 0
+
+
+# --- fit / evaluate / cvf ---------------------------------------------------------------
+
+
+def cmd_fit(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.data.load import load_stationary
+    from daror_runtime.models.files import save_model, training_summary
+    from daror_runtime.models.registry import NO_DATA_KINDS, FitOptions, fit_model, kind_entry
+    from hal.robot import load_description
+
+    kind = args.kind.lower()
+    kind_entry(kind)
+    if args.train is None and kind not in NO_DATA_KINDS:
+        raise UsageError(f"model kind {kind} learns from data; give --train FILE")
+    _refuse_overwriting(args.out, args.train)
+    description = load_description(args.robot)
+    dataset = load_stationary(args.train) if args.train is not None else None
+    options = FitOptions(name=args.name, dummy_arm=args.dummy_arm, elbow_stiffness=args.elbow_stiffness, seed=args.seed)
+    log.info("fit requested", kind=kind, train=None if args.train is None else str(args.train))
+    result = fit_model(kind, dataset, description, options)
+    summary = training_summary(dataset, args.train) if dataset is not None else None
+    save_model(args.out, result.model, summary, result.report)
+    report = result.report
+    log.info("model written", path=str(args.out), kind=kind, duration_s=round(report.duration_s, 6))
+    console.print(f"{args.out}: {result.model.display_name} model {result.model.name!r} ({kind})")
+    if report.training is not None:
+        t = report.training
+        console.print(
+            f"  training: {t.n_points} points, RMSE {t.rmse_nm:.4g} Nm, nRMSE {t.nrmse:.4g}, per joint "
+            + " ".join(f"{v:.3g}" for v in t.rmse_per_joint_nm)
+        )
+    if report.rank is not None:
+        console.print(f"  regressor rank {report.rank} of {report.n_parameters} parameters; identifiable combinations:")
+        for b in report.base_parameters:
+            console.print(f"    {b.expression():58s} = {b.value:+.5g} +- {b.std_error:.2g}")
+        if report.unidentifiable:
+            console.print(f"  no effect on torque at all: {', '.join(report.unidentifiable)}")
+    for note in report.notes:
+        console.print(f"  {note}")
+    return 0
+
+
+def _load_models(paths: Sequence[Path]) -> list[Any]:
+    from daror_runtime.models.files import load_model
+
+    models = [load_model(p)[0] for p in paths]
+    names = [m.name for m in models]
+    for model, path in zip(models, paths, strict=True):
+        if names.count(model.name) > 1:
+            model.name = f"{model.name} ({path.name})"
+    return models
+
+
+def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.data.load import load_stationary
+    from daror_runtime.models.compare import evaluate_models, evaluation_document, evaluation_table
+
+    if args.json is not None:
+        _refuse_overwriting(args.json, args.data, *args.models)
+    models = _load_models(args.models)
+    data = load_stationary(args.data)
+    evaluations = evaluate_models(models, data)
+    console.print(evaluation_table(evaluations, f"Errors on {args.data} ({len(data)} points), Eq. 4.31-4.32"))
+    if args.json is not None:
+        _write_json(args.json, evaluation_document(evaluations))
+        console.print(f"{args.json}: written")
+    return 0
+
+
+def cmd_cvf(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.models.compare import cvf_document, cvf_models, cvf_table
+    from daror_runtime.models.cvf import THESIS_STEPS_RAD
+
+    if args.json is not None:
+        _refuse_overwriting(args.json, *args.models)
+    models = _load_models(args.models)
+    steps = THESIS_STEPS_RAD[: args.refinements + 1]
+    evaluations = cvf_models(models, args.start, steps)
+    console.print(cvf_table(evaluations))
+    if args.json is not None:
+        _write_json(args.json, cvf_document(evaluations))
+        console.print(f"{args.json}: written")
+    return 0 if all(e.result.conservative for e in evaluations) or not args.strict else 1
+
+
+# --- demo / bench -----------------------------------------------------------------------
+
+
+def cmd_demo(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.demo import run_demo
+
+    run_demo(Path(args.out), console)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.bench import run_benchmarks
+
+    return run_benchmarks(console, json_path=args.json, quick=args.quick, only=args.only)
+
+
+# --- parser -----------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="daror", description="DAROR-01 control runtime and modelling tools")
+    parser.add_argument(
+        "--log-level",
+        default="warning",
+        choices=["debug", "info", "warning", "error"],
+        help="least severe event shown on stderr (default warning)",
+    )
+    parser.add_argument("--log-json", type=Path, help="also append every event from info up as JSON lines to this file")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    demo = commands.add_parser("demo", help="the main job on the simulated plant, with a report")
+    demo.add_argument("--out", default="demo_out", help="directory for datasets, models and the report")
+    demo.set_defaults(handler=cmd_demo)
+
+    sim = commands.add_parser("simulate", help="simulated data without the control loop")
+    sim_cmds = sim.add_subparsers(dest="simulate_command", required=True, metavar="WHAT")
+    static = sim_cmds.add_parser("static", help="a stationary dataset of a scenario (exo: dataset A, exo_dummy_arm: B)")
+    static.add_argument("--scenario", required=True, help="scenario name (see 'daror simulate list') or a .yaml path")
+    static.add_argument("--trajectory", choices=["training", "validation"], required=True)
+    static.add_argument("--out", type=Path, required=True, help="output file (.csv, .npz or .mat)")
+    static.add_argument("--waypoints", type=_positive_int, default=83, help="waypoints in the workspace (default 83)")
+    static.add_argument(
+        "--sub-steps", type=_non_negative_int, default=7, help="training stops between waypoints (default 7)"
+    )
+    static.add_argument(
+        "--samples-per-stop", type=_positive_int, default=1, help="sensor readings per stop (default 1)"
+    )
+    static.add_argument(
+        "--noise-free", action="store_true", help="exact sensors: no noise, quantisation or direction error"
+    )
+    static.add_argument("--with-raw", action="store_true", help="also write a quasi-static raw log as FILE.raw.EXT")
+    static.set_defaults(handler=cmd_simulate_static)
+    listing = sim_cmds.add_parser("list", help="the shipped scenarios")
+    listing.set_defaults(handler=cmd_simulate_list)
+
+    fit = commands.add_parser("fit", help="fit a compensation model: ap, plf, plf+")
+    fit.add_argument("kind", help="model kind: ap, plf, plf+")
+    fit.add_argument("--train", type=Path, help="stationary dataset or raw log (optional for ap)")
+    fit.add_argument("--out", type=Path, required=True, help="model file to write (JSON)")
+    fit.add_argument("--name", help="model name shown in tables (default: the kind's name)")
+    fit.add_argument("--robot", type=Path, help="robot description YAML (default: the packaged DAROR-01)")
+    fit.add_argument("--dummy-arm", action="store_true", help="ap: include the Dummy Arm (Eq. 4.5)")
+    stiff = fit.add_mutually_exclusive_group()
+    stiff.add_argument(
+        "--elbow-stiffness",
+        dest="elbow_stiffness",
+        action="store_true",
+        default=None,
+        help="ap: include the first-order elbow stiffness (Eq. 4.7); default with --dummy-arm",
+    )
+    stiff.add_argument("--no-elbow-stiffness", dest="elbow_stiffness", action="store_false")
+    fit.add_argument("--seed", type=int, default=0, help="random seed of models that use one")
+    fit.set_defaults(handler=cmd_fit)
+
+    ev = commands.add_parser("evaluate", help="RMSE and nRMSE of models on a dataset (Table III)")
+    ev.add_argument("models", type=Path, nargs="+", metavar="MODEL.json")
+    ev.add_argument("--data", type=Path, required=True, help="stationary dataset or raw log")
+    ev.add_argument("--json", type=Path, help="write the figures as JSON here")
+    ev.set_defaults(handler=cmd_evaluate)
+
+    cvf = commands.add_parser("cvf", help="closed-path energy test: is the model conservative? (Table IV)")
+    cvf.add_argument("models", type=Path, nargs="+", metavar="MODEL.json")
+    cvf.add_argument("--json", type=Path, help="write the figures as JSON here")
+    cvf.add_argument("--start", type=_joint_angles, help="start q1,q2,q3,q4 in rad (default: centre of the range)")
+    cvf.add_argument(
+        "--refinements",
+        type=int,
+        choices=[1, 2],
+        default=2,
+        help="tenfold step refinements after pi/400 (default 2: down to pi/40000)",
+    )
+    cvf.add_argument("--strict", action="store_true", help="exit 1 when a model is not conservative")
+    cvf.set_defaults(handler=cmd_cvf)
+
+    bench = commands.add_parser("bench", help="run the benchmarks of docs/performance.md")
+    bench.add_argument("--json", type=Path, help="write the figures as JSON here")
+    bench.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
+    bench.add_argument("--only", help="run only benchmarks whose name contains this")
+    bench.set_defaults(handler=cmd_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.log_level, args.log_json)
+    command = " ".join(x for x in (args.command, getattr(args, "simulate_command", None)) if x)
+    handler: Handler = args.handler
+    try:
+        return handler(args, _console())
+    except InputError as exc:
+        log.info("refused", command=command, reason=str(exc))
+        sys.stderr.write(f"daror {command}: error: {exc}\n")
+        return 2
+    except DarorError as exc:
+        log.error("failed", command=command, reason=str(exc))
+        sys.stderr.write(f"daror {command}: failed: {exc}\n")
+        return 1
+    except KeyboardInterrupt:
+        sys.stderr.write(f"daror {command}: interrupted\n")
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

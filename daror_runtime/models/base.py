@@ -1,0 +1,95 @@
+"""The one interface every compensation model implements.
+
+A compensation model maps joint angles to the torque that holds the robot (and pilot) against
+gravity and stiffness. Once built it is a pure function of its parameters and ``q``: no I/O, no
+state, no threads, so the loop can call :meth:`CompensationModel.torque` inside the tick.
+Fitting is separate (``daror_runtime.models.registry.fit_model``) and happens outside the tick.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from daror_runtime.models.identifiability import BaseParameter
+from daror_runtime.models.metrics import ErrorMetrics
+from hal.robot import FloatArray, RobotDescription
+
+
+class CompensationModel(ABC):
+    """Holding torque (Nm) as a function of joint angles (rad)."""
+
+    #: Registry key and the ``kind`` field of model files: ``ap``, ``plf``, ``plf+``, ``penn``, ``nnn``.
+    kind: ClassVar[str]
+    #: Name in tables, as the thesis writes it.
+    display_name: ClassVar[str]
+    #: True when the torque is the gradient of a potential by construction (Sec. 3.1.3).
+    conservative_by_construction: ClassVar[bool]
+
+    def __init__(self, description: RobotDescription, name: str | None = None) -> None:
+        self.description = description
+        self.name = name or self.display_name
+
+    @abstractmethod
+    def torque(self, q: FloatArray) -> np.ndarray:
+        """Holding torque (4,) at one configuration ``q`` (4,). Cheap enough for the 1 kHz tick."""
+
+    @abstractmethod
+    def torque_batch(self, q: FloatArray) -> FloatArray:
+        """Holding torque (N, 4) at N configurations (N, 4)."""
+
+    @abstractmethod
+    def parameters(self) -> dict[str, Any]:
+        """JSON-ready parameters; :meth:`from_parameters` rebuilds an identical model from them."""
+
+    @classmethod
+    @abstractmethod
+    def from_parameters(
+        cls, description: RobotDescription, parameters: Mapping[str, Any], name: str | None = None
+    ) -> CompensationModel:
+        """Rebuild a model from :meth:`parameters` output.
+
+        Raises:
+            daror_runtime.errors.ModelFileError: the parameters do not match this kind.
+        """
+
+
+@dataclass(frozen=True)
+class FitReport:
+    """What a fit found out about the data and the model, for the model file and the console."""
+
+    kind: str
+    n_points: int
+    training: ErrorMetrics | None
+    duration_s: float
+    rank: int | None = None
+    n_parameters: int | None = None
+    base_parameters: tuple[BaseParameter, ...] = ()
+    unidentifiable: tuple[str, ...] = ()
+    notes: tuple[str, ...] = field(default=())
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "kind": self.kind,
+            "n_points": self.n_points,
+            "training": None if self.training is None else self.training.to_dict(),
+            "duration_s": self.duration_s,
+        }
+        if self.rank is not None:
+            out["rank"] = self.rank
+            out["n_parameters"] = self.n_parameters
+            out["base_parameters"] = [b.to_dict() for b in self.base_parameters]
+            out["unidentifiable"] = list(self.unidentifiable)
+        if self.notes:
+            out["notes"] = list(self.notes)
+        return out
+
+
+@dataclass(frozen=True)
+class FitResult:
+    model: CompensationModel
+    report: FitReport
