@@ -206,23 +206,31 @@ class Kinematics:
         element-wise and fast for large N (the regressor of 25,000 points is built in ms).
         """
         q = as_configurations(q)
+        n = q.shape[0]
         q_t = np.ascontiguousarray(q.T)  # (4, N): each joint a contiguous vector
         c, s = np.cos(q_t), np.sin(q_t)
-        out = np.empty((N_JOINTS, 3, 3, q.shape[0]))
+        out = np.empty((N_JOINTS, 3, 3, n))
+        stator = np.empty((3, 3, n))
+        scratch = np.empty((3, n))
+        # In-place products: this runs on 25,000 configurations per fit, temporaries would dominate.
         for i, offset in enumerate(self.stator_offsets):
             if i == 0:
-                stator = np.broadcast_to(offset[:, :, None], (3, 3, q.shape[0]))
-            else:  # previous rotor times the constant stator offset
+                stator[:] = offset[:, :, None]
+            else:  # stator = previous rotor @ constant offset, skipping the offset's zeros
                 prev = out[i - 1]
-                stator = np.stack(
-                    [
-                        prev[:, 0] * offset[0, k] + prev[:, 1] * offset[1, k] + prev[:, 2] * offset[2, k]
-                        for k in range(3)
-                    ],
-                    axis=1,
-                )
-            out[i, :, 0] = c[i] * stator[:, 0] + s[i] * stator[:, 1]  # stator @ Rz(q_i)
-            out[i, :, 1] = -s[i] * stator[:, 0] + c[i] * stator[:, 1]
+                for k in range(3):
+                    np.multiply(prev[:, 0], offset[0, k], out=stator[:, k])
+                    for m in (1, 2):
+                        if offset[m, k] != 0.0:
+                            np.multiply(prev[:, m], offset[m, k], out=scratch)
+                            stator[:, k] += scratch
+            # rotor = stator @ Rz(q_i)
+            np.multiply(stator[:, 0], c[i], out=out[i, :, 0])
+            np.multiply(stator[:, 1], s[i], out=scratch)
+            out[i, :, 0] += scratch
+            np.multiply(stator[:, 1], c[i], out=out[i, :, 1])
+            np.multiply(stator[:, 0], s[i], out=scratch)
+            out[i, :, 1] -= scratch
             out[i, :, 2] = stator[:, 2]
         return out
 

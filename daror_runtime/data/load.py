@@ -147,6 +147,10 @@ def load_dataset(path: Path | str) -> StationaryDataset | RawLog:
         DataError: the file does not match either contract.
     """
     table = read_table(path)
+    if "t" in table.columns:
+        # t with only some dq columns is a raw log that lost a column, not a stationary dataset
+        # whose every (moving) sample would count as a stationary point: refuse it.
+        _optional_group(table, DQ_COLUMNS)
     return raw_from_table(table) if is_raw_log(table) else stationary_from_table(table)
 
 

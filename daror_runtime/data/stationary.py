@@ -5,12 +5,20 @@ logged joint velocity is noisy (it is differentiated from 1e-4 rad encoders), so
 filtered first (zero-phase Butterworth, ``scipy.signal.sosfiltfilt``) and a sample counts as
 stationary when the norm of the filtered velocity is below a threshold.
 
-The thesis used a 0.1 Hz cut-off and ``||dq|| < 0.0002 rad/s`` for its protocol of long stops;
-the defaults here are set for this runtime's protocol and documented in ``docs/data.md``. Both
-are settings, so the thesis values can be reproduced.
+Runs of stationary samples are then grouped into *stops* by position: the filter's ringing
+around a short, fast move can break one dwell into several runs, and runs whose positions agree
+within ``same_position_rad`` are the same stop. The first and last ``edge_trim_s`` of each stop
+are dropped where they border a move (the slow ends of the moves on either side).
 
-The direction of each joint's last motion before a stop (``dir``) is the sign of the filtered
-velocity the last time that joint moved faster than ``motion_threshold_rad_s``.
+``dir``, the direction of each joint's last motion before a stop, comes from the move into the
+stop (the samples since the previous stop): a joint that travelled more than
+``same_position_rad`` gets the sign of its filtered velocity at the last point where that velocity
+exceeded half its peak in the move (a move that reverses counts by its last lobe); a joint that did
+not move keeps its previous ``dir`` (0 before it first moves).
+
+The thesis used a 0.1 Hz cut-off and ``||dq|| < 0.0002 rad/s`` for its protocol of long stops;
+the defaults here are set for this runtime's protocol and documented in ``docs/data.md``. All are
+settings, so the thesis values can be reproduced.
 """
 
 from __future__ import annotations
@@ -23,7 +31,6 @@ import scipy.signal
 
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.errors import DataError
-from hal.signals import last_motion_sign
 
 StopReduction = Literal["all", "mean"]
 
@@ -35,7 +42,8 @@ class ReductionSettings:
     cutoff_hz: float = 2.0
     filter_order: int = 2
     threshold_rad_s: float = 0.01
-    motion_threshold_rad_s: float = 0.02
+    same_position_rad: float = 1e-3
+    edge_trim_s: float = 0.1
     per_stop: StopReduction = "all"
     min_stop_samples: int = 1
 
@@ -65,7 +73,36 @@ def filtered_velocity(raw: RawLog, settings: ReductionSettings) -> np.ndarray:
     pad = 3 * (2 * len(sos) + 1)
     if len(raw) <= pad:
         raise DataError(f"{raw.source}: {len(raw)} samples are too few to filter; expected more than {pad}")
-    return scipy.signal.sosfiltfilt(sos, raw.dq_rad_s, axis=0)
+    # "even" padding: the default "odd" extension pins the output at each end of the log to the
+    # raw (unfiltered) end sample, so one noisy first sample read as a motion before the first stop.
+    return scipy.signal.sosfiltfilt(sos, raw.dq_rad_s, axis=0, padtype="even")
+
+
+def _group_stops(runs: list[tuple[int, int]], q: np.ndarray, tolerance: float) -> list[list[tuple[int, int]]]:
+    """Consecutive stationary runs at the same position (every joint within ``tolerance``) form one stop."""
+    stops: list[list[tuple[int, int]]] = []
+    for a, b in runs:
+        here = np.median(q[a:b], axis=0)
+        if stops:
+            pa, pb = stops[-1][-1]
+            if np.max(np.abs(here - np.median(q[pa:pb], axis=0))) <= tolerance:
+                stops[-1].append((a, b))
+                continue
+        stops.append([(a, b)])
+    return stops
+
+
+def _move_direction(q: np.ndarray, dq_f: np.ndarray, previous: np.ndarray, tolerance: float) -> np.ndarray:
+    """``dir`` after the move ``q``/``dq_f`` (samples between two stops), given the ``dir`` before it."""
+    direction = previous.copy()
+    if q.shape[0] == 0:
+        return direction
+    travel = q.max(axis=0) - q.min(axis=0)
+    for j in np.flatnonzero(travel > tolerance):
+        speed = np.abs(dq_f[:, j])
+        last = np.flatnonzero(speed >= 0.5 * speed.max())[-1]
+        direction[j] = np.sign(dq_f[last, j]) or direction[j]
+    return direction
 
 
 def reduce_to_stationary(raw: RawLog, settings: ReductionSettings | None = None) -> StationaryDataset:
@@ -77,17 +114,37 @@ def reduce_to_stationary(raw: RawLog, settings: ReductionSettings | None = None)
     settings = settings or ReductionSettings()
     dq_f = filtered_velocity(raw, settings)
     still = np.linalg.norm(dq_f, axis=1) < settings.threshold_rad_s
-    direction = last_motion_sign(dq_f, settings.motion_threshold_rad_s)
-    stops = [(a, b) for a, b in _stop_segments(still) if b - a >= settings.min_stop_samples]
-    if not stops:
+    trim = round(settings.edge_trim_s / float(np.median(np.diff(raw.t_s))))
+    indices, directions, stop_of_sample = [], [], []
+    direction = np.zeros(raw.q_rad.shape[1])
+    previous_end = 0
+    for stop in _group_stops(_stop_segments(still), raw.q_rad, settings.same_position_rad):
+        start, end = stop[0][0], stop[-1][1]
+        move = slice(previous_end, start)
+        direction = _move_direction(raw.q_rad[move], dq_f[move], direction, settings.same_position_rad)
+        previous_end = end
+        # trim only the sides that border a move, not the start or end of the log
+        first = start + trim if start > 0 else start
+        last = end - trim if end < len(raw) else end
+        kept = np.concatenate([np.arange(max(a, first), min(b, last)) for a, b in stop])
+        if kept.size < max(settings.min_stop_samples, 1):
+            continue
+        indices.append(kept)
+        directions.append(direction.copy())
+        stop_of_sample.append(np.full(kept.size, len(indices) - 1))
+    if not indices:
         raise DataError(
             f"{raw.source}: no stationary samples (filtered |dq| below {settings.threshold_rad_s} rad/s); "
             "expected a log with stops"
         )
-    if settings.per_stop == "all":
-        index = np.concatenate([np.arange(a, b) for a, b in stops])
-        return StationaryDataset(raw.q_rad[index], raw.tau_nm[index], direction[index], raw.t_s[index], raw.source)
-    q = np.array([raw.q_rad[a:b].mean(axis=0) for a, b in stops])
-    tau = np.array([raw.tau_nm[a:b].mean(axis=0) for a, b in stops])
-    t = np.array([raw.t_s[a:b].mean() for a, b in stops])
-    return StationaryDataset(q, tau, direction[[a for a, _ in stops]], t, raw.source)
+    if settings.per_stop == "mean":
+        return StationaryDataset(
+            np.array([raw.q_rad[i].mean(axis=0) for i in indices]),
+            np.array([raw.tau_nm[i].mean(axis=0) for i in indices]),
+            np.array(directions),
+            np.array([raw.t_s[i].mean() for i in indices]),
+            raw.source,
+        )
+    index = np.concatenate(indices)
+    per_sample_dir = np.array(directions)[np.concatenate(stop_of_sample)]
+    return StationaryDataset(raw.q_rad[index], raw.tau_nm[index], per_sample_dir, raw.t_s[index], raw.source)

@@ -83,7 +83,7 @@ def read_table(path: Path | str) -> Table:
 
 def _read_csv(path: Path) -> Table:
     try:
-        with open(path, newline="", encoding="utf-8") as handle:
+        with open(path, newline="", encoding="utf-8-sig") as handle:  # -sig: spreadsheets add a BOM
             rows = list(csv.reader(handle))
     except UnicodeDecodeError:
         raise DataError(f"{path}: not a text file; expected comma-separated values with a header row") from None
@@ -135,6 +135,9 @@ def _as_column(path: Path, name: str, value: np.ndarray) -> FloatArray:
 
 def _read_npz(path: Path) -> dict[str, FloatArray]:
     try:
+        with open(path, "rb") as handle:  # np.load would also take a .npy array or try to unpickle
+            if handle.read(4) not in (b"PK\x03\x04", b"PK\x05\x06"):
+                raise zipfile.BadZipFile("no zip archive header")
         with np.load(path, allow_pickle=False) as archive:
             return {name: _as_column(path, name, archive[name]) for name in archive.files}
     except (zipfile.BadZipFile, OSError, EOFError) as exc:

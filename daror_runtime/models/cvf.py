@@ -47,9 +47,9 @@ class CvfResult:
 
 def closed_path(start_rad: Sequence[float], step_rad: float, amplitude_rad: float = PATH_AMPLITUDE_RAD) -> FloatArray:
     """Points of the closed 4-D path, first point repeated at the end; (K, 4)."""
+    if not 0 < step_rad <= amplitude_rad:
+        raise UsageError(f"step {step_rad} rad must be positive and at most the path amplitude {amplitude_rad} rad")
     n = round(amplitude_rad / step_rad)
-    if n < 1:
-        raise UsageError(f"step {step_rad} rad is larger than the path amplitude {amplitude_rad} rad")
     ramp = np.arange(1, n + 1) * (amplitude_rad / n)
     points = [np.asarray(start_rad, dtype=float)[None, :]]
     for sign in (1.0, -1.0):

@@ -37,16 +37,19 @@ class LeastSquaresFit:
     singular_values: np.ndarray  # (P,) of the column-scaled regressor, descending
     null_space: np.ndarray  # (P, P - rank) orthonormal basis of null(K), original coordinates
     gram: np.ndarray  # (P, P) K^T K, original coordinates
+    residual: np.ndarray  # (M,) y - K theta
     residual_sum_squares: float
     n_rows: int
 
     @property
     def degrees_of_freedom(self) -> int:
-        return max(self.n_rows - self.rank, 1)
+        """Equations left over once the identifiable combinations are fixed."""
+        return self.n_rows - self.rank
 
     @property
     def residual_variance(self) -> float:
-        return self.residual_sum_squares / self.degrees_of_freedom
+        """Unbiased estimate of the residual variance; NaN when no equation is left over."""
+        return self.residual_sum_squares / self.degrees_of_freedom if self.degrees_of_freedom > 0 else float("nan")
 
 
 def min_norm_least_squares(
@@ -97,6 +100,7 @@ def min_norm_least_squares(
         singular_values=singular,
         null_space=null_space,
         gram=gram,
+        residual=residual,
         residual_sum_squares=float(residual @ residual),
         n_rows=y.shape[0],
     )

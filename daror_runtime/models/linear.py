@@ -225,10 +225,19 @@ def fit_linear(
             f"{dataset.source}: {len(dataset)} stationary points identify only {fit.rank} of the {expected} "
             f"independent parameter combinations of {model_cls.kind}; expected points that move every joint{extra}"
         )
+    if fit.degrees_of_freedom < fit.rank:
+        # With fewer spare equations than unknowns the fit (nearly) interpolates its data: its
+        # training error says nothing, and one noisy reading moves every parameter.
+        needed = -(-2 * fit.rank // N_JOINTS)
+        raise IdentifiabilityError(
+            f"{dataset.source}: {len(dataset)} stationary points give {fit.n_rows} equations for the {fit.rank} "
+            f"identifiable combinations of {model_cls.kind}; expected at least {needed} points, so that as many "
+            "equations are left over as there are unknowns"
+        )
     model = model_cls(description, fit.theta[:N_GRAVITY_PARAMETERS], fit.theta[N_GRAVITY_PARAMETERS:], name)
     duration = time.perf_counter() - start
     names = GRAVITY_PARAMETER_NAMES + (polynomial_parameter_names(elbow_order) if elbow_order is not None else ())
-    residual = (target - kt.reshape(n_parameters, -1).T @ fit.theta).reshape(N_JOINTS, -1).T
+    residual = fit.residual.reshape(N_JOINTS, -1).T
     report = FitReport(
         kind=model_cls.kind,
         n_points=len(dataset),

@@ -62,13 +62,24 @@ def regressor_parameter_major(kinematics: Kinematics, q: FloatArray, elbow_order
     rotors = kinematics.rotor_rotations_component_major(q)  # (4, 3, 3, N)
     n = q.shape[0]
     n_poly = 0 if elbow_order is None else elbow_order + 1
-    out = np.zeros((N_GRAVITY_PARAMETERS + n_poly, N_JOINTS, n))
+    out = np.empty((N_GRAVITY_PARAMETERS + n_poly, N_JOINTS, n))
+    scratch = np.empty((3, n))
     for j in range(N_JOINTS):
-        lead_x, lead_z = rotors[j, 2, 2], -rotors[j, 0, 2]  # e_y x z_j
-        for i in range(j, N_JOINTS):
-            out[3 * i : 3 * i + 3, j] = lead_x * rotors[i, 0] + lead_z * rotors[i, 2]
+        lead_x, minus_lead_z = rotors[j, 2, 2], rotors[j, 0, 2]  # e_y x z_j = (z_jz, 0, -z_jx)
+        for i in range(N_JOINTS):
+            block = out[3 * i : 3 * i + 3, j]
+            if i < j:
+                block.fill(0.0)
+                continue
+            np.multiply(rotors[i, 0], lead_x, out=block)
+            np.multiply(rotors[i, 2], minus_lead_z, out=scratch)
+            block -= scratch
     if n_poly:
-        out[N_GRAVITY_PARAMETERS:, 3] = q[:, 3] ** np.arange(n_poly)[:, None]
+        powers = out[N_GRAVITY_PARAMETERS:]
+        powers[:, :3] = 0.0
+        powers[0, 3] = 1.0
+        for k in range(1, n_poly):
+            np.multiply(powers[k - 1, 3], q[:, 3], out=powers[k, 3])
     return out
 
 
@@ -81,7 +92,9 @@ def elbow_polynomial_regressor(q: FloatArray, order: int) -> FloatArray:
     """``K_s(q4)`` of Eq. 4.26 placed on the elbow row; shape (N, 4, order + 1)."""
     q = as_configurations(q)
     regressor = np.zeros((q.shape[0], N_JOINTS, order + 1))
-    regressor[:, 3, :] = q[:, 3:4] ** np.arange(order + 1)
+    regressor[:, 3, 0] = 1.0
+    # successive products, exactly as regressor_parameter_major builds them
+    regressor[:, 3, 1:] = np.cumprod(np.repeat(q[:, 3:4], order, axis=1), axis=1)
     return regressor
 
 

@@ -8,9 +8,13 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)  # read the process umask once, at import, before any thread could race it
 
 
 @contextlib.contextmanager
@@ -29,6 +33,8 @@ def atomic_path(target: Path | str, suffix: str | None = None) -> Iterator[Path]
     )
     os.close(fd)
     tmp = Path(tmp_name)
+    # mkstemp creates 0600; give the file the mode a plain open() would (or the target's own).
+    os.chmod(tmp, stat.S_IMODE(target.stat().st_mode) if target.exists() else 0o666 & ~_UMASK)
     try:
         yield tmp
         with open(tmp, "rb+") as handle:

@@ -1,0 +1,51 @@
+"""Shared fixtures: the robot description, the shipped scenarios and small simulated datasets."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from hypothesis import settings
+
+from daror_runtime.data.schema import StationaryDataset
+from hal.robot import RobotDescription, load_description
+from hal.sim.scenario import Scenario, load_scenario
+from hal.sim.static_dataset import StationarySet, generate_stationary
+
+settings.register_profile("ci", max_examples=200, deadline=None)
+settings.register_profile("dev", max_examples=50, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+def as_dataset(points: StationarySet, source: str = "<simulated>") -> StationaryDataset:
+    """The measured part of a simulated set, as the runtime's dataset type."""
+    return StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s, source)
+
+
+@pytest.fixture(scope="session")
+def description() -> RobotDescription:
+    return load_description()
+
+
+@pytest.fixture(scope="session")
+def exo() -> Scenario:
+    return load_scenario("exo")
+
+
+@pytest.fixture(scope="session")
+def exo_dummy_arm() -> Scenario:
+    return load_scenario("exo_dummy_arm")
+
+
+@pytest.fixture(scope="session")
+def dataset_b(exo_dummy_arm: Scenario) -> tuple[StationaryDataset, StationaryDataset]:
+    """Training and validation sets of dataset B (exo + Dummy Arm, noise and direction error)."""
+    train = as_dataset(generate_stationary(exo_dummy_arm, "training"), "B-training")
+    validation = as_dataset(generate_stationary(exo_dummy_arm, "validation"), "B-validation")
+    return train, validation
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20261121)
