@@ -76,7 +76,7 @@ def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.data.schema import RawLog, StationaryDataset
     from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
     from hal.sim.scenario import load_scenario
-    from hal.sim.static_dataset import STREAM_TRAINING, generate_stationary, scenario_stops, stream
+    from hal.sim.static_dataset import STREAM_RAW_LOG, generate_stationary, scenario_stops, stream
 
     scenario = load_scenario(args.scenario)
     points = generate_stationary(
@@ -90,7 +90,7 @@ def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
     console.print(f"{args.out}: {len(dataset)} stationary points of scenario {scenario.name} ({args.trajectory})")
     if args.with_raw:
         stops = scenario_stops(scenario, args.trajectory, args.waypoints, args.sub_steps)
-        raw = quasi_static_log(scenario, stops, stream(scenario.seed, STREAM_TRAINING + 100), QuasiStaticSettings())
+        raw = quasi_static_log(scenario, stops, stream(scenario.seed, STREAM_RAW_LOG), QuasiStaticSettings())
         raw_path = raw_log_path(args.out)
         write_dataset(raw_path, RawLog(raw.t_s, raw.q_rad, raw.dq_rad_s, raw.tau_nm, raw.theta_rad))
         console.print(f"{raw_path}: raw log, {len(raw.t_s)} samples")

@@ -214,3 +214,12 @@ def test_least_squares_refinement_recovers_full_accuracy() -> None:
     reference = np.linalg.lstsq(a, y, rcond=None)[0]
     assert fit.rank == 6
     assert a @ fit.theta == pytest.approx(a @ reference, abs=1e-9)
+
+
+def test_parameters_in_another_order_are_refused(description: RobotDescription) -> None:
+    from daror_runtime.models.linear import PLFModel
+
+    names = [f"theta{link}{axis}" for link in range(1, 5) for axis in "xyz"]
+    names[0], names[1] = names[1], names[0]
+    with pytest.raises(ModelFileError, match=r"parameters\.theta_names: .*expected the parameter order theta1x"):
+        PLFModel.from_parameters(description, {"theta": [0.0] * 12, "theta_names": names})

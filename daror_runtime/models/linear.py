@@ -18,7 +18,7 @@ from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import IdentifiabilityError, ModelFileError
@@ -48,6 +48,13 @@ class LinearParameters(BaseModel):
     elbow_polynomial: list[float] = Field(default_factory=list, max_length=12)
     includes_dummy_arm: bool | None = None
     includes_elbow_stiffness: bool | None = None
+
+    @field_validator("theta_names")
+    @classmethod
+    def _known_order(cls, names: list[str]) -> list[str]:
+        if names != list(GRAVITY_PARAMETER_NAMES):
+            raise ValueError(f"expected the parameter order {', '.join(GRAVITY_PARAMETER_NAMES)}")
+        return names
 
 
 class LinearCompensationModel(CompensationModel):

@@ -27,7 +27,7 @@ from hal.sim.sensors import read_encoders
 TrajectoryKind = Literal["training", "validation"]
 
 #: Independent random streams of one scenario seed, so changing one never shifts another.
-STREAM_WAYPOINTS, STREAM_TRAINING, STREAM_VALIDATION, STREAM_ORDER = 1, 2, 3, 4
+STREAM_WAYPOINTS, STREAM_TRAINING, STREAM_VALIDATION, STREAM_ORDER, STREAM_RAW_LOG = 1, 2, 3, 4, 5
 
 
 @dataclass(frozen=True)
