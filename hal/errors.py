@@ -28,3 +28,7 @@ class DescriptionError(InputError):
 
 class ShapeError(DarorError, ValueError):
     """An array of the wrong shape reached an API: a programming error, not a person's input."""
+
+
+class HalError(DarorError):
+    """The hardware (or its simulation) failed: a drive, the bus, the simulator."""

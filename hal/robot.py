@@ -51,17 +51,30 @@ class Geometry(_Strict):
 
 
 class LinkInertial(_Strict):
-    """Mass and centre of mass of one link, the CoM expressed in the link's rotor frame."""
+    """Mass and centre of mass of one link, the CoM expressed in the link's rotor frame.
+
+    ``inertia_kgm2``: principal moments of inertia about the CoM along the rotor frame's axes;
+    only the dynamic simulation needs them (statics and the models do not).
+    """
 
     mass_kg: PositiveFloat
     com_m: Vec3
+    inertia_kgm2: Annotated[tuple[float, float, float], Field(description="Ixx, Iyy, Izz about the CoM")] | None = None
 
 
 class SeaConstants(_Strict):
-    """Series elastic actuator constants (Sec. 2.2.1)."""
+    """Series elastic actuator constants (Sec. 2.2.1) and the nominal drive-train model.
+
+    The nominal values are what the controllers are designed for (the DOB's nominal model
+    ``H_n``); the simulated plant's as-built values come from the scenario.
+    """
 
     spring_stiffness_nm_per_rad: PositiveFloat = 289.0
     encoder_resolution_rad: PositiveFloat = 1e-4
+    gearbox_inertia_kgm2: PositiveFloat = Field(0.25, description="motor and gearbox inertia seen at the gearbox output")
+    gearbox_viscous_nms_per_rad: Annotated[float, Field(ge=0)] = 1.0
+    max_motor_torque_nm: PositiveFloat = Field(40.0, description="motor torque saturation at the gearbox output")
+    max_spring_deflection_rad: PositiveFloat = Field(0.12, description="mechanical end stop of the spring")
 
     @property
     def torque_resolution_nm(self) -> float:
@@ -88,6 +101,23 @@ class JointRange(_Strict):
     @property
     def upper_rad(self) -> float:
         return float(np.deg2rad(self.upper_deg))
+
+
+class DeviceLimits(_Strict):
+    """Limits of the device itself, per joint (the safety monitor's outermost envelope)."""
+
+    max_velocity_rad_s: Annotated[list[PositiveFloat], Field(min_length=N_JOINTS, max_length=N_JOINTS)] = [
+        2.0,
+        2.0,
+        2.0,
+        3.0,
+    ]
+    max_spring_torque_nm: Annotated[list[PositiveFloat], Field(min_length=N_JOINTS, max_length=N_JOINTS)] = [
+        30.0,
+        30.0,
+        30.0,
+        20.0,
+    ]
 
 
 class DummyArm(_Strict):
@@ -117,6 +147,7 @@ class RobotDescription(_Strict):
     links: Annotated[list[LinkInertial], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
     sea: SeaConstants = SeaConstants()
     joint_limits: Annotated[list[JointRange], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+    limits: DeviceLimits = DeviceLimits()
     dummy_arm: DummyArm = DummyArm()
     ap_elbow_stiffness: ElbowStiffnessPrior = ElbowStiffnessPrior()
 

@@ -44,6 +44,21 @@ class DummyArmTruth(_Strict):
     elbow_springs: list[ElbowSpringTruth] = []
 
 
+class DriveTrainTruth(_Strict):
+    """As-built drive train of each SEA (motor and gearbox up to the spring), per joint."""
+
+    gearbox_inertia_kgm2: PerJoint = Field(description="motor + gearbox inertia at the gearbox output")
+    gearbox_viscous_nms_per_rad: PerJoint
+    gearbox_coulomb_nm: PerJoint
+    coulomb_smoothing_rad_s: Annotated[float, Field(gt=0)] = Field(
+        0.01, description="Coulomb friction is tau_c tanh(v / this): smooth, so the integrator stays stable"
+    )
+    link_viscous_nms_per_rad: PerJoint = Field(description="joint bearing friction on the link side")
+    spring_damping_nms_per_rad: PerJoint = Field(description="internal damping of the torsion spring")
+    max_motor_torque_nm: PerJoint
+    command_delay_ticks: Annotated[int, Field(ge=0, le=10)] = Field(1, description="ticks before a command acts")
+
+
 class SensorTruth(_Strict):
     """Sensor imperfections of the SEAs (Sec. 2.2.1-2.2.2)."""
 
@@ -55,6 +70,12 @@ class SensorTruth(_Strict):
         [0.0] * N_JOINTS,
         description="direction-dependent torque error per joint (Sec. 2.2.2): "
         "measured = true + error x sign of the joint's last motion",
+    )
+    velocity_filter_hz: Annotated[float, Field(gt=0)] = Field(
+        50.0, description="the drives' velocity estimate: first-order low-pass of the encoder difference"
+    )
+    motion_threshold_rad_s: Annotated[float, Field(gt=0)] = Field(
+        1e-3, description="a joint faster than this has 'moved' for the direction-dependent error"
     )
 
 
@@ -92,6 +113,8 @@ class Scenario(_Strict):
     dummy_arm: DummyArmTruth | None = None
     sensors: SensorTruth = SensorTruth()
     workspace: WorkspaceBox
+    drive_train: DriveTrainTruth | None = None
+    initial_q_deg: PerJoint = Field([0.0, 20.0, 0.0, 45.0], description="where a dynamic simulation starts, at rest")
 
     def description(self) -> RobotDescription:
         """The robot description this scenario is an as-built instance of."""
