@@ -11,18 +11,23 @@
     |   +-- IdentifiabilityError    data too poor for the model (rank below the model's rank)
     |   +-- UsageError              a command-line value that makes no sense
     +-- ShapeError                  an array of the wrong shape reached an API (a bug; hal.errors)
+    +-- ConfigurationError          the runtime was wired inconsistently (a bug or a bad configuration)
+    +-- HalError                    the hardware or its simulation failed (hal.errors)
+    |   +-- HalFaultError           a backend fault latched outside the tick (hal.interface)
     +-- ExtraMissingError           an optional extra (e.g. ``nn``) is needed but not installed
 """
 
 from __future__ import annotations
 
-from hal.errors import DarorError, DescriptionError, InputError, ShapeError
+from hal.errors import DarorError, DescriptionError, HalError, InputError, ShapeError
 
 __all__ = [
+    "ConfigurationError",
     "DarorError",
     "DataError",
     "DescriptionError",
     "ExtraMissingError",
+    "HalError",
     "IdentifiabilityError",
     "InputError",
     "ModelFileError",
@@ -54,3 +59,7 @@ class UsageError(InputError):
 
 class ExtraMissingError(DarorError):
     """An optional extra (``pip install daror-runtime[nn]``) is needed for this and is not installed."""
+
+
+class ConfigurationError(DarorError):
+    """The runtime was wired inconsistently: a bug, or a configuration that cannot work."""

@@ -71,7 +71,9 @@ class SeaConstants(_Strict):
 
     spring_stiffness_nm_per_rad: PositiveFloat = 289.0
     encoder_resolution_rad: PositiveFloat = 1e-4
-    gearbox_inertia_kgm2: PositiveFloat = Field(0.25, description="motor and gearbox inertia seen at the gearbox output")
+    gearbox_inertia_kgm2: PositiveFloat = Field(
+        0.25, description="motor and gearbox inertia seen at the gearbox output"
+    )
     gearbox_viscous_nms_per_rad: Annotated[float, Field(ge=0)] = 1.0
     max_motor_torque_nm: PositiveFloat = Field(40.0, description="motor torque saturation at the gearbox output")
     max_spring_deflection_rad: PositiveFloat = Field(0.12, description="mechanical end stop of the spring")

@@ -334,3 +334,15 @@ def test_quasi_static_settings_rate_changes_nothing_of_the_stops(exo_dummy_arm: 
     assert len(mean) == len(STOPS)
     assert np.abs(mean.q_rad - STOPS).max() < 2e-4
     assert np.array_equal(mean.direction, EXPECTED_DIR)
+
+
+def test_points_per_stop_splits_each_stop_into_averaged_parts(stop_log: QuasiStaticLog) -> None:
+    one = reduce_to_stationary(as_raw(stop_log), ReductionSettings(per_stop="mean"))
+    three = reduce_to_stationary(as_raw(stop_log), ReductionSettings(per_stop="mean", points_per_stop=3))
+    assert len(three) == 3 * len(one)
+    # the parts of a stop share its direction, follow each other in time and average to the stop's mean
+    assert np.array_equal(three.direction[::3], one.direction)
+    assert np.all(np.diff(three.t_s) > 0)
+    assert three.q_rad.reshape(-1, 3, 4).mean(axis=1) == pytest.approx(one.q_rad, abs=2e-5)
+    with pytest.raises(DataError, match="points_per_stop must be at least 1"):
+        reduce_to_stationary(as_raw(stop_log), ReductionSettings(per_stop="mean", points_per_stop=0))

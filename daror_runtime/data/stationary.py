@@ -45,6 +45,7 @@ class ReductionSettings:
     same_position_rad: float = 1e-3
     edge_trim_s: float = 0.1
     per_stop: StopReduction = "all"
+    points_per_stop: int = 1  # with per_stop="mean": each stop split into this many averaged parts
     min_stop_samples: int = 1
 
 
@@ -138,11 +139,18 @@ def reduce_to_stationary(raw: RawLog, settings: ReductionSettings | None = None)
             "expected a log with stops"
         )
     if settings.per_stop == "mean":
+        if settings.points_per_stop < 1:
+            raise DataError(f"{raw.source}: points_per_stop must be at least 1, got {settings.points_per_stop}")
+        parts = [
+            (part, direction)
+            for kept, direction in zip(indices, directions, strict=True)
+            for part in np.array_split(kept, min(settings.points_per_stop, kept.size))
+        ]
         return StationaryDataset(
-            np.array([raw.q_rad[i].mean(axis=0) for i in indices]),
-            np.array([raw.tau_nm[i].mean(axis=0) for i in indices]),
-            np.array(directions),
-            np.array([raw.t_s[i].mean() for i in indices]),
+            np.array([raw.q_rad[i].mean(axis=0) for i, _ in parts]),
+            np.array([raw.tau_nm[i].mean(axis=0) for i, _ in parts]),
+            np.array([d for _, d in parts]),
+            np.array([raw.t_s[i].mean() for i, _ in parts]),
             raw.source,
         )
     index = np.concatenate(indices)

@@ -59,6 +59,18 @@ class DriveTrainTruth(_Strict):
     command_delay_ticks: Annotated[int, Field(ge=0, le=10)] = Field(1, description="ticks before a command acts")
 
 
+class EndStopTruth(_Strict):
+    """The mechanical end stops: a stiff, damped, push-only spring just beyond each device limit.
+
+    They keep a simulated arm whose torque is off (FAIL) from swinging through its range, as the
+    real hard stops do; the safety monitor's joint limits trip before they are reached.
+    """
+
+    margin_deg: NonNegative = Field(2.0, description="how far beyond the device's joint limits the stops sit")
+    stiffness_nm_per_rad: Annotated[float, Field(gt=0)] = 2000.0
+    damping_nms_per_rad: NonNegative = 20.0
+
+
 class SensorTruth(_Strict):
     """Sensor imperfections of the SEAs (Sec. 2.2.1-2.2.2)."""
 
@@ -114,6 +126,7 @@ class Scenario(_Strict):
     sensors: SensorTruth = SensorTruth()
     workspace: WorkspaceBox
     drive_train: DriveTrainTruth | None = None
+    end_stops: EndStopTruth = EndStopTruth()
     initial_q_deg: PerJoint = Field([0.0, 20.0, 0.0, 45.0], description="where a dynamic simulation starts, at rest")
 
     def description(self) -> RobotDescription:

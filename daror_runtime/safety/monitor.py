@@ -1,0 +1,243 @@
+"""The safety monitor: checks every sample, latches faults, and filters every command.
+
+Per tick (DESIGN.md section 3)::
+
+    faults = monitor.check(sample)          # new faults of this tick (also latched)
+    ...                                     # the FSM routes faults to FAIL (issue 4)
+    command = monitor.filter(command, ...)  # torque off while faulted or an e-stop is pressed
+
+The check is built for the 1 kHz tick: one vectorised bounds test over every checked signal
+(joint angles, velocities, spring torques, deflections, the jump since the last sample) decides
+the common case; only when something is out of bounds does a slow path work out what, for the
+message. A NaN fails every comparison, so it can never slip through the fast path.
+
+A fault is *latched* until :meth:`SafetyMonitor.clear` is called while its condition is gone;
+a condition is only reported again after it went away (no fault storm from one held e-stop).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+
+import numpy as np
+import structlog
+
+from daror_runtime.errors import ConfigurationError
+from daror_runtime.safety.faults import Fault, FaultKind
+from daror_runtime.safety.kernels import clip_finite, signals_in_bounds
+from daror_runtime.safety.limits import SafetyLimits
+from hal.interface import Command, DriveState, Sample
+from hal.robot import N_JOINTS, FloatArray
+
+log = structlog.get_logger(__name__)
+
+IsbFunction = Callable[[FloatArray], FloatArray]
+
+#: Order of the signal groups in the vector the fast path checks.
+_GROUPS = (
+    (FaultKind.JOINT_LIMIT, "joint angle", "rad"),
+    (FaultKind.VELOCITY, "joint velocity", "rad/s"),
+    (FaultKind.TORQUE, "spring torque", "Nm"),
+    (FaultKind.DEFLECTION, "spring deflection", "rad"),
+    (FaultKind.JUMP, "jump since the previous sample", "rad"),
+)
+
+
+class SafetyMonitor:
+    """Checks samples against :class:`SafetyLimits`; owns the latched faults.
+
+    Args:
+        limits: what to check against; replace between ticks with :meth:`set_limits`.
+        isb_angles: maps one configuration ``q`` (4,) to its ISB angles (4,) [elevation,
+            horizontal rotation, axial rotation, elbow] in rad; needed when ``limits.isb`` is set.
+    """
+
+    def __init__(self, limits: SafetyLimits, isb_angles: IsbFunction | None = None) -> None:
+        self._isb_angles = isb_angles
+        self._latched: dict[tuple[FaultKind, int | None], Fault] = {}
+        self._present: set[tuple[FaultKind, int | None]] = set()
+        self._previous_q: FloatArray | None = None
+        self._previous_seq: int | None = None
+        self._same_seq = 0
+        self.set_limits(limits)
+
+    # --- configuration --------------------------------------------------------------------
+
+    def set_limits(self, limits: SafetyLimits) -> None:
+        """Use ``limits`` from the next check on (call between ticks)."""
+        self.limits = limits
+        self._lower = np.concatenate(
+            [
+                limits.joint_lower_rad,
+                -limits.max_velocity_rad_s,
+                -limits.max_spring_torque_nm,
+                np.full(N_JOINTS, -limits.max_deflection_rad),
+                np.full(N_JOINTS, -limits.max_jump_rad),
+            ]
+        )
+        self._upper = np.concatenate(
+            [
+                limits.joint_upper_rad,
+                limits.max_velocity_rad_s,
+                limits.max_spring_torque_nm,
+                np.full(N_JOINTS, limits.max_deflection_rad),
+                np.full(N_JOINTS, limits.max_jump_rad),
+            ]
+        )
+        if limits.isb is not None:
+            if self._isb_angles is None:
+                raise ConfigurationError("ISB limits are set but the monitor has no isb_angles function")
+            self._isb_lower = limits.isb.lower_rad - limits.isb_margin_rad
+            self._isb_upper = limits.isb.upper_rad + limits.isb_margin_rad
+
+    # --- state ----------------------------------------------------------------------------
+
+    @property
+    def faulted(self) -> bool:
+        """True while any fault is latched: torque stays off."""
+        return bool(self._latched)
+
+    @property
+    def latched(self) -> list[Fault]:
+        return list(self._latched.values())
+
+    def conditions_present(self) -> set[FaultKind]:
+        """Fault classes whose condition held at the last check."""
+        return {kind for kind, _ in self._present}
+
+    def clear(self) -> list[Fault]:
+        """Unlatch every fault whose condition is gone; returns the faults that remain latched."""
+        for key in list(self._latched):
+            if key not in self._present:
+                del self._latched[key]
+        return self.latched
+
+    def reset_history(self) -> None:
+        """Forget the previous sample (after the HAL was reopened: no jump or staleness across it)."""
+        self._previous_q = None
+        self._previous_seq = None
+        self._same_seq = 0
+
+    # --- per tick -------------------------------------------------------------------------
+
+    def report(self, kind: FaultKind, t_s: float, message: str, joint: int | None = None) -> Fault | None:
+        """A fault found outside :meth:`check` (HAL error, overrun, software); latched like the rest."""
+        new = self._raise_edge({(kind, joint): Fault(kind, t_s, message, joint)}, transient=True)
+        return new[0] if new else None
+
+    def check(self, sample: Sample) -> list[Fault]:
+        """Check one sample; returns the faults that appeared with it (already latched)."""
+        found: dict[tuple[FaultKind, int | None], Fault] = {}
+        q = sample.q_rad
+        has_previous = self._previous_q is not None
+        previous = self._previous_q if has_previous else q
+        in_bounds = signals_in_bounds(
+            q, sample.dq_rad_s, sample.tau_nm, sample.theta_rad, previous, has_previous, self._lower, self._upper
+        )
+        if not in_bounds:
+            self._diagnose(sample, found)
+        elif self.limits.isb is not None:
+            self._check_isb(sample, found)
+        if sample.seq == self._previous_seq:
+            self._same_seq += 1
+            if self._same_seq >= self.limits.stale_ticks:
+                found[(FaultKind.STALE, None)] = Fault(
+                    FaultKind.STALE,
+                    sample.t_s,
+                    f"no fresh sample for {self._same_seq} ticks (seq {sample.seq})",
+                    value=float(self._same_seq),
+                    limit=float(self.limits.stale_ticks),
+                )
+        else:
+            self._same_seq = 0
+        if True in sample.estop:
+            pressed = ", ".join(name for name, on in zip(("operator", "pilot"), sample.estop, strict=False) if on)
+            found[(FaultKind.ESTOP, None)] = Fault(FaultKind.ESTOP, sample.t_s, f"e-stop pressed ({pressed})")
+        if DriveState.FAULT in sample.drives:
+            for j, state in enumerate(sample.drives, start=1):
+                if state == DriveState.FAULT:
+                    code = sample.drive_fault_codes[j - 1] if j - 1 < len(sample.drive_fault_codes) else 0
+                    found[(FaultKind.DRIVE, j)] = Fault(
+                        FaultKind.DRIVE, sample.t_s, f"drive {j} reports a fault (code 0x{code:04x})", joint=j
+                    )
+        if in_bounds or math.isfinite(float(q.sum())):
+            self._previous_q = q
+        self._previous_seq = sample.seq
+        if not found and not self._present:  # the common case: nothing to latch or clear
+            return []
+        return self._raise_edge(found)
+
+    def filter(self, command: Command, sample: Sample | None) -> Command:
+        """The command that may reach the drives: off while faulted or an e-stop is pressed, else clipped."""
+        if self._latched or sample is None or True in sample.estop or not command.enable:
+            return Command.torque_off()
+        torque = command.motor_torque_nm
+        clipped = np.empty(N_JOINTS)
+        if not clip_finite(torque, self.limits.command_limit_nm, clipped):
+            self.report(FaultKind.SOFTWARE, sample.t_s, f"controller produced a non-finite torque {torque.tolist()}")
+            return Command.torque_off()
+        return Command(clipped, True)
+
+    # --- internals ------------------------------------------------------------------------
+
+    def _raise_edge(self, found: dict[tuple[FaultKind, int | None], Fault], transient: bool = False) -> list[Fault]:
+        """Latch and return faults whose condition was not present at the previous check."""
+        new = []
+        for key, fault in found.items():
+            if key not in self._present and key not in self._latched:
+                new.append(fault)
+                log.error("fault", **fault.as_dict())
+            self._latched.setdefault(key, fault)
+        if transient:
+            return new
+        self._present = set(found)
+        return new
+
+    def _diagnose(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
+        """Name every violated bound (the slow path, only when the fast check failed)."""
+        q = sample.q_rad
+        jump = np.zeros(N_JOINTS) if self._previous_q is None else q - self._previous_q
+        signals = np.concatenate([q, sample.dq_rad_s, sample.tau_nm, sample.theta_rad - q, jump])
+        lower, upper = self._lower, self._upper
+        for g, (kind, what, unit) in enumerate(_GROUPS):
+            for j in range(N_JOINTS):
+                i = 4 * g + j
+                value = float(signals[i])
+                if not np.isfinite(value):
+                    key = (FaultKind.NOT_FINITE, j + 1)
+                    found.setdefault(
+                        key, Fault(FaultKind.NOT_FINITE, sample.t_s, f"joint {j + 1}: {what} is {value}", joint=j + 1)
+                    )
+                elif value < lower[i] or value > upper[i]:
+                    limit = float(lower[i] if value < lower[i] else upper[i])
+                    found[(kind, j + 1)] = Fault(
+                        kind,
+                        sample.t_s,
+                        f"joint {j + 1}: {what} {value:.4g} {unit} beyond the limit {limit:.4g} {unit}",
+                        joint=j + 1,
+                        value=value,
+                        limit=limit,
+                    )
+
+    def _check_isb(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
+        angles = self._isb_angles(sample.q_rad)  # type: ignore[misc]
+        if np.all((angles >= self._isb_lower) & (angles <= self._isb_upper)):
+            return
+        names = ("elevation", "horizontal rotation", "axial rotation", "elbow")
+        for j in range(N_JOINTS):
+            value = float(angles[j])
+            if not self._isb_lower[j] <= value <= self._isb_upper[j]:
+                limit = float(self._isb_lower[j] if value < self._isb_lower[j] else self._isb_upper[j])
+                found[(FaultKind.ISB_LIMIT, j + 1)] = Fault(
+                    FaultKind.ISB_LIMIT,
+                    sample.t_s,
+                    f"{names[j]} {np.degrees(value):.1f} deg beyond the pilot's limit {np.degrees(limit):.1f} deg",
+                    joint=4 if j == 3 else None,
+                    value=value,
+                    limit=limit,
+                )
+
+
+def faults_text(faults: Iterable[Fault]) -> str:
+    return "; ".join(f"{f.kind.value}: {f.message}" for f in faults)

@@ -1,0 +1,418 @@
+"""The simulated HAL backend: the dynamic plant behind the :class:`hal.interface.Hal` contract.
+
+Time belongs to the simulator (lock-step): :meth:`SimHal.read` returns the sample at the current
+plant time and :meth:`SimHal.write` queues the command and advances the plant by exactly one tick
+``1 / rate_hz``. The loop's usual ``read(); write()`` is therefore one tick of robot time, however
+fast the CPU runs it.
+
+What the drives do, per tick, in this order (``write``):
+
+1. the command enters a FIFO and the one written ``command_delay_ticks`` earlier comes out; a
+   disabled command instead empties the FIFO and removes torque at once (a drive's power stage
+   switches off immediately, it does not wait for the bus);
+2. joints whose drive has an injected fault get no torque; the plant integrates one RK4 step
+   with the motor torque and the pilot's external torque held constant;
+3. both encoders of every joint are read (white noise, quantisation), the drive updates its
+   velocity estimate (low-passed encoder difference) and the measured spring torque (with the
+   direction-dependent error of Sec. 2.2.2).
+
+Sim-only hooks for tests (not part of the Hal contract): :meth:`SimHal.set_external_torque`,
+:meth:`SimHal.press_estop`, :meth:`SimHal.inject_fault`, :meth:`SimHal.clear_faults`,
+:meth:`SimHal.truth`. Randomness comes only from the scenario seed (stream
+:data:`STREAM_SIM_ENCODERS`), so two instances of one scenario produce identical samples.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+
+from hal.errors import DescriptionError, HalError, InputError, ShapeError
+from hal.interface import Command, DriveState, Hal, HalFaultError, Sample
+from hal.robot import N_JOINTS, FloatArray, RobotDescription
+from hal.sim import dynamics
+from hal.sim.plant import DynamicPlant, PlantTruth
+from hal.sim.scenario import Scenario, load_scenario
+from hal.sim.static_dataset import stream
+
+#: Random stream of the encoder noise; ids 1-5 belong to hal.sim.static_dataset.
+STREAM_SIM_ENCODERS = 6
+#: Fault code a drive reports for an injected ``drive_fault`` without a value (CiA 301 "generic error").
+DEFAULT_DRIVE_FAULT_CODE = 0x1000
+
+_DQ = slice(2 * N_JOINTS, 3 * N_JOINTS)
+_hal_tick = dynamics.hal_tick  # one attribute lookup less per tick  # q' in the plant state [q, theta, q', theta']
+
+FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus"]
+FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
+#: The pilot pushing: f(t_s, q_true_rad, dq_true_rad_s) -> (4,) external torque on the links, Nm.
+ExternalTorque = Callable[[float, FloatArray, FloatArray], FloatArray]
+
+
+class SimHal(Hal):
+    """The DAROR-01 as a lock-step simulation of one scenario.
+
+    Args:
+        scenario: a :class:`Scenario` or the name/path of one (default the robot with the Dummy Arm).
+        rate_hz: tick rate; one :meth:`write` advances the plant by ``1 / rate_hz``.
+        description: the robot description; default the one the scenario names.
+
+    Raises:
+        DescriptionError: the scenario cannot be loaded or simulated dynamically (no drive train,
+            a body without inertia), or the plant is not stable under RK4 at ``rate_hz``.
+        InputError: ``rate_hz`` is not positive and finite.
+    """
+
+    kind = "sim"
+
+    def __init__(
+        self,
+        scenario: Scenario | str = "exo_dummy_arm",
+        rate_hz: float = 1000.0,
+        description: RobotDescription | None = None,
+    ) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise InputError(f"rate_hz = {rate_hz}: must be positive and finite")
+        self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
+        super().__init__(description or self.scenario.description())
+        self._rate_hz = float(rate_hz)
+        self._dt = 1.0 / self._rate_hz
+        self._plant = DynamicPlant(self.scenario, self.description)
+        if self._dt > self._plant.max_dt_s:
+            raise DescriptionError(
+                f"scenario {self.scenario.name!r}: at {rate_hz:g} Hz the tick of {self._dt:.3g} s exceeds the plant's "
+                f"stable step of {self._plant.max_dt_s:.3g} s; raise rate_hz above {1 / self._plant.max_dt_s:.0f} Hz"
+            )
+        sensors = self.scenario.sensors
+        self._drive_vector = np.zeros(dynamics.DRIVE_VECTOR_SIZE)
+        self._drive_vector[dynamics.S_STIFFNESS : dynamics.S_STIFFNESS + N_JOINTS] = self._plant.stiffness_nm_per_rad
+        self._drive_vector[dynamics.S_RESOLUTION] = self.description.sea.encoder_resolution_rad
+        self._drive_vector[dynamics.S_QUANTISE] = 1.0 if sensors.quantise else 0.0
+        self._drive_vector[dynamics.S_NOISE] = sensors.encoder_noise_rad
+        self._drive_vector[dynamics.S_DIRECTION_ERROR : dynamics.S_DIRECTION_ERROR + N_JOINTS] = (
+            sensors.direction_error_nm
+        )
+        # First-order low-pass 1 / (1 + s / (2 pi f)), discretised exactly for inputs held over a tick.
+        self._drive_vector[dynamics.S_FILTER_ALPHA] = 1.0 - math.exp(
+            -2.0 * math.pi * sensors.velocity_filter_hz * self._dt
+        )
+        self._drive_vector[dynamics.S_THRESHOLD] = sensors.motion_threshold_rad_s
+        self._drive_vector[dynamics.S_DT] = self._dt
+        self._drive_vector[dynamics.S_SUBSTEPS] = self._plant.substeps(self._dt)
+        self._drive_vector[dynamics.S_FIFO_LENGTH] = self._plant.command_delay_ticks + 1
+        self._zero_torque = np.zeros(N_JOINTS)
+        self._external: FloatArray | ExternalTorque | None = None
+        self._estop = (False, False)
+        self._disabled_drives = (DriveState.DISABLED,) * N_JOINTS
+        self._enabled_drives = (DriveState.ENABLED,) * N_JOINTS
+        self._no_fault_codes = (0,) * N_JOINTS
+        self._is_open = False
+        self._reset_session()
+
+    # --- Hal contract ---------------------------------------------------------------------------
+
+    @property
+    def rate_hz(self) -> float:
+        return self._rate_hz
+
+    def open(self) -> None:
+        """Start a session: plant at rest in static equilibrium at the scenario's ``initial_q_deg``.
+
+        Drives are disabled, injected faults cleared, the noise stream restarted from the seed
+        (every session of a scenario replays identically). E-stop inputs and the external torque
+        are the environment's and stay as they are.
+        """
+        self._reset_session()
+        self._is_open = True
+
+    def close(self) -> None:
+        """Remove torque (the FIFO is emptied, drives disabled) and end the session. Safe twice."""
+        self._flush_commands()
+        self._drives = self._disabled_drives
+        self._is_open = False
+
+    def read(self) -> Sample:
+        """The sample at the current plant time (the same object if read twice in one tick).
+
+        Raises:
+            HalFaultError: a ``bus`` fault was injected since the previous read (raised once).
+            HalError: the backend is not open.
+        """
+        if not self._is_open:
+            raise HalError("simulated HAL is not open; call open() first")
+        if self._bus_fault:
+            self._bus_fault = False
+            raise HalFaultError(f"simulated bus fault at t = {self._tick * self._dt:.6f} s (injected)")
+        sample = self._sample
+        if sample is None:
+            sample = self._sample = self._build_sample()
+        return sample
+
+    def write(self, command: Command) -> None:
+        """Apply ``command`` and advance the plant by one tick.
+
+        Enabled commands act ``command_delay_ticks`` ticks later; a disabled command removes the
+        torque of every joint from this tick on and discards the commands still queued.
+
+        Raises:
+            HalError: the backend is not open; an enabled command with a non-finite torque (torque
+                is removed first and the tick does not advance); the plant diverged.
+            ShapeError: an enabled command's torque is not of shape (4,) (torque removed first).
+        """
+        if not self._is_open:
+            raise HalError("simulated HAL is not open; call open() first")
+        if command.enable:
+            torque = np.ascontiguousarray(command.motor_torque_nm, dtype=np.float64)
+            if torque.shape != (N_JOINTS,):
+                self._flush_commands()
+                self._drives = self._drive_states(False)
+                raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")
+        else:
+            torque = self._zero_torque  # torque off whatever the command carries
+        external = self._external
+        if external is not None and callable(external):
+            state = self._plant.state
+            value = external(self._tick * self._dt, state[:N_JOINTS].copy(), state[_DQ].copy())
+            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = _external_vector(
+                value
+            )
+        readings = np.empty((4, N_JOINTS))
+        plant = self._plant
+        enable = bool(command.enable)
+        status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
+        if status == dynamics.TICK_NO_NOISE:  # every NOISE_BLOCK_TICKS ticks
+            self._refill_noise()
+            status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
+        if status < 0:
+            self._drives = self._drive_states(False)
+            if status == dynamics.TICK_BAD_COMMAND:
+                raise HalError(f"motor_torque_nm = {torque.tolist()} is not finite; torque removed")
+            raise HalError(
+                f"simulated plant diverged at t = {self._tick * self._dt:.6f} s (scenario {self.scenario.name!r}); "
+                "torque removed"
+            )
+        if self._any_fault:
+            self._drives = self._drive_states(status == dynamics.TICK_ENABLED)
+        else:
+            self._drives = self._enabled_drives if status == dynamics.TICK_ENABLED else self._disabled_drives
+        self._tick += 1
+        plant.time_s = self._tick * self._dt
+        self._readings = readings
+        if self._stale_left > 0:
+            self._stale_left -= 1
+            self._sample = self._stale_sample
+        else:
+            self._sample = None
+
+    # --- sim-only hooks -------------------------------------------------------------------------
+
+    @property
+    def plant(self) -> DynamicPlant:
+        """The simulated plant (tests and tools; the runtime must use read/write only)."""
+        return self._plant
+
+    @property
+    def time_s(self) -> float:
+        """Plant time now, s."""
+        return self._tick * self._dt
+
+    @property
+    def applied_motor_torque_nm(self) -> FloatArray:
+        """Motor torque the simulated drives applied during the last tick (4,) Nm (tests only)."""
+        return self._drive_vector[dynamics.S_INPUTS : dynamics.S_INPUTS + N_JOINTS].copy()
+
+    def truth(self) -> PlantTruth:
+        """The true ``(q, dq, theta, dtheta, tau_spring)`` now (copies), for tests."""
+        return self._plant.truth()
+
+    def set_external_torque(self, torque: FloatArray | ExternalTorque | None) -> None:
+        """The pilot pushing: torque on the links from outside, Nm, held over each tick.
+
+        ``None`` removes it; a (4,) array is constant; a callable ``f(t_s, q_true, dq_true)``
+        returning (4,) is called once per tick with the plant time and true state at the start of
+        the tick.
+
+        Raises:
+            ShapeError: an array not of shape (4,) (a callable's result is checked each tick).
+            InputError: a non-finite element.
+        """
+        if torque is None or callable(torque):
+            self._external = torque
+            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = 0.0
+        else:
+            self._external = _external_vector(torque)
+            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = self._external
+
+    def press_estop(self, which: int, pressed: bool) -> None:
+        """Press (True) or release an e-stop: ``which`` 0 is the operator's, 1 the pilot's.
+
+        The simulator only reports the input (``Sample.estop``, from the next sample built);
+        removing torque is the runtime's job, which is what the closed-loop tests check.
+
+        Raises:
+            InputError: ``which`` is not 0 or 1.
+        """
+        if isinstance(which, bool) or which not in (0, 1):
+            raise InputError(f"e-stop {which!r}: expected 0 (operator) or 1 (pilot)")
+        estop = list(self._estop)
+        estop[which] = bool(pressed)
+        self._estop = (estop[0], estop[1])
+
+    def inject_fault(self, kind: FaultKind, joint: int | None = None, value: float | None = None) -> None:
+        """Inject a fault, effective from the next sample built or the next tick.
+
+        Kinds (``joint`` 1-4, None for all joints where it applies):
+
+        * ``"nan"``: the next sample's ``q`` of ``joint`` is NaN (only ``q``: a monitor must check it).
+        * ``"jump"``: the ``q`` reading of ``joint`` is offset by ``value`` rad from now on (the
+          drive's velocity estimate and measured torque see it too, as with a slipped encoder).
+        * ``"stale"``: the next ``value`` (default 1) ticks repeat the latest sample object,
+          same ``seq``; afterwards ``seq`` jumps to the tick count (the drives kept counting).
+        * ``"drive_fault"``: ``joint``'s drive reports FAULT with fault code ``value`` (default
+          0x1000) and applies no torque until :meth:`clear_faults`.
+        * ``"bus"``: the next :meth:`read` raises :class:`HalFaultError`.
+
+        Raises:
+            HalError: the backend is not open.
+            InputError: unknown kind, joint not 1-4, or a missing/invalid value.
+        """
+        if not self._is_open:
+            raise HalError("simulated HAL is not open; call open() first")
+        if kind not in FAULT_KINDS:
+            raise InputError(f"fault kind {kind!r}; expected one of {', '.join(FAULT_KINDS)}")
+        if joint is not None and (isinstance(joint, bool) or joint not in range(1, N_JOINTS + 1)):
+            raise InputError(f"joint {joint!r}; expected 1-{N_JOINTS} or None for all joints")
+        joints = list(range(N_JOINTS)) if joint is None else [joint - 1]
+        if kind == "nan":
+            self._nan_pending.extend(joints)
+        elif kind == "jump":
+            offset = _number(value)
+            if offset is None or not math.isfinite(offset):
+                raise InputError(f"a 'jump' fault needs a finite offset value in rad, got {value!r}")
+            for j in joints:
+                self._drive_vector[dynamics.S_JUMP + j] += offset
+        elif kind == "stale":
+            ticks = 1.0 if value is None else _number(value)
+            if ticks is None or not ticks.is_integer() or ticks < 1:
+                raise InputError(f"a 'stale' fault needs a whole number of ticks >= 1, got {value!r}")
+            self._stale_sample = self.read_without_faults()
+            self._stale_left = int(ticks)
+        elif kind == "drive_fault":
+            code = float(DEFAULT_DRIVE_FAULT_CODE) if value is None else _number(value)
+            if code is None or not code.is_integer() or not 0 < code <= 0xFFFF:
+                raise InputError(f"a drive fault code must be a whole number in 1..0xFFFF, got {value!r}")
+            codes = list(self._fault_codes)
+            for j in joints:
+                self._drive_vector[dynamics.S_FAULTED + j] = 1.0
+                codes[j] = int(code)
+            self._fault_codes = tuple(codes)
+            self._any_fault = True
+            self._drives = tuple(DriveState.FAULT if j in joints else state for j, state in enumerate(self._drives))
+        else:  # bus
+            self._bus_fault = True
+
+    def clear_faults(self) -> None:
+        """Clear every injected fault (pending NaN, jump offsets, stale, drive faults, bus).
+
+        A drive whose fault is cleared reports DISABLED until the next enabled command acts.
+        """
+        self._nan_pending = []
+        self._drive_vector[dynamics.S_JUMP : dynamics.S_JUMP + N_JOINTS] = 0.0
+        self._stale_left = 0
+        self._bus_fault = False
+        self._drives = tuple(DriveState.DISABLED if d == DriveState.FAULT else d for d in self._drives)
+        self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] = 0.0
+        self._any_fault = False
+        self._fault_codes = self._no_fault_codes
+
+    def read_without_faults(self) -> Sample:
+        """The current tick's sample without raising a pending bus fault (hooks and tests).
+
+        Raises:
+            HalError: the backend is not open.
+        """
+        if not self._is_open:
+            raise HalError("simulated HAL is not open; call open() first")
+        if self._sample is None:
+            self._sample = self._build_sample()
+        return self._sample
+
+    # --- internals ------------------------------------------------------------------------------
+
+    def _reset_session(self) -> None:
+        self._plant.reset()
+        self._tick = 0
+        self._rng = stream(self.scenario.seed, STREAM_SIM_ENCODERS)
+        self._drive_vector[dynamics.S_JUMP : dynamics.S_STARTED + 1] = 0.0  # jump offsets, sensor state
+        self._drive_vector[dynamics.S_TICK] = 0.0
+        self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] = 0.0
+        self._flush_commands()
+        self._drives = self._disabled_drives
+        self._any_fault = False
+        self._fault_codes = self._no_fault_codes
+        self._nan_pending: list[int] = []
+        self._stale_left = 0
+        self._stale_sample: Sample | None = None
+        self._bus_fault = False
+        self._refill_noise()
+        self._readings = np.empty((4, N_JOINTS))
+        dynamics.sense(self._plant.state, self._drive_vector, self._readings)
+        self._sample: Sample | None = None
+
+    def _refill_noise(self) -> None:
+        # Sequential blocks of one generator: the numbers do not depend on the block size.
+        block = self._drive_vector[dynamics.S_NOISE_BLOCK :]
+        block[:] = self._rng.standard_normal(block.size)
+        self._drive_vector[dynamics.S_NOISE_INDEX] = 0.0
+
+    def _flush_commands(self) -> None:
+        dynamics.flush_commands(self._drive_vector)
+
+    def _drive_states(self, enabled: bool) -> tuple[DriveState, ...]:
+        if not self._any_fault:
+            return self._enabled_drives if enabled else self._disabled_drives
+        on = DriveState.ENABLED if enabled else DriveState.DISABLED
+        return tuple(
+            DriveState.FAULT if f else on
+            for f in self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] > 0
+        )
+
+    def _build_sample(self) -> Sample:
+        readings = self._readings
+        if self._nan_pending:
+            readings[0, self._nan_pending] = np.nan
+            self._nan_pending = []
+        readings.flags.writeable = False  # a sample is a record: nobody may change it afterwards
+        q, dq, theta, tau = readings
+        # Positional: Sample(seq, t_s, q, dq, theta, tau, estop, drives, fault codes); this runs every tick.
+        return Sample(
+            self._tick, self._tick * self._dt, q, dq, theta, tau, self._estop, self._drives, self._fault_codes
+        )
+
+
+def _number(value: object) -> float | None:
+    """``value`` as a float, or None if it is not a number (bools are not numbers here)."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+
+
+def _external_vector(value: object) -> FloatArray:
+    """An external torque as a finite (4,) float array.
+
+    Raises:
+        ShapeError: not of shape (4,).
+        InputError: a non-finite element.
+    """
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape != (N_JOINTS,):
+        raise ShapeError(f"external torque: expected shape ({N_JOINTS},), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise InputError(f"external torque: every element must be finite, got {array.tolist()}")
+    return array
