@@ -102,7 +102,7 @@ class RealTimeClock(Clock):
         if overrun:
             self.overruns += 1
             self._consecutive += 1
-            behind = int(math.floor((now - deadline) / self.period_s))
+            behind = math.floor((now - deadline) / self.period_s)
             if behind > 0:  # start on the most recent deadline rather than burst through the missed ones
                 self.skipped_deadlines += behind
                 index += behind

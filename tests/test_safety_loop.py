@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -268,6 +269,6 @@ def test_recorder_failure() -> None:
 
 def test_every_fault_class_is_covered_here() -> None:
     """A new fault class must get its closed-loop test in this file."""
-    source = open(__file__, encoding="utf-8").read()
+    source = Path(__file__).read_text(encoding="utf-8")
     missing = [k.name for k in FaultKind if f"FaultKind.{k.name}" not in source]
     assert missing == []
