@@ -30,7 +30,8 @@ from daror_runtime.util.atomic import write_text_atomic
 
 @dataclass(frozen=True)
 class BenchFigure:
-    """One measured figure; ``target`` is an upper bound in ``unit`` (None: no target)."""
+    """One measured figure; ``target`` is an upper bound in ``unit`` (a lower bound when
+    ``at_least``), None when there is no target."""
 
     name: str
     median: float
@@ -40,10 +41,13 @@ class BenchFigure:
     target: float | None = None
     thesis: str | None = None
     note: str = ""
+    at_least: bool = False
 
     @property
     def met(self) -> bool | None:
-        return None if self.target is None else self.median <= self.target
+        if self.target is None:
+            return None
+        return self.median >= self.target if self.at_least else self.median <= self.target
 
 
 def time_calls(fn: Callable[[], object], repeats: int, per_call: int = 1, scale: float = 1e3) -> tuple[float, float]:
@@ -84,8 +88,11 @@ def bench_directory() -> Path:
     return path
 
 
-def discover(directory: Path) -> list[Callable[[bool], BenchFigure]]:
-    benchmarks: list[Callable[[bool], BenchFigure]] = []
+Benchmark = Callable[[bool], "BenchFigure | list[BenchFigure]"]
+
+
+def discover(directory: Path) -> list[Benchmark]:
+    benchmarks: list[Benchmark] = []
     for script in sorted(directory.glob("bench_*.py")):
         spec = importlib.util.spec_from_file_location(f"daror_bench_{script.stem}", script)
         if spec is None or spec.loader is None:
@@ -100,20 +107,19 @@ def run_benchmarks(
     console: Console, json_path: Path | None = None, quick: bool = False, only: str | None = None
 ) -> int:
     """Run every benchmark (or those whose function name contains ``only``) and report."""
-    selected: Sequence[Callable[[bool], BenchFigure]] = [
-        b for b in discover(bench_directory()) if only is None or only in b.__name__
-    ]
+    selected: Sequence[Benchmark] = [b for b in discover(bench_directory()) if only is None or only in b.__name__]
     info = machine()
     console.print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, {info['date_utc']}")
-    figures = []
+    figures: list[BenchFigure] = []
     for bench in selected:
         console.print(f"  running {bench.__name__} ...")
-        figures.append(bench(quick))
+        result = bench(quick)
+        figures.extend(result if isinstance(result, list) else [result])
     table = Table(title="Benchmarks")
     for header in ("Benchmark", "Median", "p90", "Target", "Met", "Thesis"):
         table.add_column(header, justify="left" if header in ("Benchmark", "Thesis") else "right")
     for f in figures:
-        target = "-" if f.target is None else f"< {f.target:g} {f.unit}"
+        target = "-" if f.target is None else f"{'>=' if f.at_least else '<'} {f.target:g} {f.unit}"
         met = "-" if f.met is None else ("yes" if f.met else "NO")
         table.add_row(f.name, f"{f.median:.3g} {f.unit}", f"{f.p90:.3g} {f.unit}", target, met, f.thesis or "-")
     console.print(table)

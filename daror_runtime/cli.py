@@ -105,6 +105,74 @@ def cmd_simulate_list(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+# --- identify -----------------------------------------------------------------------------
+
+
+def cmd_identify(args: argparse.Namespace, console: Console) -> int:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from daror_runtime.data.load import raw_log_path, write_dataset
+    from daror_runtime.identification.protocol import ProtocolSettings, run_protocol
+    from daror_runtime.identification.trajectory import build_trajectory
+    from daror_runtime.identification.waypoints import load_waypoints
+    from daror_runtime.models.files import load_model
+    from daror_runtime.models.linear import APModel
+    from hal.isb import IsbLimits, load_isb_limits
+    from hal.sim.backend import SimHal
+    from hal.sim.scenario import load_scenario
+
+    out = Path(args.out)
+    raw_path = raw_log_path(out)
+    scenario = load_scenario(args.scenario)
+    waypoints = load_waypoints(args.waypoints)
+    isb = load_isb_limits(args.isb_limits) if args.isb_limits is not None else None
+    hal = SimHal(scenario, rate_hz=args.rate_hz)
+    if args.feedforward == "ap":
+        feedforward = APModel.from_description(hal.description, args.dummy_arm, args.dummy_arm)
+    elif args.feedforward == "none":
+        feedforward = None
+    else:
+        feedforward = load_model(args.feedforward)[0]
+    trajectory = build_trajectory(waypoints, args.trajectory, limits=isb or IsbLimits(), description=hal.description)
+    recording = out.with_name(f".{out.name}.rec")
+    recording.unlink(missing_ok=True)
+    log.info("identify requested", scenario=scenario.name, trajectory=args.trajectory, out=str(out))
+    hal.open()
+    with Progress(
+        TextColumn(f"[bold]{args.trajectory}[/bold] on {scenario.name}"),
+        BarColumn(),
+        TextColumn("{task.completed:.0f}/{task.total:.0f} s robot time"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("identify", total=trajectory.duration_s)
+        result = run_protocol(
+            hal,
+            trajectory,
+            recording,
+            isb_limits=isb,
+            settings=ProtocolSettings(),
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+            feedforward=feedforward,
+        )
+    hal.close()
+    console.print(f"writing {out} and the raw log {raw_path} ...")
+    write_dataset(out, result.stationary)
+    write_dataset(raw_path, result.raw)
+    recording.unlink(missing_ok=True)
+    rms = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_rms_rad)
+    worst = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_max_rad)
+    console.print(f"{out}: {len(result.stationary)} stationary points from {result.stops} stops")
+    console.print(f"{raw_path}: raw log, {len(result.raw)} samples at {args.rate_hz:g} Hz")
+    console.print(f"  tracking error per joint, RMS {rms} mrad, worst {worst} mrad")
+    console.print(
+        f"  {result.robot_time_s:.0f} s of robot time in {result.wall_time_s:.1f} s "
+        f"({result.real_time_factor:.0f}x real time, lock-step)"
+    )
+    return 0
+
+
 # --- fit / evaluate / cvf ---------------------------------------------------------------
 
 
@@ -243,6 +311,17 @@ def build_parser() -> argparse.ArgumentParser:
     static.set_defaults(handler=cmd_simulate_static)
     listing = sim_cmds.add_parser("list", help="the shipped scenarios")
     listing.set_defaults(handler=cmd_simulate_list)
+
+    ident = commands.add_parser("identify", help="run the identification protocol on the simulated plant")
+    ident.add_argument("--scenario", required=True, help="scenario name (see 'daror simulate list') or a .yaml path")
+    ident.add_argument("--trajectory", choices=["training", "validation"], required=True)
+    ident.add_argument("--out", type=Path, required=True, help="stationary dataset to write (.csv, .npz, .mat)")
+    ident.add_argument("--waypoints", type=Path, help="waypoint YAML (default: the shipped 83 waypoints)")
+    ident.add_argument("--isb-limits", type=Path, help="the pilot's ISB limits YAML, enforced every tick")
+    ident.add_argument("--feedforward", default="ap", help="gravity feed-forward: ap (default), none, or a MODEL.json")
+    ident.add_argument("--dummy-arm", action="store_true", help="the Dummy Arm is installed (AP feed-forward)")
+    ident.add_argument("--rate-hz", type=float, default=1000.0, help="loop rate (default 1000)")
+    ident.set_defaults(handler=cmd_identify)
 
     fit = commands.add_parser("fit", help="fit a compensation model: ap, plf, plf+")
     fit.add_argument("kind", help="model kind: ap, plf, plf+")

@@ -17,14 +17,13 @@ import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from daror_runtime.errors import ConfigurationError
 
 
-@dataclass(frozen=True, slots=True)
-class TickTiming:
-    """When a tick started relative to its deadline."""
+class TickTiming(NamedTuple):
+    """When a tick started relative to its deadline (a NamedTuple: built every tick, it must be cheap)."""
 
     index: int
     deadline_s: float  # since the clock started
@@ -60,7 +59,7 @@ class LockStepClock(Clock):
 
     def wait(self) -> TickTiming:
         index = self.ticks
-        self.ticks += 1
+        self.ticks = index + 1
         return TickTiming(index, index * self.period_s, 0.0, False, 0)
 
 

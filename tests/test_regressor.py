@@ -34,6 +34,7 @@ def test_evaluator_equals_regressor_times_parameters(q: np.ndarray, theta: np.nd
     assert batch == pytest.approx(via_regressor, abs=1e-10)
     for n in range(q.shape[0]):
         assert evaluator.torque(q[n]) == pytest.approx(batch[n], abs=1e-12)
+        assert evaluator.torque_python(q[n]) == pytest.approx(batch[n], abs=1e-12)
 
 
 @given(q=configurations, theta=parameters, mu=polynomials)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from hypothesis import given
@@ -32,14 +30,14 @@ def sample(seq: int = 1, **changes: object) -> Sample:
         estop=(False, False),
         drives=(DriveState.ENABLED,) * 4,
     )
-    return dataclasses.replace(base, **changes)
+    return base._replace(**changes)
 
 
 def with_joint(field: str, joint: int, value: float, seq: int = 2) -> Sample:
     s = sample(seq)
     array = getattr(s, field).copy()
     array[joint - 1] = value
-    return dataclasses.replace(s, **{field: array})
+    return s._replace(**{field: array})
 
 
 def fresh_monitor() -> SafetyMonitor:
@@ -75,7 +73,7 @@ def moved(joint: int, delta_rad: float, seq: int = 2) -> Sample:
     s = sample(seq)
     step = np.zeros(4)
     step[joint - 1] = delta_rad
-    return dataclasses.replace(s, q_rad=s.q_rad + step, theta_rad=s.theta_rad + step)
+    return s._replace(q_rad=s.q_rad + step, theta_rad=s.theta_rad + step)
 
 
 def test_a_jump_between_samples_is_implausible() -> None:

@@ -503,3 +503,15 @@ def test_unusable_scenarios_and_rates_are_refused() -> None:
             SimHal(SCENARIO, rate_hz=rate, description=DESCRIPTION)
     with pytest.raises(DescriptionError, match="unknown scenario"):
         SimHal("no_such_scenario")
+
+
+def test_drive_state_survives_noise_refills() -> None:
+    """Regression: refilling the noise block must not touch the drive state stored after it."""
+    from hal.sim import dynamics
+
+    hal = opened(SCENARIO)
+    substeps = hal._drive_vector[dynamics.S_SUBSTEPS]
+    for _ in range(3 * dynamics.NOISE_BLOCK_TICKS + 5):
+        hal.write(Command(holding(hal), True))
+    assert hal._drive_vector[dynamics.S_SUBSTEPS] == substeps
+    assert np.all(np.abs(hal._drive_vector[dynamics.S_DIRECTION : dynamics.S_DIRECTION + 4]) <= 1.0)

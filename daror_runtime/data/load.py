@@ -7,6 +7,7 @@ with a message naming the file, the line or column, and what was expected.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -58,27 +59,69 @@ def _optional_group(table: Table, group: tuple[str, ...]) -> tuple[str, ...] | N
     return group
 
 
+#: Where a value stands, for messages: (row index, column name) -> "file: line L, column C".
+Locator = Callable[[int, str], str]
+
+
+def check_finite(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> None:
+    """Refuse a NaN or infinity, naming its place."""
+    if np.isfinite(matrix).all():  # the common case without a boolean matrix per check
+        return
+    row, col = np.argwhere(~np.isfinite(matrix))[0]
+    value = matrix[row, col]
+    word = "NaN" if np.isnan(value) else "an infinite value"
+    raise DataError(f"{where(int(row), names[col])}: {word}; expected a finite number")
+
+
+def check_radians(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> None:
+    """Refuse angles beyond 2 pi (degrees handed in as radians)."""
+    if np.abs(matrix).max(initial=0.0) <= MAX_PLAUSIBLE_ANGLE_RAD:
+        return
+    row, col = np.argwhere(np.abs(matrix) > MAX_PLAUSIBLE_ANGLE_RAD)[0]
+    raise DataError(
+        f"{where(int(row), names[col])}: angle {matrix[row, col]:g} is beyond 2 pi; "
+        "angles must be in radians (this looks like degrees)"
+    )
+
+
+def check_increasing(t: np.ndarray, where: Locator) -> None:
+    """Refuse time that stands still or goes back."""
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        row = int(back[0]) + 1
+        raise DataError(
+            f"{where(row, 't')}: time {t[row]:g} s does not come after {t[row - 1]:g} s; expected increasing time"
+        )
+
+
+def check_raw_log(raw: RawLog, where: Locator) -> None:
+    """Every raw-log contract check (DESIGN.md section 5) on arrays already assembled.
+
+    Raises:
+        DataError: a non-finite value, an angle beyond 2 pi, or time not increasing.
+    """
+    check_finite(raw.t_s[:, None], ("t",), where)
+    check_increasing(raw.t_s, where)
+    groups = [(raw.q_rad, Q_COLUMNS, True), (raw.dq_rad_s, DQ_COLUMNS, False), (raw.tau_nm, TAU_COLUMNS, False)]
+    if raw.theta_rad is not None:
+        groups.append((raw.theta_rad, THETA_COLUMNS, True))
+    if raw.tau_cmd_nm is not None:
+        groups.append((raw.tau_cmd_nm, TAU_CMD_COLUMNS, False))
+    for matrix, names, angles in groups:
+        check_finite(matrix, names, where)
+        if angles:
+            check_radians(matrix, names, where)
+
+
 def _matrix(table: Table, names: tuple[str, ...]) -> np.ndarray:
     matrix = np.column_stack([table.columns[c] for c in names])
-    bad = ~np.isfinite(matrix)
-    if bad.any():
-        row, col = np.argwhere(bad)[0]
-        value = matrix[row, col]
-        word = "NaN" if np.isnan(value) else "an infinite value"
-        raise DataError(f"{table.where(int(row), names[col])}: {word}; expected a finite number")
+    check_finite(matrix, names, table.where)
     return matrix
 
 
 def _check_radians(table: Table, names: tuple[str, ...], matrix: np.ndarray) -> None:
-    if names[0] not in ANGLE_COLUMNS:
-        return
-    beyond = np.abs(matrix) > MAX_PLAUSIBLE_ANGLE_RAD
-    if beyond.any():
-        row, col = np.argwhere(beyond)[0]
-        raise DataError(
-            f"{table.where(int(row), names[col])}: angle {matrix[row, col]:g} is beyond 2 pi; "
-            "angles must be in radians (this looks like degrees)"
-        )
+    if names[0] in ANGLE_COLUMNS:
+        check_radians(matrix, names, table.where)
 
 
 def _angles(table: Table, names: tuple[str, ...]) -> np.ndarray:
@@ -103,12 +146,7 @@ def _time(table: Table, strictly_increasing: bool) -> np.ndarray | None:
         return None
     t = _matrix(table, ("t",))[:, 0]
     if strictly_increasing:
-        back = np.flatnonzero(np.diff(t) <= 0)
-        if back.size:
-            row = int(back[0]) + 1
-            raise DataError(
-                f"{table.where(row, 't')}: time {t[row]:g} s does not come after {t[row - 1]:g} s; expected increasing time"
-            )
+        check_increasing(t, table.where)
     return t
 
 

@@ -33,6 +33,7 @@ per tick with :meth:`ReferenceTrajectory.reference` in O(1).
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -199,6 +200,9 @@ class ReferenceTrajectory:
         self.settings = settings
         self._coefficients = np.ascontiguousarray(coefficients)
         self._starts = [float(t) for t in starts_s]  # Python floats: the per-tick comparisons stay cheap
+        self._starts_array = np.ascontiguousarray(starts_s, dtype=float)
+        #: Robot time at which the planned trajectory (its first stop) begins; non-zero after an approach.
+        self.time_offset_s = 0.0
         self._ends = [*self._starts[1:], math.inf]
         self._cursor = 0
         _evaluate_piece(self._coefficients, 0, 0.0)  # compile (or load from the cache) before the first tick
@@ -219,6 +223,10 @@ class ReferenceTrajectory:
         out = _evaluate_piece(self._coefficients, k, t_s - self._starts[k])
         return out[:N_JOINTS], out[N_JOINTS:]
 
+    def __call__(self, t_s: float) -> tuple[FloatArray, FloatArray]:
+        """A trajectory is a reference: ``t_s -> (q_ref, dq_ref)`` (the controllers' contract)."""
+        return self.reference(t_s)
+
     # --- offline ------------------------------------------------------------------------------
 
     def sample(self, t_s: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -229,6 +237,57 @@ class ReferenceTrajectory:
         basis = np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
         out = np.einsum("nrc,nc->nr", self._coefficients[k], basis)
         return out[:, :N_JOINTS], out[:, N_JOINTS:]
+
+    def with_approach(self, q_from_rad: FloatArray, approach_s: float, settle_s: float) -> ReferenceTrajectory:
+        """This trajectory preceded by a minimum-jerk move from ``q_from_rad`` and a hold at the start.
+
+        The approach is stored like every move (cubic Hermite pieces between knots of the exact
+        minimum-jerk profile at ``knot_rate_hz``), so the whole run stays one piecewise table.
+        The result's :attr:`time_offset_s` is when this trajectory's own clock reads zero; its
+        stops and times are shifted by it. Robot time in s, angles in rad.
+
+        Raises:
+            TrajectoryError: a non-positive approach duration or a negative settle time.
+        """
+        if not (approach_s > 0 and settle_s >= 0):
+            raise TrajectoryError(f"approach_s must be > 0 and settle_s >= 0, got {approach_s}, {settle_s}")
+        q_from = np.asarray(q_from_rad, dtype=float)
+        delta = self.start_q_rad - q_from
+        h = 1.0 / self.settings.knot_rate_hz
+        n = max(round(approach_s / h), 1)
+        h = approach_s / n
+        fraction = np.arange(n + 1) / n
+        position, velocity = minimum_jerk(fraction)
+        qk = q_from + position[:, None] * delta
+        dqk = velocity[:, None] * delta / approach_s
+        q0, q1, d0, d1 = qk[:-1], qk[1:], dqk[:-1], dqk[1:]
+        block = np.zeros((n + 1, 2 * N_JOINTS, 4))
+        block[:n, :N_JOINTS, 0], block[:n, :N_JOINTS, 1] = q0, d0
+        block[:n, :N_JOINTS, 2] = (3 * (q1 - q0) / h - 2 * d0 - d1) / h
+        block[:n, :N_JOINTS, 3] = (2 * (q0 - q1) / h + d0 + d1) / (h * h)
+        block[:n, N_JOINTS:, 0], block[:n, N_JOINTS:, 1] = d0, 2 * block[:n, :N_JOINTS, 2]
+        block[:n, N_JOINTS:, 2] = 3 * block[:n, :N_JOINTS, 3]
+        block[n, :N_JOINTS, 0] = self.start_q_rad  # the settle hold
+        offset = approach_s + settle_s
+        starts = np.concatenate([h * np.arange(n), [approach_s], np.asarray(self._starts) + offset])
+        stops = tuple(dataclasses.replace(s, start_s=s.start_s + offset, end_s=s.end_s + offset) for s in self.stops)
+        combined = ReferenceTrajectory(
+            self.kind,
+            starts,
+            np.concatenate([block, self._coefficients]),
+            self.duration_s + offset,
+            stops,
+            self.order,
+            self.settings,
+        )
+        combined.time_offset_s = self.time_offset_s + offset
+        return combined
+
+    @property
+    def piecewise_table(self) -> tuple[FloatArray, FloatArray]:
+        """``(starts (P,), coefficients (P, 8, 4))`` for compiled consumers: piece ``k`` starts at
+        ``starts[k]`` and row ``r`` is ``c0 + c1 tau + c2 tau^2 + c3 tau^3`` (rows q1..q4, dq1..dq4)."""
+        return self._starts_array, self._coefficients
 
     @property
     def start_q_rad(self) -> FloatArray:

@@ -83,6 +83,10 @@ class LinearCompensationModel(CompensationModel):
     def torque(self, q: FloatArray) -> np.ndarray:
         return self._evaluator.torque(q)
 
+    def packed_parameters(self) -> np.ndarray:
+        """Parameters of :func:`daror_runtime.models.regressor.linear_torque`, for compiled controllers."""
+        return self._evaluator.packed_parameters
+
     def torque_batch(self, q: FloatArray) -> FloatArray:
         return self._evaluator.torque_batch(q)
 

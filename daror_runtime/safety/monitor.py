@@ -17,7 +17,6 @@ a condition is only reported again after it went away (no fault storm from one h
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable
 
 import numpy as np
@@ -25,7 +24,7 @@ import structlog
 
 from daror_runtime.errors import ConfigurationError
 from daror_runtime.safety.faults import Fault, FaultKind
-from daror_runtime.safety.kernels import clip_finite, signals_in_bounds
+from daror_runtime.safety.kernels import command_status, signals_in_bounds
 from daror_runtime.safety.limits import SafetyLimits
 from hal.interface import Command, DriveState, Sample
 from hal.robot import N_JOINTS, FloatArray
@@ -57,7 +56,7 @@ class SafetyMonitor:
         self._isb_angles = isb_angles
         self._latched: dict[tuple[FaultKind, int | None], Fault] = {}
         self._present: set[tuple[FaultKind, int | None]] = set()
-        self._previous_q: FloatArray | None = None
+        self._previous = np.zeros(2 * (N_JOINTS + 1))  # last finite q (4), a "seen one" flag, and their values before
         self._previous_seq: int | None = None
         self._same_seq = 0
         self.set_limits(limits)
@@ -115,7 +114,7 @@ class SafetyMonitor:
 
     def reset_history(self) -> None:
         """Forget the previous sample (after the HAL was reopened: no jump or staleness across it)."""
-        self._previous_q = None
+        self._previous[:] = 0.0
         self._previous_seq = None
         self._same_seq = 0
 
@@ -129,14 +128,12 @@ class SafetyMonitor:
     def check(self, sample: Sample) -> list[Fault]:
         """Check one sample; returns the faults that appeared with it (already latched)."""
         found: dict[tuple[FaultKind, int | None], Fault] = {}
-        q = sample.q_rad
-        has_previous = self._previous_q is not None
-        previous = self._previous_q if has_previous else q
+        previous = self._previous  # the kernel updates it: the angles of the last finite sample
         in_bounds = signals_in_bounds(
-            q, sample.dq_rad_s, sample.tau_nm, sample.theta_rad, previous, has_previous, self._lower, self._upper
+            sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad, previous, self._lower, self._upper
         )
         if not in_bounds:
-            self._diagnose(sample, found)
+            self._diagnose(sample, found, previous[5:9] if previous[9] > 0.0 else None)
         elif self.limits.isb is not None:
             self._check_isb(sample, found)
         if sample.seq == self._previous_seq:
@@ -161,11 +158,9 @@ class SafetyMonitor:
                     found[(FaultKind.DRIVE, j)] = Fault(
                         FaultKind.DRIVE, sample.t_s, f"drive {j} reports a fault (code 0x{code:04x})", joint=j
                     )
-        if in_bounds or math.isfinite(float(q.sum())):
-            self._previous_q = q
         self._previous_seq = sample.seq
         if not found and not self._present:  # the common case: nothing to latch or clear
-            return []
+            return []  # a fresh list: the loop appends the tick's other faults to it
         return self._raise_edge(found)
 
     def filter(self, command: Command, sample: Sample | None) -> Command:
@@ -173,11 +168,14 @@ class SafetyMonitor:
         if self._latched or sample is None or True in sample.estop or not command.enable:
             return Command.torque_off()
         torque = command.motor_torque_nm
-        clipped = np.empty(N_JOINTS)
-        if not clip_finite(torque, self.limits.command_limit_nm, clipped):
+        limit = self.limits.command_limit_nm
+        status = command_status(torque, limit)
+        if status == 0:  # the common case: the controller's own command, untouched
+            return command
+        if status < 0:
             self.report(FaultKind.SOFTWARE, sample.t_s, f"controller produced a non-finite torque {torque.tolist()}")
             return Command.torque_off()
-        return Command(clipped, True)
+        return Command(np.clip(torque, -limit, limit), True)
 
     # --- internals ------------------------------------------------------------------------
 
@@ -194,10 +192,12 @@ class SafetyMonitor:
         self._present = set(found)
         return new
 
-    def _diagnose(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
+    def _diagnose(
+        self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault], jump_base: FloatArray | None
+    ) -> None:
         """Name every violated bound (the slow path, only when the fast check failed)."""
         q = sample.q_rad
-        jump = np.zeros(N_JOINTS) if self._previous_q is None else q - self._previous_q
+        jump = np.zeros(N_JOINTS) if jump_base is None else q - jump_base
         signals = np.concatenate([q, sample.dq_rad_s, sample.tau_nm, sample.theta_rad - q, jump])
         lower, upper = self._lower, self._upper
         for g, (kind, what, unit) in enumerate(_GROUPS):

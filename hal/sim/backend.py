@@ -99,7 +99,7 @@ class SimHal(Hal):
         self._drive_vector[dynamics.S_FILTER_ALPHA] = 1.0 - math.exp(
             -2.0 * math.pi * sensors.velocity_filter_hz * self._dt
         )
-        self._drive_vector[dynamics.S_THRESHOLD] = sensors.motion_threshold_rad_s
+        self._drive_vector[dynamics.S_INVERSE_PLAY] = 1.0 / sensors.direction_play_rad
         self._drive_vector[dynamics.S_DT] = self._dt
         self._drive_vector[dynamics.S_SUBSTEPS] = self._plant.substeps(self._dt)
         self._drive_vector[dynamics.S_FIFO_LENGTH] = self._plant.command_delay_ticks + 1
@@ -165,8 +165,10 @@ class SimHal(Hal):
         if not self._is_open:
             raise HalError("simulated HAL is not open; call open() first")
         if command.enable:
-            torque = np.ascontiguousarray(command.motor_torque_nm, dtype=np.float64)
-            if torque.shape != (N_JOINTS,):
+            torque = command.motor_torque_nm
+            if type(torque) is not np.ndarray or torque.dtype != np.float64:  # the common case skips the copy
+                torque = np.ascontiguousarray(torque, dtype=np.float64)
+            if torque.ndim != 1 or torque.shape[0] != N_JOINTS:
                 self._flush_commands()
                 self._drives = self._drive_states(False)
                 raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")
@@ -181,7 +183,7 @@ class SimHal(Hal):
             )
         readings = np.empty((4, N_JOINTS))
         plant = self._plant
-        enable = bool(command.enable)
+        enable = command.enable is True or bool(command.enable)
         status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
         if status == dynamics.TICK_NO_NOISE:  # every NOISE_BLOCK_TICKS ticks
             self._refill_noise()
@@ -199,7 +201,6 @@ class SimHal(Hal):
         else:
             self._drives = self._enabled_drives if status == dynamics.TICK_ENABLED else self._disabled_drives
         self._tick += 1
-        plant.time_s = self._tick * self._dt
         self._readings = readings
         if self._stale_left > 0:
             self._stale_left -= 1
@@ -212,6 +213,7 @@ class SimHal(Hal):
     @property
     def plant(self) -> DynamicPlant:
         """The simulated plant (tests and tools; the runtime must use read/write only)."""
+        self._plant.time_s = self._tick * self._dt  # synced here, not every tick: nothing in the tick reads it
         return self._plant
 
     @property
@@ -364,7 +366,7 @@ class SimHal(Hal):
 
     def _refill_noise(self) -> None:
         # Sequential blocks of one generator: the numbers do not depend on the block size.
-        block = self._drive_vector[dynamics.S_NOISE_BLOCK :]
+        block = self._drive_vector[dynamics.S_NOISE_BLOCK : dynamics.S_NOISE_BLOCK + dynamics.NOISE_BLOCK_SIZE]
         block[:] = self._rng.standard_normal(block.size)
         self._drive_vector[dynamics.S_NOISE_INDEX] = 0.0
 
@@ -386,7 +388,7 @@ class SimHal(Hal):
             readings[0, self._nan_pending] = np.nan
             self._nan_pending = []
         readings.flags.writeable = False  # a sample is a record: nobody may change it afterwards
-        q, dq, theta, tau = readings
+        q, dq, theta, tau = readings[0], readings[1], readings[2], readings[3]  # indexing beats unpacking here
         # Positional: Sample(seq, t_s, q, dq, theta, tau, estop, drives, fault codes); this runs every tick.
         return Sample(
             self._tick, self._tick * self._dt, q, dq, theta, tau, self._estop, self._drives, self._fault_codes

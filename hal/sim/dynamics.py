@@ -650,12 +650,12 @@ S_QUANTISE = 5  # 1.0: round readings to the resolution
 S_NOISE = 6  # encoder noise std, rad
 S_DIRECTION_ERROR = 7  # Sec. 2.2.2 error per joint, 4
 S_FILTER_ALPHA = 11  # velocity low-pass gain per tick
-S_THRESHOLD = 12  # |q'| above which a joint has "moved", rad/s
+S_INVERSE_PLAY = 12  # 1 / travel after which the direction-dependent error has reversed, 1/rad
 S_DT = 13  # the tick, s
 S_JUMP = 14  # injected offset of each q reading, 4
 S_PREVIOUS_Q = 18  # previous q reading, 4
 S_VELOCITY = 22  # the drives' velocity estimate, 4
-S_DIRECTION = 26  # sign of each joint's last motion, 4
+S_DIRECTION = 26  # play-operator state of each joint in [-1, 1]: where its last motion went, 4
 S_STARTED = 30  # 1.0 once a first reading exists
 S_TICK = 31  # ticks since the session started (exact as a float up to 2^53)
 MAX_FIFO = 11  # command_delay_ticks <= 10 (scenario schema)
@@ -668,8 +668,10 @@ S_NOISE_INDEX = S_FAULTED + N_JOINTS  # next unused number of the noise block
 NOISE_PER_TICK = 2 * N_JOINTS  # one standard normal per encoder
 NOISE_BLOCK_TICKS = 256  # one refill draws 2,048 normals: ~25-50 us, no spike in a real-time tick
 S_NOISE_BLOCK = S_NOISE_INDEX + 1  # standard normals, NOISE_BLOCK_TICKS x NOISE_PER_TICK
-S_SUBSTEPS = S_NOISE_BLOCK + NOISE_BLOCK_TICKS * NOISE_PER_TICK  # RK4 steps per tick (>= 1)
-DRIVE_VECTOR_SIZE = S_SUBSTEPS + 1
+NOISE_BLOCK_SIZE = NOISE_BLOCK_TICKS * NOISE_PER_TICK
+S_SUBSTEPS = S_NOISE_BLOCK + NOISE_BLOCK_SIZE  # RK4 steps per tick (>= 1)
+S_PREVIOUS_TRUE_Q = S_SUBSTEPS + 1  # true link angles at the previous reading (play operator), 4
+DRIVE_VECTOR_SIZE = S_PREVIOUS_TRUE_Q + N_JOINTS
 
 #: What the tick kernel returns.
 TICK_ENABLED, TICK_DISABLED, TICK_BAD_COMMAND, TICK_DIVERGED, TICK_NO_NOISE = 0, 1, -1, -2, -3
@@ -703,11 +705,13 @@ def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
             q = np.rint(q / step) * step
             theta = np.rint(theta / step) * step
         q += s[S_JUMP + j]
-        velocity = x[2 * N_JOINTS + j]
-        if velocity > s[S_THRESHOLD]:
-            s[S_DIRECTION + j] = 1.0
-        elif velocity < -s[S_THRESHOLD]:
-            s[S_DIRECTION + j] = -1.0
+        # Direction-dependent error as hysteresis (a play operator): the state moves with the true
+        # travel and saturates at +-1 after 1 / S_INVERSE_PLAY rad; the vibration of a held joint
+        # does not flip it, a real move in the other direction does.
+        if started:
+            travel = x[j] - s[S_PREVIOUS_TRUE_Q + j]
+            s[S_DIRECTION + j] = min(max(s[S_DIRECTION + j] + travel * s[S_INVERSE_PLAY], -1.0), 1.0)
+        s[S_PREVIOUS_TRUE_Q + j] = x[j]
         if started:
             raw = (q - s[S_PREVIOUS_Q + j]) * inverse_dt
             s[S_VELOCITY + j] += alpha * (raw - s[S_VELOCITY + j])

@@ -86,8 +86,10 @@ class SensorTruth(_Strict):
     velocity_filter_hz: Annotated[float, Field(gt=0)] = Field(
         50.0, description="the drives' velocity estimate: first-order low-pass of the encoder difference"
     )
-    motion_threshold_rad_s: Annotated[float, Field(gt=0)] = Field(
-        1e-3, description="a joint faster than this has 'moved' for the direction-dependent error"
+    direction_play_rad: Annotated[float, Field(gt=0)] = Field(
+        5e-3,
+        description="joint travel after which the direction-dependent error has fully reversed: a hysteresis "
+        "(play operator), so the vibration of a held joint does not flip it but a move does",
     )
 
 
@@ -127,7 +129,9 @@ class Scenario(_Strict):
     workspace: WorkspaceBox
     drive_train: DriveTrainTruth | None = None
     end_stops: EndStopTruth = EndStopTruth()
-    initial_q_deg: PerJoint = Field([0.0, 20.0, 0.0, 45.0], description="where a dynamic simulation starts, at rest")
+    initial_q_deg: PerJoint = Field(
+        [-20.25, 82.41, -30.27, 30.0], description="where a dynamic simulation starts, at rest (default: arm hanging)"
+    )
 
     def description(self) -> RobotDescription:
         """The robot description this scenario is an as-built instance of."""

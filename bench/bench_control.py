@@ -1,0 +1,117 @@
+"""Benchmarks of the controllers (issue 3, item 5): ``update()`` cost per 1 kHz tick, four joints.
+
+The whole tick in lock-step (HAL read, safety, FSM, controller, safety filter, write, recorder)
+must fit in ~20 us; each controller's share should be a few microseconds. Measured here, never
+asserted in tests.
+
+* MinimalImpedance: the SEA torque loop with its observer (one compiled kernel call).
+* Compensation: the same plus a PLF+ model's torque (fitted as bench/bench_models.py does).
+* PositionPD: the same plus the PD kernel and a minimum-jerk reference.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.control import (
+    Compensation,
+    Controller,
+    LinkBounds,
+    MinimalImpedance,
+    PositionPD,
+    SeaTorqueController,
+    minimum_jerk,
+)
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.models.linear import fit_plf_plus
+from hal.interface import DriveState, Sample
+from hal.robot import load_description
+from hal.sim.scenario import load_scenario
+from hal.sim.static_dataset import generate_stationary
+
+TICK_S = 1e-3
+
+
+def _samples(count: int = 1000) -> list[Sample]:
+    """Plausible readings near a pose, so the controllers do their ordinary work (no saturation)."""
+    rng = np.random.default_rng(7)
+    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])
+    out = []
+    for i in range(count):
+        q = q0 + rng.normal(0.0, 1e-3, 4)
+        tau = np.round(rng.normal(1.0, 0.05, 4) / 0.0289) * 0.0289
+        out.append(
+            Sample(
+                i,
+                i * TICK_S,
+                q,
+                rng.normal(0.0, 0.01, 4),
+                q + tau / 289.0,
+                tau,
+                (False, False),
+                (DriveState.ENABLED,) * 4,
+            )
+        )
+    return out
+
+
+def _time_update(controller: Controller, quick: bool) -> tuple[float, float, int]:
+    samples = _samples()
+    controller.reset(samples[0])
+    state = {"i": 0}
+
+    def one() -> None:
+        state["i"] = (state["i"] + 1) % len(samples)
+        controller.update(samples[state["i"]], TICK_S)
+
+    repeats = 20 if quick else 200
+    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    return median, p90, repeats
+
+
+def _figure(name: str, build: Callable[[], Controller], quick: bool, target_us: float, note: str) -> BenchFigure:
+    median, p90, repeats = _time_update(build(), quick)
+    return BenchFigure(name, median, p90, "us", repeats, target_us, None, note)
+
+
+def bench_minimal_impedance_update(quick: bool) -> BenchFigure:
+    description = load_description()
+    return _figure(
+        "MinimalImpedance.update, 4 joints",
+        lambda: MinimalImpedance(SeaTorqueController(description.sea)),
+        quick,
+        5.0,
+        "torque loop + observer, one compiled kernel",
+    )
+
+
+def bench_compensation_update(quick: bool) -> BenchFigure:
+    description = load_description()
+    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
+    model = fit_plf_plus(
+        StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description
+    ).model
+    return _figure(
+        "Compensation(PLF+).update, 4 joints",
+        lambda: Compensation(SeaTorqueController(description.sea), model, support_level=0.8, ramp_per_s=None),
+        quick,
+        12.0,
+        "PLF+ torque (~5 us) + torque loop",
+    )
+
+
+def bench_position_pd_update(quick: bool) -> BenchFigure:
+    description = load_description()
+    bounds = LinkBounds.from_description(description)
+    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])
+
+    def build() -> Controller:
+        return PositionPD(SeaTorqueController(description.sea), minimum_jerk(q0, q0 + 0.3, 2.0), bounds)
+
+    return _figure("PositionPD.update, 4 joints", build, quick, 10.0, "minimum-jerk reference + PD + torque loop")
+
+
+BENCHMARKS = [bench_minimal_impedance_update, bench_compensation_update, bench_position_pd_update]

@@ -1,0 +1,67 @@
+"""The controller contract: small objects that turn a sample into a command, nothing else.
+
+A controller does no I/O, owns no thread and never blocks (DESIGN.md Sec. 2-3). The FSM decides
+which controller runs; the controller obeys: it computes the motor torque of its mode and returns
+a :class:`hal.interface.Command` with ``enable=True``. Limits per state and the e-stop are applied
+after it by the safety filter, which may lower or remove any torque a controller asks for.
+
+Per tick the loop calls :meth:`Controller.update` once. When the FSM switches to a controller it
+calls :meth:`Controller.reset` first with the current sample, so filters and observers start
+from the robot's present state instead of from zero (no torque jump on a mode change).
+
+Errors: settings a person hands in (a support level, a gain) are refused with
+:class:`ControlSettingError` (an :class:`~daror_runtime.errors.InputError`); anything that goes
+wrong inside the tick (a non-finite reading or reference) raises :class:`ControlError`, which the
+loop turns into a fault that removes torque in the same tick.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+from daror_runtime.errors import DarorError, InputError
+from hal.interface import Command, Sample
+
+__all__ = ["ControlDesignError", "ControlError", "ControlSettingError", "Controller"]
+
+
+class ControlError(DarorError):
+    """The controller cannot produce a safe command this tick (e.g. a NaN in the sample).
+
+    The controller's state is not advanced when this is raised; call ``reset`` before using it again.
+    """
+
+
+class ControlSettingError(InputError):
+    """A controller setting (support level, gain, reference) was refused: out of range or not finite."""
+
+
+class ControlDesignError(DarorError):
+    """A controller or filter design is invalid (improper filter, unstable nominal loop, bad period)."""
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """What every control mode implements.
+
+    ``commands`` names what the controller writes; today every torque mode writes
+    ``("motor_torque",)`` and the drives-off mode writes nothing (``()``).
+    """
+
+    commands: tuple[str, ...]
+
+    def reset(self, sample: Sample) -> None:
+        """Re-initialise internal state from ``sample``; called when the controller is selected.
+
+        Raises:
+            ControlError: the sample is not finite.
+        """
+        ...
+
+    def update(self, sample: Sample, dt_s: float) -> Command:
+        """The command for this tick; ``dt_s`` is the time since the previous tick in seconds.
+
+        Raises:
+            ControlError: a non-finite input or reference; the controller's state is unchanged.
+        """
+        ...
