@@ -114,20 +114,27 @@ print(json.dumps({{"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 """
 
 
-def bench_protocol_peak_memory(quick: bool) -> BenchFigure:
+def _peak_memory_of_a_protocol_run() -> dict[str, float]:
     script = _MEMORY_SCRIPT.format(bench=str(Path(__file__).parent))
-    start = time.perf_counter()
     output = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
-    figure = json.loads(output.strip().splitlines()[-1])
-    return BenchFigure(
-        "identification protocol: peak memory (whole process)",
-        figure["peak_mb"],
-        figure["peak_mb"],
-        "MB",
-        1,
-        target=500.0,
-        note=f"{figure['ticks']} ticks, {time.perf_counter() - start:.0f} s incl. start-up",
-    )
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def bench_protocol_peak_memory(quick: bool) -> list[BenchFigure]:
+    """Peak resident memory of a fresh process running the training protocol.
+
+    The first run after numba's on-disk cache was emptied also compiles every kernel, and LLVM's
+    compile-time memory lands in the peak; the second run is the protocol alone.
+    """
+    start = time.perf_counter()
+    first = _peak_memory_of_a_protocol_run()  # compiles whatever the cache lacks
+    second = _peak_memory_of_a_protocol_run()
+    note = f"{second['ticks']:.0f} ticks, {time.perf_counter() - start:.0f} s for both runs"
+    return [
+        BenchFigure("identification protocol: peak memory (whole process)", second["peak_mb"], second["peak_mb"],
+                    "MB", 1, target=500.0, note=note),
+        BenchFigure("  the same, first run (may include JIT compilation)", first["peak_mb"], first["peak_mb"], "MB", 1),
+    ]  # fmt: skip
 
 
 BENCHMARKS = [bench_identification_lock_step, bench_real_time_1khz, bench_protocol_peak_memory]

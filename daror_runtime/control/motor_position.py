@@ -251,6 +251,7 @@ class MotorPositionPD:
                                 gravity, velocity_filter_hz, dt_s, delay_ticks, spring_damping_nms_per_rad,
                             )  # fmt: skip
                             if r >= bound:
+                                what = "is unstable" if r >= 1.0 else what
                                 raise ControlDesignError(
                                     f"joint {j + 1}: with motor position gains {scale:g} x (K_p {kp[j]:g}, K_d {kd[j]:g}) the "
                                     f"loop {what} (spectral radius {r:.5f}, limit {bound:.5f}) with gearbox inertia "

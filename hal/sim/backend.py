@@ -44,6 +44,8 @@ STREAM_SIM_ENCODERS = 6
 DEFAULT_DRIVE_FAULT_CODE = 0x1000
 
 _DQ = slice(2 * N_JOINTS, 3 * N_JOINTS)
+_FLOAT64 = np.dtype(np.float64)
+_JOINT_SHAPE = (N_JOINTS,)
 _hal_tick = dynamics.hal_tick  # one attribute lookup less per tick  # q' in the plant state [q, theta, q', theta']
 
 FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus"]
@@ -166,9 +168,11 @@ class SimHal(Hal):
             raise HalError("simulated HAL is not open; call open() first")
         if command.enable:
             torque = command.motor_torque_nm
-            if type(torque) is not np.ndarray or torque.dtype != np.float64:  # the common case skips the copy
+            # The common case (a float64 (4,) array) passes two identity tests; anything else is
+            # converted, and a wrong shape refused, before it reaches the compiled kernel.
+            if type(torque) is not np.ndarray or torque.dtype is not _FLOAT64:
                 torque = np.ascontiguousarray(torque, dtype=np.float64)
-            if torque.ndim != 1 or torque.shape[0] != N_JOINTS:
+            if torque.shape != _JOINT_SHAPE:
                 self._flush_commands()
                 self._drives = self._drive_states(False)
                 raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")
