@@ -53,10 +53,11 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from hal.errors import DescriptionError, InputError, ShapeError
 from hal.robot import N_JOINTS, FloatArray, Kinematics, RobotDescription, load_description, rot_x, rot_y, rot_z
+from hal.robot import AngleRange as RobotAngleRange
 from hal.yamlfile import load_yaml_model
 
 __all__ = [
@@ -116,25 +117,11 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class AngleRange(_Strict):
-    """A closed angle interval in degrees (human-edited), exposed in radians."""
+class AngleRange(RobotAngleRange):
+    """An ISB angle interval in degrees, within -180..180, exposed in radians."""
 
     lower_deg: float = Field(ge=-180.0, le=180.0)
     upper_deg: float = Field(ge=-180.0, le=180.0)
-
-    @model_validator(mode="after")
-    def _ordered(self) -> AngleRange:
-        if not self.lower_deg < self.upper_deg:
-            raise ValueError(f"lower_deg ({self.lower_deg}) must be below upper_deg ({self.upper_deg})")
-        return self
-
-    @property
-    def lower_rad(self) -> float:
-        return float(np.deg2rad(self.lower_deg))
-
-    @property
-    def upper_rad(self) -> float:
-        return float(np.deg2rad(self.upper_deg))
 
 
 class IsbLimits(_Strict):
@@ -294,24 +281,23 @@ def _wrap(angle: FloatArray) -> FloatArray:
     return np.pi - np.mod(np.pi - angle, 2.0 * np.pi)
 
 
-def _as_isb(isb: FloatArray) -> tuple[FloatArray, bool]:
-    isb = np.asarray(isb, dtype=float)
-    single = isb.ndim == 1
+def _as_rows(values: FloatArray, what: str) -> tuple[FloatArray, bool]:
+    """``values`` as (N, 4) float rows, and whether a single (4,) row was given."""
+    values = np.asarray(values, dtype=float)
+    single = values.ndim == 1
     if single:
-        isb = isb[None, :]
-    if isb.ndim != 2 or isb.shape[1] != N_JOINTS:
-        raise ShapeError(f"expected ISB angles of shape (N, {N_JOINTS}) or ({N_JOINTS},), got {isb.shape}")
-    return isb, single
+        values = values[None, :]
+    if values.ndim != 2 or values.shape[1] != N_JOINTS:
+        raise ShapeError(f"expected {what} of shape (N, {N_JOINTS}) or ({N_JOINTS},), got {values.shape}")
+    return values, single
+
+
+def _as_isb(isb: FloatArray) -> tuple[FloatArray, bool]:
+    return _as_rows(isb, "ISB angles")
 
 
 def _as_q(q: FloatArray) -> tuple[FloatArray, bool]:
-    q = np.asarray(q, dtype=float)
-    single = q.ndim == 1
-    if single:
-        q = q[None, :]
-    if q.ndim != 2 or q.shape[1] != N_JOINTS:
-        raise ShapeError(f"expected joint angles of shape (N, {N_JOINTS}) or ({N_JOINTS},), got {q.shape}")
-    return q, single
+    return _as_rows(q, "joint angles")
 
 
 def thorax_rotation(isb: FloatArray) -> FloatArray:

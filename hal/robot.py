@@ -84,14 +84,14 @@ class SeaConstants(_Strict):
         return self.spring_stiffness_nm_per_rad * self.encoder_resolution_rad
 
 
-class JointRange(_Strict):
-    """A closed joint-angle interval in degrees (human-edited), exposed in radians."""
+class AngleRange(_Strict):
+    """A closed angle interval in degrees (human-edited), exposed in radians."""
 
     lower_deg: float
     upper_deg: float
 
     @model_validator(mode="after")
-    def _ordered(self) -> JointRange:
+    def _ordered(self) -> AngleRange:
         if not self.lower_deg < self.upper_deg:
             raise ValueError(f"lower_deg ({self.lower_deg}) must be below upper_deg ({self.upper_deg})")
         return self
@@ -103,6 +103,10 @@ class JointRange(_Strict):
     @property
     def upper_rad(self) -> float:
         return float(np.deg2rad(self.upper_deg))
+
+
+#: A joint's range of motion.
+JointRange = AngleRange
 
 
 class DeviceLimits(_Strict):

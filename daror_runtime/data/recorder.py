@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-from numba import njit
 
 from daror_runtime.data.load import check_raw_log
 from daror_runtime.data.schema import (
@@ -578,27 +577,14 @@ def fill_raw_row(out: FloatArray, sample: Sample, command: Command | None = None
     needed = 17 if command is None else 21
     if out.shape[0] < needed:
         raise ShapeError(f"a raw-log row needs {needed} values; got an array of {out.shape[0]}")
-    torque = command.motor_torque_nm if command is not None else _NO_TORQUE
-    _fill_row(
-        out, sample.t_s, sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad, torque, command is not None
-    )
+    out[0] = sample.t_s
+    out[1:5] = sample.q_rad
+    out[5:9] = sample.dq_rad_s
+    out[9:13] = sample.tau_nm
+    out[13:17] = sample.theta_rad
+    if command is not None:
+        out[17:21] = command.motor_torque_nm
     return out
-
-
-_NO_TORQUE = np.zeros(4)
-
-
-@njit(cache=True)
-def _fill_row(out, t, q, dq, tau, theta, torque, with_torque):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """One compiled call instead of five slice assignments: this runs once per tick."""
-    out[0] = t
-    for j in range(4):
-        out[1 + j] = q[j]
-        out[5 + j] = dq[j]
-        out[9 + j] = tau[j]
-        out[13 + j] = theta[j]
-        if with_torque:
-            out[17 + j] = torque[j]
 
 
 def recording_to_raw_log(

@@ -101,7 +101,7 @@ def elbow_polynomial_regressor(q: FloatArray, order: int) -> FloatArray:
 
 @njit(cache=True)
 def linear_torque(q: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    """The recursion of :meth:`LinearTorqueEvaluator.torque_python` for one ``q``, compiled.
+    """Holding torque at one ``q`` by the recursion of :class:`LinearTorqueEvaluator`, compiled.
 
     ``p`` = [b (3), cos 60, sin 60, theta (12), number of polynomial terms, mu ...].
     """
@@ -175,40 +175,6 @@ class LinearTorqueEvaluator:
     def packed_parameters(self) -> np.ndarray:
         """The parameter vector of the compiled :func:`linear_torque` (for compiled controllers)."""
         return self._packed
-
-    def torque_python(self, q: Sequence[float]) -> np.ndarray:
-        """:meth:`torque` in plain Python floats: the reference the compiled kernel is tested against."""
-        q1, q2, q3, q4 = (float(v) for v in q)
-        c1, s1 = math.cos(q1), math.sin(q1)
-        c2, s2 = math.cos(q2), math.sin(q2)
-        c3, s3 = math.cos(q3), math.sin(q3)
-        c4, s4 = math.cos(q4), math.sin(q4)
-        ca, sa = self._ca, self._sa
-        bx, by, bz = self._b
-        t = self._t
-        # forward: up direction in each rotor frame, g_j = Rz(q_j)^T A_j^T g_{j-1}
-        g1x, g1y, g1z = c1 * bx + s1 * by, -s1 * bx + c1 * by, bz
-        hx, hz = ca * g1x - sa * g1z, sa * g1x + ca * g1z
-        g2x, g2y, g2z = c2 * hx + s2 * g1y, -s2 * hx + c2 * g1y, hz
-        hx, hz = ca * g2x - sa * g2z, sa * g2x + ca * g2z
-        g3x, g3y = c3 * hx + s3 * g2y, -s3 * hx + c3 * g2y
-        g4x, g4y = c4 * g3x + s4 * g3y, -s4 * g3x + c4 * g3y
-        # backward: first moments, u_j = theta_j + A_{j+1} Rz(q_{j+1}) u_{j+1}
-        u4x, u4y, u4z = t[9], t[10], t[11]
-        u3x = t[6] + c4 * u4x - s4 * u4y
-        u3y = t[7] + s4 * u4x + c4 * u4y
-        u3z = t[8] + u4z
-        rx, ry = c3 * u3x - s3 * u3y, s3 * u3x + c3 * u3y
-        u2x, u2y, u2z = t[3] + ca * rx + sa * u3z, t[4] + ry, t[5] - sa * rx + ca * u3z
-        rx, ry = c2 * u2x - s2 * u2y, s2 * u2x + c2 * u2y
-        u1x, u1y = t[0] + ca * rx + sa * u2z, t[1] + ry
-        tau4 = g4y * u4x - g4x * u4y
-        if self._mu:
-            acc = 0.0
-            for coefficient in reversed(self._mu):
-                acc = acc * q4 + coefficient
-            tau4 += acc
-        return np.array((g1y * u1x - g1x * u1y, g2y * u2x - g2x * u2y, g3y * u3x - g3x * u3y, tau4))
 
     # -- N configurations, numpy ----------------------------------------------------------
 

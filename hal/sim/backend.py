@@ -34,7 +34,7 @@ from hal.errors import DescriptionError, HalError, InputError, ShapeError
 from hal.interface import Command, DriveState, Hal, HalFaultError, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 from hal.sim import dynamics
-from hal.sim.plant import DynamicPlant, PlantTruth
+from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.static_dataset import stream
 
@@ -182,8 +182,8 @@ class SimHal(Hal):
         if external is not None and callable(external):
             state = self._plant.state
             value = external(self._tick * self._dt, state[:N_JOINTS].copy(), state[_DQ].copy())
-            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = _external_vector(
-                value
+            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = joint_vector(
+                value, "external torque"
             )
         readings = np.empty((4, N_JOINTS))
         plant = self._plant
@@ -249,7 +249,7 @@ class SimHal(Hal):
             self._external = torque
             self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = 0.0
         else:
-            self._external = _external_vector(torque)
+            self._external = joint_vector(torque, "external torque")
             self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = self._external
 
     def press_estop(self, which: int, pressed: bool) -> None:
@@ -407,18 +407,3 @@ def _number(value: object) -> float | None:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return None
-
-
-def _external_vector(value: object) -> FloatArray:
-    """An external torque as a finite (4,) float array.
-
-    Raises:
-        ShapeError: not of shape (4,).
-        InputError: a non-finite element.
-    """
-    array = np.asarray(value, dtype=np.float64)
-    if array.shape != (N_JOINTS,):
-        raise ShapeError(f"external torque: expected shape ({N_JOINTS},), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise InputError(f"external torque: every element must be finite, got {array.tolist()}")
-    return array

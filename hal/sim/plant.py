@@ -49,7 +49,7 @@ class PlantTruth(NamedTuple):
     tau_spring_nm: FloatArray
 
 
-def _joint_vector(value: object, name: str) -> FloatArray:
+def joint_vector(value: object, name: str) -> FloatArray:
     """``value`` as a finite float (4,) array.
 
     Raises:
@@ -225,7 +225,7 @@ class DynamicPlant:
             ShapeError: ``q0_rad`` is not of shape (4,).
             InputError: ``q0_rad`` has a non-finite element.
         """
-        q = self.initial_q_rad if q0_rad is None else _joint_vector(q0_rad, "q0_rad")
+        q = self.initial_q_rad if q0_rad is None else joint_vector(q0_rad, "q0_rad")
         self.state[:] = 0.0
         self.state[_Q] = q
         self.state[_THETA] = q + self.holding_torque_nm(q) / self.stiffness_nm_per_rad
@@ -240,10 +240,10 @@ class DynamicPlant:
             ShapeError: an array not of shape (4,).
             InputError: a non-finite element.
         """
-        self.state[_Q] = _joint_vector(q_rad, "q_rad")
-        self.state[_DQ] = _joint_vector(dq_rad_s, "dq_rad_s")
-        self.state[_THETA] = _joint_vector(theta_rad, "theta_rad")
-        self.state[_DTHETA] = _joint_vector(dtheta_rad_s, "dtheta_rad_s")
+        self.state[_Q] = joint_vector(q_rad, "q_rad")
+        self.state[_DQ] = joint_vector(dq_rad_s, "dq_rad_s")
+        self.state[_THETA] = joint_vector(theta_rad, "theta_rad")
+        self.state[_DTHETA] = joint_vector(dtheta_rad_s, "dtheta_rad_s")
 
     @property
     def q_rad(self) -> FloatArray:
@@ -286,11 +286,11 @@ class DynamicPlant:
             InputError: a non-finite torque, or ``dt_s`` not in (0, max_dt_s].
             HalError: the integration diverged (non-finite state); the state is left as before.
         """
-        self._u[:N_JOINTS] = _joint_vector(motor_torque_nm, "motor_torque_nm")
+        self._u[:N_JOINTS] = joint_vector(motor_torque_nm, "motor_torque_nm")
         if external_torque_nm is None:
             self._u[N_JOINTS:] = 0.0
         else:
-            self._u[N_JOINTS:] = _joint_vector(external_torque_nm, "external_torque_nm")
+            self._u[N_JOINTS:] = joint_vector(external_torque_nm, "external_torque_nm")
         if not (np.isfinite(dt_s) and 0.0 < dt_s <= self.max_dt_s):
             raise InputError(
                 f"dt_s = {dt_s}: must be positive and at most {self.max_dt_s:.3g} s "
@@ -336,7 +336,7 @@ class DynamicPlant:
             ShapeError, InputError: ``q_rad`` not a finite (4,) array.
         """
         out = np.empty((N_JOINTS, N_JOINTS))
-        dynamics.mass_matrix(_joint_vector(q_rad, "q_rad"), self.params, self.work, out)
+        dynamics.mass_matrix(joint_vector(q_rad, "q_rad"), self.params, self.work, out)
         return out
 
     def bias_torque(self, q_rad: FloatArray, dq_rad_s: FloatArray) -> FloatArray:
@@ -346,8 +346,8 @@ class DynamicPlant:
             ShapeError, InputError: an argument not a finite (4,) array.
         """
         out = np.empty(N_JOINTS)
-        q = _joint_vector(q_rad, "q_rad")
-        dynamics.bias_torque(q, _joint_vector(dq_rad_s, "dq_rad_s"), self.params, self.work, out)
+        q = joint_vector(q_rad, "q_rad")
+        dynamics.bias_torque(q, joint_vector(dq_rad_s, "dq_rad_s"), self.params, self.work, out)
         return out
 
     def holding_torque_nm(self, q_rad: FloatArray) -> FloatArray:
@@ -387,7 +387,7 @@ class DynamicPlant:
         if x.shape != (N_STATE,):
             raise ShapeError(f"state: expected shape ({N_STATE},), got {x.shape}")
         u = np.concatenate(
-            [_joint_vector(motor_torque_nm, "motor_torque_nm"), _joint_vector(external_torque_nm, "external_torque_nm")]
+            [joint_vector(motor_torque_nm, "motor_torque_nm"), joint_vector(external_torque_nm, "external_torque_nm")]
         )
         out = np.empty(N_STATE)
         if not dynamics.derivative(x, u, self.params, self.work, out):
@@ -398,7 +398,7 @@ class DynamicPlant:
 
     def equilibrium_state(self, q_rad: FloatArray | None = None) -> FloatArray:
         """The rest state in static equilibrium at ``q_rad`` (default the initial configuration), (16,)."""
-        q = self.initial_q_rad if q_rad is None else _joint_vector(q_rad, "q_rad")
+        q = self.initial_q_rad if q_rad is None else joint_vector(q_rad, "q_rad")
         x = np.zeros(N_STATE)
         x[_Q] = q
         x[_THETA] = q + self.holding_torque_nm(q) / self.stiffness_nm_per_rad
@@ -435,7 +435,7 @@ class DynamicPlant:
         motor position loop), 4 modes of the links on the springs. A negative value ``-f`` marks a
         statically unstable mode that grows like ``exp(2 pi f t)``.
         """
-        q = self.initial_q_rad if q_rad is None else _joint_vector(q_rad, "q_rad")
+        q = self.initial_q_rad if q_rad is None else joint_vector(q_rad, "q_rad")
         mass = self.mass_matrix(q)
         h = 1e-6
         gravity_stiffness = np.empty((N_JOINTS, N_JOINTS))
