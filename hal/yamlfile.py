@@ -19,7 +19,7 @@ from hal.errors import DescriptionError, InputError
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
-def _line_of(root: yaml.Node | None, location: tuple[int | str, ...]) -> int | None:
+def line_of(root: yaml.Node | None, location: tuple[int | str, ...]) -> int | None:
     """1-based line of the YAML node at ``location`` (the deepest existing prefix), or None."""
     node = root
     line = None if node is None else node.start_mark.line + 1
@@ -43,7 +43,7 @@ def format_validation_error(source: str, err: ValidationError, root: yaml.Node |
     for problem in err.errors():
         loc = tuple(problem["loc"])
         field = ".".join(str(p) for p in loc) or "(top level)"
-        line = _line_of(root, loc)
+        line = line_of(root, loc)
         where = f"line {line}, " if line is not None else ""
         lines.append(f"{source}: {where}field {field}: {problem['msg']}")
     return "; ".join(lines)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import numpy as np
 import yaml
@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
 
 from daror_runtime.errors import InputError
 from hal.robot import FloatArray
-from hal.yamlfile import read_yaml
+from hal.yamlfile import line_of, read_yaml
 
 __all__ = ["DEFAULT_WAYPOINTS_FILE", "Waypoint", "WaypointFileError", "WaypointSet", "load_waypoints"]
 
@@ -135,28 +135,12 @@ class WaypointSet(BaseModel):
         return copy
 
 
-def _node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int | None:
-    """1-based line of the deepest YAML node along ``loc`` that exists."""
-    node, line = root, None if root is None else root.start_mark.line + 1
-    for key in loc:
-        if isinstance(node, yaml.MappingNode):
-            node = next((v for k, v in node.value if getattr(k, "value", None) == str(key)), None)
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and 0 <= key < len(node.value):
-            node = node.value[key]
-        else:
-            node = None
-        if node is None:
-            break
-        line = node.start_mark.line + 1
-    return line
-
-
 def _format(source: str, exc: ValidationError, root: yaml.Node | None) -> str:
     """One phrase per problem, naming the line, the waypoint by its number (from 1) and the field."""
     problems = []
     for problem in exc.errors():
         loc = tuple(problem["loc"])
-        line = _node_line(root, loc)
+        line = line_of(root, loc)
         where = f"line {line}, " if line is not None else ""
         if len(loc) >= 2 and loc[0] == "waypoints" and isinstance(loc[1], int):
             field = ".".join(str(p) for p in loc[2:]) or "(the waypoint)"
@@ -183,5 +167,5 @@ def load_waypoints(path: Path | str | None = None) -> WaypointSet:
         waypoint_set = WaypointSet.model_validate(data)
     except ValidationError as exc:
         raise WaypointFileError(_format(str(path), exc, root)) from None
-    lines = tuple(_node_line(root, ("waypoints", i)) or 0 for i in range(len(waypoint_set)))
+    lines = tuple(line_of(root, ("waypoints", i)) or 0 for i in range(len(waypoint_set)))
     return waypoint_set.with_source(str(path), lines)
