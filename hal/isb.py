@@ -550,8 +550,12 @@ class Shoulder:
         q, single = _as_q(q)
         c, s = self._cos_inter, self._sin_inter
         a = c * c - s * s * np.cos(q[:, 1])
-        lam = np.minimum(1.0 - a, 0.5 * (2.0 + a - np.sqrt(a * a + 8.0 * c * c)))
-        values = np.sqrt(np.maximum(lam, 0.0))
+        # Without cancellation near the singularity: 1 - a = 2 s^2 cos^2(q2/2), and the smaller root
+        # of the quadratic is the product of the roots, 1 + a - 2 c^2 = 2 s^2 sin^2(q2/2), over the larger.
+        half = 0.5 * q[:, 1]
+        larger = 0.5 * (2.0 + a + np.sqrt(a * a + 8.0 * c * c))
+        lam = np.minimum(2.0 * s * s * np.cos(half) ** 2, 2.0 * s * s * np.sin(half) ** 2 / larger)
+        values = np.sqrt(lam)
         return float(values[0]) if single else values
 
 
