@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -273,6 +274,107 @@ def cmd_bench(args: argparse.Namespace, console: Console) -> int:
     return run_benchmarks(console, json_path=args.json, quick=args.quick, only=args.only)
 
 
+# --- console --------------------------------------------------------------------------
+
+
+def cmd_console(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.clocks import RealTimeClock
+    from daror_runtime.console.run import make_session, read_script, run_interactive, run_script
+    from daror_runtime.fsm.spec import load_fsm_spec
+    from daror_runtime.runtime import Runtime
+    from daror_runtime.session.settings import load_session_settings
+    from hal.interface import open_hal
+
+    spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
+    settings = load_session_settings(args.settings)
+    lines = read_script(args.script) if args.script is not None else None
+    if args.hal == "sim":
+        from hal.sim.scenario import load_scenario
+
+        hal = open_hal("sim", scenario=load_scenario(args.scenario))
+    else:
+        hal = open_hal(args.hal)
+    realtime = args.realtime or args.script is None
+    clock = RealTimeClock(1.0 / hal.rate_hz) if realtime else None
+    out = Path(args.out) if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S")
+    runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock)
+    runtime.open()
+    try:
+        session = make_session(runtime, console)
+        if realtime:
+            runtime.start_background()
+        if lines is not None:
+            result = run_script(session, args.script, lines)
+            console.print(f"script done: {result.lines_run} lines, state {result.state}")
+        else:
+            run_interactive(session)
+    finally:
+        runtime.close()
+        console.print(f"session {runtime.session_id}: {out / 'session.json'}")
+    return 0
+
+
+# --- fsm ------------------------------------------------------------------------------
+
+
+def cmd_fsm_check(args: argparse.Namespace, console: Console) -> int:
+    from rich.table import Table
+
+    from daror_runtime.fsm.machine import Event, transition_table
+    from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH, load_fsm_spec
+
+    path = args.spec or DEFAULT_SPEC_PATH
+    spec = load_fsm_spec(path)
+    console.print(
+        f"{path}: valid ({len(spec.states)} states in {len(spec.superstates)} superstates, and {spec.fail.name})"
+    )
+    states = Table(title="states")
+    for column in ("#", "superstate", "state", "mode", "torque Nm", "speed rad/s", "fault enters FAIL", "ISB limits"):
+        states.add_column(column, overflow="fold", no_wrap=column in ("state", "mode"))
+    for s in spec.states:
+        states.add_row(
+            str(s.number), s.superstate, s.name, s.mode, f"{s.limits.torque_nm:g}", f"{s.limits.velocity_rad_s:g}",
+            "yes" if s.fail_on_fault else "no (e-stop test)", "yes" if s.enforce_isb else "no",
+        )  # fmt: skip
+    states.add_row("F", "-", spec.fail.name, spec.fail.mode, "0", "-", "-", "-")
+    console.print(states)
+    transitions = Table(title="transitions (every guard must hold; advance also needs the operator's press)")
+    for column in ("from", "event", "to", "guards"):
+        transitions.add_column(column)
+    for (source, event), t in transition_table(spec).items():
+        dest = "(stays)" if event == Event.ACKNOWLEDGE else t.dest
+        transitions.add_row(source, event.value, dest, ", ".join(t.guards) or "-")
+    console.print(transitions)
+    return 0
+
+
+def cmd_fsm_diagram(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.fsm.diagram import mermaid
+    from daror_runtime.fsm.spec import load_fsm_spec
+    from daror_runtime.util.atomic import write_text_atomic
+
+    text = mermaid(load_fsm_spec(args.spec))
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(args.out, text)
+        console.print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_fsm_schema(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.fsm.spec import spec_json_schema_text
+    from daror_runtime.util.atomic import write_text_atomic
+
+    text = spec_json_schema_text()
+    if args.out is None:
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(args.out, text)
+        console.print(f"wrote {args.out}")
+    return 0
+
+
 # --- parser -----------------------------------------------------------------------------
 
 
@@ -362,6 +464,29 @@ def build_parser() -> argparse.ArgumentParser:
     cvf.add_argument("--strict", action="store_true", help="exit 1 when a model is not conservative")
     cvf.set_defaults(handler=cmd_cvf)
 
+    con = commands.add_parser("console", help="operator console session (interactive, or a script with --script)")
+    con.add_argument("--hal", choices=["sim", "can-sim", "can"], default="sim", help="backend (default sim)")
+    con.add_argument("--scenario", default="exo_dummy_arm", help="simulated plant scenario (--hal sim)")
+    con.add_argument("--script", type=Path, help="run these console lines (lock-step unless --realtime)")
+    con.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
+    con.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
+    con.add_argument("--out", type=Path, help="session directory (default sessions/DATE-TIME)")
+    con.add_argument("--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed)")
+    con.set_defaults(handler=cmd_console)
+
+    fsm = commands.add_parser("fsm", help="the safety FSM spec: check it, draw it, export its JSON Schema")
+    fsm_cmds = fsm.add_subparsers(dest="fsm_command", required=True, metavar="WHAT")
+    check = fsm_cmds.add_parser("check", help="validate a spec and print its states and transitions")
+    check.add_argument("spec", nargs="?", type=Path, help="spec file (default: fsm_spec.yaml of the repository)")
+    check.set_defaults(handler=cmd_fsm_check)
+    diagram = fsm_cmds.add_parser("diagram", help="the spec as a Mermaid state diagram (docs/fsm.md)")
+    diagram.add_argument("spec", nargs="?", type=Path, help="spec file (default: fsm_spec.yaml of the repository)")
+    diagram.add_argument("--out", type=Path, help="write here instead of standard output")
+    diagram.set_defaults(handler=cmd_fsm_diagram)
+    schema = fsm_cmds.add_parser("schema", help="the JSON Schema of fsm_spec.yaml (for editors)")
+    schema.add_argument("--out", type=Path, help="write here instead of standard output")
+    schema.set_defaults(handler=cmd_fsm_schema)
+
     bench = commands.add_parser("bench", help="run the benchmarks of docs/performance.md")
     bench.add_argument("--json", type=Path, help="write the figures as JSON here")
     bench.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
@@ -374,7 +499,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
-    command = " ".join(x for x in (args.command, getattr(args, "simulate_command", None)) if x)
+    command = " ".join(
+        x for x in (args.command, getattr(args, "simulate_command", None), getattr(args, "fsm_command", None)) if x
+    )
     handler: Handler = args.handler
     try:
         return handler(args, _console())

@@ -1,6 +1,11 @@
-"""``daror demo``: the modelling pipeline end to end on the simulated plant.
+"""``daror demo``: a full simulated session, then the modelling pipeline, with a report.
 
-For dataset A (``exo``) and B (``exo_dummy_arm``): record a training and a validation set of
+Part 1 (:mod:`daror_runtime.session.rehearsal`): a session on the simulated plant with the Dummy
+Arm, start to compensation through every state of ``fsm_spec.yaml``, driven by the packaged
+console script; the report lists the transitions, the identification, the model's validation and
+what the robot carries once the pilot relaxes.
+
+Part 2, for dataset A (``exo``) and B (``exo_dummy_arm``): record a training and a validation set of
 stationary points, build the A Priori model and fit PLF and PLF+, evaluate them on the
 validation set (Table III) and run the closed-path energy test (Table IV). Everything lands in
 the output directory: datasets, model files, ``summary.json`` and a Markdown ``report.md``.
@@ -31,6 +36,7 @@ from daror_runtime.models.compare import (
 )
 from daror_runtime.models.files import save_model, training_summary
 from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.session.rehearsal import SessionReport
 from daror_runtime.util.atomic import write_text_atomic
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
@@ -117,10 +123,46 @@ def _cvf_markdown(document: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _session_tables(session: SessionReport) -> tuple[Table, str]:
+    """What the session did, for the terminal and for the Markdown report."""
+    table = Table(
+        title=f"Session {session.session_id}: {len(session.transitions)} transitions, ends in {session.final_state}"
+    )
+    for column in ("t (s)", "event", "from", "to"):
+        table.add_column(column)
+    md = ["| t (s) | event | from | to |", "|---|---|---|---|"]
+    for t in session.transitions:
+        row = [f"{t['t_s']:.1f}", t["event"], t["from"], t["to"]]
+        table.add_row(*row)
+        md.append("| " + " | ".join(row) + " |")
+    model = session.status.get("model") or {}
+    joints = " | ".join(f"joint {j}" for j in range(1, 5))
+    md += [
+        "",
+        f"Robot time {session.robot_time_s:.0f} s. Identification data: "
+        + ", ".join(f"{k} `{Path(v).name}`" for k, v in (session.status.get("identification_saved") or {}).items()),
+        "",
+        f"Model in use: {model.get('name', '-')}, validation RMSE {model.get('validation_rmse_nm', float('nan')):.3f} Nm "
+        f"(validated: {model.get('validated')}).",
+        "",
+        f"| with the pilot relaxed, Nm | {joints} |",
+        "|---|---|---|---|---|",
+        "| arm's holding torque (mean abs) | " + " | ".join(f"{v:.2f}" for v in session.holding_torque_nm) + " |",
+        "| torque the pilot still adds (RMS) | " + " | ".join(f"{v:.3f}" for v in session.unsupported_torque_nm) + " |",
+    ]
+    return table, "\n".join(md)
+
+
 def run_demo(out: Path, console: Console) -> dict[str, Any]:
     """Run the demo into ``out``; returns the summary written to ``out/summary.json``."""
+    from daror_runtime.session.rehearsal import rehearse
+
     out.mkdir(parents=True, exist_ok=True)
     log.info("demo started", out=str(out))
+    console.print("[bold]DAROR-01: a full session on the simulated plant, start to compensation[/bold]")
+    session = rehearse(out / "session", Console(quiet=True))
+    session_table, session_md = _session_tables(session)
+    console.print(session_table)
     console.print("[bold]DAROR-01 modelling pipeline on the simulated plant[/bold]")
     runs = [_run_dataset("A", "exo", out, console), _run_dataset("B", "exo_dummy_arm", out, console)]
     table, table_md = _table_iii(runs)
@@ -130,10 +172,17 @@ def run_demo(out: Path, console: Console) -> dict[str, Any]:
     summary = {
         "datasets": {run.label: {"scenario": run.scenario, **evaluation_document(run.evaluations)} for run in runs},
         "cvf_B": cvf_document(cvf),
+        "session": session.document(),
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     report = [
         "# DAROR-01 demo report",
+        "",
+        "## A full session on the simulated plant (Dummy Arm), start to compensation",
+        "",
+        session_md,
+        "",
+        "## Modelling pipeline",
         "",
         "Simulated stationary data (scenarios `exo` = dataset A, `exo_dummy_arm` = dataset B);",
         "errors on each validation set (Eq. 4.31-4.32), the thesis's figures beside ours.",

@@ -59,6 +59,10 @@ class Supervisor(Protocol):
 
     def on_tick(self, sample: Sample | None, faults: list[Fault], monitor: SafetyMonitor) -> TickController | None: ...
 
+    def on_late_faults(self, sample: Sample | None, faults: list[Fault]) -> None:
+        """Faults found after :meth:`on_tick` in the same tick (controller, recorder, HAL write)."""
+        ...
+
 
 class FixedSupervisor:
     """One controller until told otherwise; changes take effect at the next tick boundary."""
@@ -74,6 +78,9 @@ class FixedSupervisor:
         while self._pending:
             self._controller = self._pending.pop(0)
         return self._controller
+
+    def on_late_faults(self, sample: Sample | None, faults: list[Fault]) -> None:
+        """Nothing to decide: the filter already removed torque."""
 
 
 class Recording(Protocol):
@@ -146,6 +153,7 @@ class ControlLoop:
                 faults, FaultKind.OVERRUN, f"{timing.consecutive_overruns} consecutive ticks missed their deadline"
             )
         controller = self.supervisor.on_tick(sample, faults, monitor)
+        decided = len(faults)  # the supervisor saw these; later ones are passed to it at the end of the tick
         command = TORQUE_OFF
         if sample is not None and controller is not None and not monitor.faulted:
             try:
@@ -170,6 +178,8 @@ class ControlLoop:
             self.hal.write(command)
         except HalError as exc:
             self._report(faults, FaultKind.HAL, f"writing the hardware failed: {exc}")
+        if len(faults) > decided:
+            self.supervisor.on_late_faults(sample, faults[decided:])
         return TickResult(timing, sample, command, faults)
 
     def run(

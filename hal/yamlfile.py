@@ -37,8 +37,10 @@ def line_of(root: yaml.Node | None, location: tuple[int | str, ...]) -> int | No
     return line
 
 
-def format_validation_error(source: str, err: ValidationError, root: yaml.Node | None = None) -> str:
-    """One line per problem: ``source: line L, field a.b.c: message``."""
+def format_validation_error(
+    source: str, err: ValidationError, root: yaml.Node | None = None, separator: str = "; "
+) -> str:
+    """One entry per problem, ``source: line L, field a.b.c: message``, joined by ``separator``."""
     lines = []
     for problem in err.errors():
         loc = tuple(problem["loc"])
@@ -46,7 +48,7 @@ def format_validation_error(source: str, err: ValidationError, root: yaml.Node |
         line = line_of(root, loc)
         where = f"line {line}, " if line is not None else ""
         lines.append(f"{source}: {where}field {field}: {problem['msg']}")
-    return "; ".join(lines)
+    return separator.join(lines)
 
 
 def read_yaml(path: Path, error: type[InputError] = DescriptionError) -> tuple[Any, yaml.Node | None]:

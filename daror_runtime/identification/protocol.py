@@ -174,7 +174,7 @@ def run_protocol(
             if progress is not None:
                 progress(done * period, reference.duration_s)
             if lock_step:  # virtual time may wait for the disk between ticks; real time may not
-                _let_the_writer_catch_up(recorder)
+                let_the_writer_catch_up(recorder)
     finally:
         wall = time.perf_counter() - wall_start
         recorder.close()
@@ -188,8 +188,8 @@ def run_protocol(
             "gaps, so no dataset is written"
         )
     raw = recording_to_raw_log(recording_path, drop_nan_rows=True)
-    stationary = _stationary_points(raw, reference, settings)
-    tracking = _tracking(raw, reference)
+    stationary = stationary_points_of_run(raw, reference, settings)
+    tracking = tracking_errors(raw, reference)
     log.info(
         "identification finished",
         trajectory=trajectory.kind,
@@ -212,7 +212,7 @@ def run_protocol(
     )
 
 
-def _let_the_writer_catch_up(recorder: Recorder, timeout_s: float = 10.0) -> None:
+def let_the_writer_catch_up(recorder: Recorder, timeout_s: float = 10.0) -> None:
     """Wait (between ticks, lock-step only) until the recorder's backlog is below half its capacity."""
     deadline = time.perf_counter() + timeout_s
     while recorder.rows_accepted - recorder.rows_written > recorder.capacity_rows // 2:
@@ -221,7 +221,9 @@ def _let_the_writer_catch_up(recorder: Recorder, timeout_s: float = 10.0) -> Non
         time.sleep(0.002)
 
 
-def _stationary_points(raw: RawLog, reference: ReferenceTrajectory, settings: ProtocolSettings) -> StationaryDataset:
+def stationary_points_of_run(
+    raw: RawLog, reference: ReferenceTrajectory, settings: ProtocolSettings
+) -> StationaryDataset:
     """Points of the trajectory's stops: the raw log's stationary samples inside each stop's window.
 
     Stationary is decided the thesis's way (filtered velocity below a threshold, Sec. 4.3.2, by
@@ -253,7 +255,7 @@ def _stationary_points(raw: RawLog, reference: ReferenceTrajectory, settings: Pr
     return StationaryDataset(np.array(q), np.array(tau), np.array(d), np.array(times), points.source)
 
 
-def _tracking(raw: RawLog, reference: ReferenceTrajectory) -> tuple[FloatArray, FloatArray]:
+def tracking_errors(raw: RawLog, reference: ReferenceTrajectory) -> tuple[FloatArray, FloatArray]:
     """RMS and maximum of ``q_ref - q`` per joint over the trajectory (after approach and settling)."""
     elapsed = raw.t_s - raw.t_s[0]
     first = int(np.searchsorted(elapsed, reference.time_offset_s))

@@ -50,5 +50,14 @@ class SafetyLimits:
     def with_command_limit(self, limit_nm: float) -> SafetyLimits:
         return replace(self, command_limit_nm=np.full(N_JOINTS, float(limit_nm)))
 
-    def with_isb(self, isb: IsbLimits | None) -> SafetyLimits:
-        return replace(self, isb=isb)
+    def with_isb(self, isb: IsbLimits | None, margin_rad: float | None = None) -> SafetyLimits:
+        margin = self.isb_margin_rad if margin_rad is None else margin_rad
+        return replace(self, isb=isb, isb_margin_rad=margin)
+
+    def for_state(self, torque_nm: float, velocity_rad_s: float) -> SafetyLimits:
+        """These (device) limits narrowed to a state's: the lower of each applies, per joint."""
+        return replace(
+            self,
+            command_limit_nm=np.minimum(self.command_limit_nm, float(torque_nm)),
+            max_velocity_rad_s=np.minimum(self.max_velocity_rad_s, float(velocity_rad_s)),
+        )

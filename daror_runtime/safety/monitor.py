@@ -63,8 +63,10 @@ class SafetyMonitor:
 
     # --- configuration --------------------------------------------------------------------
 
-    def set_limits(self, limits: SafetyLimits) -> None:
-        """Use ``limits`` from the next check on (call between ticks)."""
+    def set_limits(self, limits: SafetyLimits, isb_angles: IsbFunction | None = None) -> None:
+        """Use ``limits`` from the next check on (call between ticks); ``isb_angles`` replaces the ISB function."""
+        if isb_angles is not None:
+            self._isb_angles = isb_angles
         self.limits = limits
         self._lower = np.concatenate(
             [
@@ -101,6 +103,12 @@ class SafetyMonitor:
     def latched(self) -> list[Fault]:
         return list(self._latched.values())
 
+    @property
+    def clearable(self) -> bool:
+        """True when the condition of every latched fault is gone (:meth:`clear` would unlatch them all)."""
+        present = self._present
+        return all(key not in present for key in self._latched)
+
     def conditions_present(self) -> set[FaultKind]:
         """Fault classes whose condition held at the last check."""
         return {kind for kind, _ in self._present}
@@ -111,6 +119,14 @@ class SafetyMonitor:
             if key not in self._present:
                 del self._latched[key]
         return self.latched
+
+    def clear_kinds(self, kinds: Iterable[FaultKind]) -> bool:
+        """Unlatch faults of ``kinds`` whose condition is gone (an e-stop test once released); True if any."""
+        wanted = set(kinds)
+        gone = [key for key in self._latched if key[0] in wanted and key not in self._present]
+        for key in gone:
+            del self._latched[key]
+        return bool(gone)
 
     def reset_history(self) -> None:
         """Forget the previous sample (after the HAL was reopened: no jump or staleness across it)."""

@@ -1,0 +1,336 @@
+"""``fsm_spec.yaml``: the schema of the safety FSM, its loader and the checks a spec must pass.
+
+The spec declares the states in advance order (numbered 1..N), the superstate each belongs to,
+what the robot may do in it (a control mode from :data:`~daror_runtime.fsm.modes.MODES`, a motor
+torque limit and a joint velocity limit), whether a fault enters FAIL from it, and the named
+guards (from :data:`~daror_runtime.fsm.guards.GUARDS`) of its advance, revert and reset
+transitions; and the FAIL state with the guards of the reset that leaves it.
+
+Loading is two passes: pydantic checks the shape and the types; :func:`check_spec` checks the
+meaning (names registered, numbering, hierarchy, test states consistent with their modes, FAIL
+left only after the fault is cleared and acknowledged). Every problem is reported with the file,
+the line and the field, all problems at once, and the runtime refuses to start on any.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from daror_runtime.errors import InputError
+from daror_runtime.fsm.guards import FAIL_RESET_GUARDS, GUARDS
+from daror_runtime.fsm.modes import MODES
+from hal.yamlfile import format_validation_error, line_of, read_yaml
+
+__all__ = [
+    "DEFAULT_SPEC_PATH",
+    "FsmSpec",
+    "FsmSpecError",
+    "StateSpec",
+    "check_spec",
+    "load_fsm_spec",
+    "spec_json_schema",
+]
+
+#: The spec at the repository root (DESIGN.md section 2).
+DEFAULT_SPEC_PATH = Path(__file__).resolve().parents[2] / "fsm_spec.yaml"
+SCHEMA_PATH = DEFAULT_SPEC_PATH.with_name("fsm_spec.schema.json")
+
+
+class FsmSpecError(InputError):
+    """The FSM spec is missing, not YAML, or wrong; the message names file, line and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+StateName = Annotated[
+    str,
+    Field(pattern=r"^[a-z][a-z0-9_]*$", description="lower-case identifier, e.g. safety_check"),
+]
+GuardName = Annotated[str, Field(json_schema_extra={"enum": sorted(GUARDS)}, description="a registered guard")]
+ModeName = Annotated[str, Field(json_schema_extra={"enum": sorted(MODES)}, description="a registered control mode")]
+
+
+class SuperstateSpec(_Strict):
+    name: StateName
+    description: str = ""
+
+
+class StateLimits(_Strict):
+    """What the safety filter and monitor enforce in the state (on top of the device's own limits)."""
+
+    torque_nm: float = Field(ge=0.0, le=1000.0, description="largest motor torque command, Nm (0: no torque)")
+    velocity_rad_s: float = Field(
+        gt=0.0, le=100.0, description="largest joint speed, rad/s (the device's own limits apply too)"
+    )
+
+
+class Guards(_Strict):
+    advance: list[GuardName] = Field(default_factory=list, description="all must hold, plus the operator's press")
+    revert: list[GuardName] = Field(default_factory=list, description="all must hold to step back one state")
+    reset: list[GuardName] = Field(default_factory=list, description="all must hold to reset to the first state")
+
+
+class StateSpec(_Strict):
+    number: int = Field(ge=1, description="position in advance order, 1..N without gaps")
+    name: StateName
+    superstate: StateName
+    description: str = ""
+    mode: ModeName
+    limits: StateLimits
+    fail_on_fault: bool = Field(description="a fault enters FAIL (false only in the e-stop test states)")
+    enforce_isb: bool = Field(False, description="the pilot's recorded ISB limits are enforced in this state")
+    guards: Guards = Field(default_factory=Guards)
+
+    @property
+    def label(self) -> str:
+        return f"{self.number} {self.name}"
+
+
+class FailGuards(_Strict):
+    reset: list[GuardName] = Field(description=f"must include {', '.join(FAIL_RESET_GUARDS)}")
+
+
+class FailSpec(_Strict):
+    name: Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")] = "FAIL"
+    description: str = ""
+    mode: ModeName = "torque_off"
+    guards: FailGuards
+
+    @property
+    def label(self) -> str:
+        return self.name
+
+
+class FsmSpec(_Strict):
+    """The whole spec (``fsm_spec.yaml``)."""
+
+    version: Literal[1]
+    superstates: list[SuperstateSpec] = Field(min_length=1)
+    states: list[StateSpec] = Field(min_length=1)
+    fail: FailSpec
+
+    @property
+    def first(self) -> StateSpec:
+        return self.states[0]
+
+    def state(self, name: str) -> StateSpec:
+        """The state called ``name`` (not FAIL). Raises KeyError."""
+        for state in self.states:
+            if state.name == name:
+                return state
+        raise KeyError(name)
+
+    def next_state(self, state: StateSpec) -> StateSpec | None:
+        return self.states[state.number] if state.number < len(self.states) else None
+
+    def previous_state(self, state: StateSpec) -> StateSpec | None:
+        return self.states[state.number - 2] if state.number > 1 else None
+
+    @property
+    def test_states(self) -> tuple[StateSpec, ...]:
+        """States where a fault does not enter FAIL (the e-stop test states)."""
+        return tuple(s for s in self.states if not s.fail_on_fault)
+
+
+Location = tuple[int | str, ...]
+
+
+def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Everything wrong with the meaning of ``spec``: (location of the field, message)."""
+    superstates = [s.name for s in spec.superstates]
+    for k, name in enumerate(superstates):
+        if name in superstates[:k]:
+            yield ("superstates", k, "name"), f"superstate {name!r} is declared twice"
+    names: dict[str, int] = {}
+    numbers: dict[int, int] = {}
+    for i, state in enumerate(spec.states):
+        if state.name in names:
+            yield ("states", i, "name"), f"state name {state.name!r} is used twice (also states.{names[state.name]})"
+        names.setdefault(state.name, i)
+        if state.number in numbers:
+            yield (
+                ("states", i, "number"),
+                f"state number {state.number} is used twice (also states.{numbers[state.number]})",
+            )
+        numbers.setdefault(state.number, i)
+        if state.name in superstates:
+            yield ("states", i, "name"), f"state name {state.name!r} is also a superstate's name"
+        if state.name == spec.fail.name:
+            yield ("states", i, "name"), f"state name {state.name!r} is the FAIL state's name"
+    # Advance order: 1..N in the order listed; a gap leaves every state after it unreachable.
+    for i, state in enumerate(spec.states):
+        expected = i + 1
+        if state.number == expected or numbers.get(state.number) != i:
+            continue  # in place, or a duplicate number (reported above)
+        if expected not in numbers:
+            yield (
+                ("states", i, "number"),
+                f"state {state.label} is unreachable by advance: no state is numbered {expected}",
+            )
+        else:
+            yield (
+                ("states", i, "number"),
+                f"state {state.label} is listed as state {expected}; list the states in advance order 1..N",
+            )
+    # Hierarchy: every superstate declared, used, and its states consecutive.
+    seen: list[str] = []
+    for i, state in enumerate(spec.states):
+        if state.superstate not in superstates:
+            yield (
+                ("states", i, "superstate"),
+                f"superstate {state.superstate!r} is not declared (declared: {', '.join(superstates)})",
+            )
+        elif seen and state.superstate != seen[-1] and state.superstate in seen:
+            yield (
+                ("states", i, "superstate"),
+                f"state {state.label} returns to superstate {state.superstate!r}; a superstate's states must be consecutive",
+            )
+        if not seen or seen[-1] != state.superstate:
+            seen.append(state.superstate)
+    for k, name in enumerate(superstates):
+        if name not in seen:
+            yield ("superstates", k, "name"), f"superstate {name!r} has no state"
+    # Modes, guards, limits.
+    isb_recorded_before = False
+    last = len(spec.states) - 1
+    for i, state in enumerate(spec.states):
+        mode = MODES.get(state.mode)
+        if mode is None:
+            yield ("states", i, "mode"), f"unknown mode {state.mode!r}; expected one of {', '.join(MODES)}"
+        for kind in ("advance", "revert", "reset"):
+            listed: list[str] = getattr(state.guards, kind)
+            for j, name in enumerate(listed):
+                if name not in GUARDS:
+                    yield (
+                        ("states", i, "guards", kind, j),
+                        f"unknown guard {name!r}; expected one of {', '.join(GUARDS)}",
+                    )
+                elif name in listed[:j]:
+                    yield ("states", i, "guards", kind, j), f"guard {name!r} is listed twice"
+        if i == 0 and state.guards.revert:
+            yield (
+                ("states", i, "guards", "revert"),
+                f"state {state.label} is the first state: it has no revert, so revert guards would never be used",
+            )
+        if i == last and state.guards.advance:
+            yield (
+                ("states", i, "guards", "advance"),
+                f"state {state.label} is the last state: it has no advance, so advance guards would never be used",
+            )
+        estop_guards = [g for g in state.guards.advance if g in GUARDS and GUARDS[g].estop_test]
+        if mode is not None:
+            if mode.applies_torque and state.limits.torque_nm == 0.0:
+                yield (
+                    ("states", i, "limits", "torque_nm"),
+                    f"state {state.label}: mode {mode.name!r} applies torque but the torque limit is 0",
+                )
+            if not mode.applies_torque and state.limits.torque_nm != 0.0:
+                yield (
+                    ("states", i, "limits", "torque_nm"),
+                    f"state {state.label}: mode {mode.name!r} applies no torque; its torque limit must be 0, not {state.limits.torque_nm:g}",
+                )
+            if not state.fail_on_fault and not (mode.applies_torque and mode.pilot_driven):
+                yield (
+                    ("states", i, "fail_on_fault"),
+                    f"state {state.label} does not enter FAIL on a fault (an e-stop test state) but its mode {mode.name!r} "
+                    + (
+                        "applies no torque for the e-stop to remove"
+                        if not mode.applies_torque
+                        else "moves the robot on its own"
+                    )
+                    + "; a test state needs a pilot-driven mode that applies torque",
+                )
+            if state.mode == "identification" and not state.enforce_isb:
+                yield (
+                    ("states", i, "enforce_isb"),
+                    f"state {state.label}: the identification protocol must run inside the pilot's ISB limits (enforce_isb: true)",
+                )
+        if not state.fail_on_fault and not estop_guards:
+            yield (
+                ("states", i, "guards", "advance"),
+                f"state {state.label} does not enter FAIL on a fault, so it must be an e-stop test: its advance guards need one of "
+                + ", ".join(g.name for g in GUARDS.values() if g.estop_test),
+            )
+        if state.fail_on_fault and estop_guards:
+            yield (
+                ("states", i, "fail_on_fault"),
+                f"state {state.label} enters FAIL on a fault, so an e-stop press fails instead of being recorded: its advance "
+                f"guard {estop_guards[0]!r} could never hold (set fail_on_fault: false to make it a test state)",
+            )
+        if state.enforce_isb and not isb_recorded_before:
+            yield (
+                ("states", i, "enforce_isb"),
+                f"state {state.label} enforces the ISB limits but no earlier state's advance requires isb_limits_recorded",
+            )
+        if "isb_limits_recorded" in state.guards.advance:
+            isb_recorded_before = True
+    fail_mode = MODES.get(spec.fail.mode)
+    if fail_mode is None:
+        yield ("fail", "mode"), f"unknown mode {spec.fail.mode!r}; expected one of {', '.join(MODES)}"
+    elif fail_mode.applies_torque:
+        yield ("fail", "mode"), f"the FAIL state must remove torque; mode {fail_mode.name!r} applies torque"
+    for j, name in enumerate(spec.fail.guards.reset):
+        if name not in GUARDS:
+            yield ("fail", "guards", "reset", j), f"unknown guard {name!r}; expected one of {', '.join(GUARDS)}"
+    missing = [g for g in FAIL_RESET_GUARDS if g not in spec.fail.guards.reset]
+    if missing:
+        yield (
+            ("fail", "guards", "reset"),
+            f"FAIL must be left only after the fault is cleared and acknowledged: add {', '.join(missing)}",
+        )
+
+
+def check_spec(spec: FsmSpec, source: str = "fsm spec", root: yaml.Node | None = None) -> None:
+    """Check the meaning of a parsed spec.
+
+    Raises:
+        FsmSpecError: one line per problem: ``source: line L, field a.b.c: message``.
+    """
+    lines = []
+    for location, message in _problems(spec):
+        line = line_of(root, location)
+        where = f"line {line}, " if line is not None else ""
+        field = ".".join(str(p) for p in location)
+        lines.append(f"{source}: {where}field {field}: {message}")
+    if lines:
+        raise FsmSpecError("\n".join(lines))
+
+
+def load_fsm_spec(path: Path | str | None = None) -> FsmSpec:
+    """Read, validate and check ``path`` (default: :data:`DEFAULT_SPEC_PATH`).
+
+    Raises:
+        FsmSpecError: the file is missing, not YAML, does not match the schema or fails a check;
+            the message names the file, the line and the field of every problem.
+    """
+    path = Path(path) if path is not None else DEFAULT_SPEC_PATH
+    data, root = read_yaml(path, FsmSpecError)
+    if not isinstance(data, dict):
+        line = root.start_mark.line + 1 if root is not None else 1
+        raise FsmSpecError(f"{path}: line {line}: expected a mapping with version, superstates, states and fail")
+    try:
+        spec = FsmSpec.model_validate(data)
+    except ValidationError as exc:
+        raise FsmSpecError(format_validation_error(str(path), exc, root, separator="\n")) from None
+    check_spec(spec, str(path), root)
+    return spec
+
+
+def spec_json_schema() -> dict[str, Any]:
+    """The JSON Schema of ``fsm_spec.yaml`` (for editors: ``# yaml-language-server: $schema=...``)."""
+    schema = FsmSpec.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "DAROR-01 safety FSM spec (fsm_spec.yaml)"
+    return schema
+
+
+def spec_json_schema_text() -> str:
+    return json.dumps(spec_json_schema(), indent=2, sort_keys=True) + "\n"

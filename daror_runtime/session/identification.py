@@ -1,0 +1,217 @@
+"""The identification protocol inside a session (state ``identification``).
+
+The same protocol as ``daror identify`` (:mod:`daror_runtime.identification.protocol`), cut into
+the parts a session runs at different times:
+
+* :func:`session_waypoints` (outside the tick): the waypoints of this session: every
+  ``waypoint_stride``-th of the file, and only those inside the pilot's recorded ISB limits.
+* :func:`prepare_run` (outside the tick, when the operator asks): the trajectory, checked inside the
+  pilot's limits, with an approach from where the robot stands; its position controller (stability
+  checked); a started recorder. The tick then only switches to it.
+* :func:`finish_run` (a job, after the tick saw the trajectory end): close the recording, reduce
+  it to stationary points, write the dataset and the raw log beside it, atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+from daror_runtime.control.motor_position import MotorPositionPD
+from daror_runtime.control.position import LinkBounds
+from daror_runtime.data.load import raw_log_path, write_dataset
+from daror_runtime.data.recorder import Recorder, recording_to_raw_log
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.errors import InputError
+from daror_runtime.identification.protocol import ProtocolSettings, stationary_points_of_run, tracking_errors
+from daror_runtime.identification.trajectory import TrajectorySettings, build_trajectory
+from daror_runtime.identification.waypoints import WaypointSet, load_waypoints
+from daror_runtime.loop import RECORD_COLUMNS
+from daror_runtime.models.base import CompensationModel
+from daror_runtime.session.controllers import IdentificationRun
+from daror_runtime.session.settings import IdentificationSettings
+from hal.isb import AngleRange, IsbLimits
+from hal.robot import FloatArray, RobotDescription
+
+log = structlog.get_logger(__name__)
+
+#: Fewer waypoints than this cannot identify PLF+ (and make no useful validation set).
+MIN_SESSION_WAYPOINTS = 4
+
+
+class IdentificationRequestError(InputError):
+    """An identification run cannot start (no waypoint inside the pilot's limits, a run already going, ...)."""
+
+
+def session_waypoints(
+    settings: IdentificationSettings, limits: IsbLimits, description: RobotDescription
+) -> tuple[WaypointSet, int]:
+    """The waypoints this session visits, and how many of the strided ones lay outside the limits.
+
+    Raises:
+        WaypointFileError: the waypoint file is unreadable.
+        IdentificationRequestError: fewer than :data:`MIN_SESSION_WAYPOINTS` remain.
+    """
+    full = load_waypoints(settings.waypoints_file)
+    strided = list(range(1, len(full) + 1, settings.waypoint_stride))
+    limits = widened(limits, settings.waypoint_tolerance_deg)
+    isb = limits.for_box_check(full.isb_rad)
+    inside = np.all((isb >= limits.lower_rad) & (isb <= limits.upper_rad), axis=1)
+    keep = [n for n in strided if inside[n - 1]]
+    if len(keep) < MIN_SESSION_WAYPOINTS:
+        raise IdentificationRequestError(
+            f"only {len(keep)} of the {len(strided)} waypoints of {full.source} (every "
+            f"{settings.waypoint_stride}. one) lie inside the pilot's ISB limits; at least {MIN_SESSION_WAYPOINTS} "
+            "are needed: record a wider range of motion or use another waypoint file"
+        )
+    renumber = {old: new for new, old in enumerate(keep, start=1)}
+    training = [renumber[n] for n in full.training_order if n in renumber]
+    validation = [renumber[n] for n in full.validation_order if n in renumber]
+    if validation == training:
+        validation = validation[::-1]
+    subset = WaypointSet(
+        description=f"{full.description} ({len(keep)} of {len(full)} waypoints for this session)",
+        waypoints=[full.waypoints[n - 1] for n in keep],
+        training_order=training,
+        validation_order=validation,
+    )
+    return subset, len(strided) - len(keep)
+
+
+def widened(limits: IsbLimits, tolerance_deg: float) -> IsbLimits:
+    """``limits`` with every range widened by ``tolerance_deg`` on both sides (elevation stays >= 0)."""
+    if tolerance_deg == 0.0:
+        return limits
+
+    def wider(r: AngleRange, floor_deg: float = -180.0) -> AngleRange:
+        return AngleRange(
+            lower_deg=max(r.lower_deg - tolerance_deg, floor_deg), upper_deg=min(r.upper_deg + tolerance_deg, 180.0)
+        )
+
+    return IsbLimits(
+        elevation=wider(limits.elevation, 0.0),
+        horizontal_rotation=wider(limits.horizontal_rotation),
+        axial_rotation=wider(limits.axial_rotation),
+        elbow=wider(limits.elbow),
+        horizontal_free_below_deg=limits.horizontal_free_below_deg,
+    )
+
+
+def next_free_path(directory: Path, stem: str, suffix: str) -> Path:
+    """``directory/stem.suffix``, or ``stem_2.suffix``, ... : a file is never overwritten."""
+    path = directory / f"{stem}{suffix}"
+    n = 2
+    while path.exists() or raw_log_path(path).exists():
+        path = directory / f"{stem}_{n}{suffix}"
+        n += 1
+    return path
+
+
+def prepare_run(
+    kind: str,
+    description: RobotDescription,
+    q_now_rad: FloatArray,
+    waypoints: WaypointSet,
+    limits: IsbLimits,
+    settings: IdentificationSettings,
+    feedforward: CompensationModel | None,
+    bounds: LinkBounds,
+    dt_s: float,
+    directory: Path,
+) -> IdentificationRun:
+    """Everything a run needs, built outside the tick; the recorder is started (its file exists).
+
+    Raises:
+        TrajectoryError: a waypoint or a path leaves the pilot's limits or the device's.
+        ControlDesignError: the position gains are unstable for this robot.
+    """
+    trajectory_settings = dataclasses.replace(TrajectorySettings.for_kind(kind), rate_hz=1.0 / dt_s)  # type: ignore[arg-type]
+    # Checked against the recorded range widened by the tolerance: still inside what the monitor enforces.
+    limits = widened(limits, settings.waypoint_tolerance_deg)
+    trajectory = build_trajectory(waypoints, kind, trajectory_settings, limits, description)  # type: ignore[arg-type]
+    protocol = ProtocolSettings(
+        approach_speed_rad_s=settings.approach_speed_rad_s,
+        settle_s=settings.settle_s,
+        points_per_stop=settings.points_per_stop,
+    )
+    distance = float(np.abs(trajectory.start_q_rad - q_now_rad).max())
+    approach_s = max(distance / protocol.approach_speed_rad_s * 1.875, protocol.min_approach_s)
+    reference = trajectory.with_approach(np.asarray(q_now_rad, dtype=float), approach_s, protocol.settle_s)
+    controller = MotorPositionPD(
+        description,
+        reference,
+        bounds,
+        protocol.kp_nm_per_rad,
+        protocol.kd_nms_per_rad,
+        feedforward=feedforward,
+        dt_s=dt_s,
+    )
+    dataset_path = next_free_path(directory, f"identification_{kind}", ".csv")
+    recorder = Recorder(dataset_path.with_name(f".{dataset_path.name}.rec"), RECORD_COLUMNS)
+    recorder.start()
+    log.info(
+        "identification prepared",
+        kind=kind,
+        waypoints=len(waypoints),
+        robot_s=round(reference.duration_s, 1),
+        approach_s=round(approach_s, 1),
+        dataset=str(dataset_path),
+    )
+    return IdentificationRun(kind, reference, controller, recorder, dataset_path, protocol)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunData:
+    """What a finished run produced."""
+
+    kind: str
+    dataset_path: Path
+    points: int
+    tracking_rms_rad: FloatArray
+    tracking_max_rad: FloatArray
+
+
+def finish_run(run: IdentificationRun) -> RunData:
+    """Close the run's recording and write its stationary dataset and raw log (a job, outside the tick).
+
+    Raises:
+        ProtocolAbortedError: no stop of the trajectory held still, or the recorder dropped rows.
+        DataError: the recording cannot be read back.
+    """
+    from daror_runtime.identification.protocol import ProtocolAbortedError
+
+    run.recorder.close()
+    recording = run.recorder.path
+    if run.recorder.dropped_rows:
+        raise ProtocolAbortedError(
+            f"{recording}: the recorder dropped {run.recorder.dropped_rows} rows; the raw log would have gaps"
+        )
+    raw = recording_to_raw_log(recording, drop_nan_rows=True)
+    stationary: StationaryDataset = stationary_points_of_run(raw, run.reference, run.protocol)
+    rms, worst = tracking_errors(raw, run.reference)
+    write_dataset(raw_log_path(run.dataset_path), raw)
+    write_dataset(run.dataset_path, stationary)
+    recording.unlink(missing_ok=True)
+    log.info(
+        "identification saved",
+        kind=run.kind,
+        dataset=str(run.dataset_path),
+        points=len(stationary),
+        tracking_rms_mrad=[round(v * 1e3, 2) for v in rms],
+    )
+    return RunData(run.kind, run.dataset_path, len(stationary), rms, worst)
+
+
+def abandon_run(run: IdentificationRun, reason: str) -> None:
+    """Close an interrupted run's recording and keep it as evidence; no dataset is written (a job)."""
+    run.recorder.close()
+    log.warning(
+        "identification abandoned",
+        kind=run.kind,
+        reason=reason,
+        recording=str(run.recorder.path),
+        rows=run.recorder.rows_written,
+    )
