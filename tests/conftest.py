@@ -9,9 +9,14 @@ import pytest
 from hypothesis import settings
 
 from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.logs import configure_logging
 from hal.robot import RobotDescription, load_description
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.static_dataset import StationarySet, generate_stationary
+
+# Quiet by default: the runtime's audit events go nowhere unless a test asks for them
+# (structlog.testing.capture_logs, or configure_logging with a JSON file).
+configure_logging("critical")
 
 settings.register_profile("ci", max_examples=200, deadline=None)
 settings.register_profile("dev", max_examples=50, deadline=None)

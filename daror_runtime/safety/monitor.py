@@ -199,10 +199,14 @@ class SafetyMonitor:
         """Latch and return faults whose condition was not present at the previous check."""
         new = []
         for key, fault in found.items():
-            if key not in self._present and key not in self._latched:
+            # A condition that went away and came back is a new occurrence, even while still latched
+            # (it needs its own acknowledgement); a report from outside check() has no "went away".
+            if key not in self._present and not (transient and key in self._latched):
                 new.append(fault)
                 log.error("fault", **fault.as_dict())
-            self._latched.setdefault(key, fault)
+                self._latched[key] = fault
+            else:
+                self._latched.setdefault(key, fault)
         if transient:
             return new
         self._present = set(found)
