@@ -267,6 +267,15 @@ class FilterBank:
             self.c[j, :m] = c
             self.d[j] = d
         self.x = np.zeros((n_ch, order))
+        # Steady state per unit of constant input, (I - A)^-1 B, solved once here so that reset()
+        # (called in the tick when a mode takes over) is one multiplication. Zero for an integrator.
+        self._steady = np.zeros((n_ch, order))
+        eye = np.eye(order)
+        for j in range(n_ch):
+            try:
+                self._steady[j] = np.linalg.solve(eye - self.a[j], self.b[j])
+            except np.linalg.LinAlgError:
+                self._steady[j] = 0.0
 
     @classmethod
     def replicate(cls, tf: DiscreteTransferFunction, channels: int) -> FilterBank:
@@ -318,12 +327,7 @@ class FilterBank:
         since no finite steady state exists.
         """
         u0 = self._as_input(u0)
-        eye = np.eye(self.order)
-        for j in range(self.channels):
-            try:
-                self.x[j] = np.linalg.solve(eye - self.a[j], self.b[j] * u0[j])
-            except np.linalg.LinAlgError:
-                self.x[j] = 0.0
+        self.x = self._steady * u0[:, None]
 
     def response(self, frequencies_hz: FloatArray) -> ComplexArray:
         """Frequency response of every channel's realisation, (N, F): ``C (zI - A)^-1 B + D``."""

@@ -1,0 +1,139 @@
+"""Costs of the safety FSM in the tick (issue 4): per-tick work without a transition, and a transition.
+
+Targets: the FSM's work in a tick with no request and no fault below 10 us; a transition below
+1 ms. A transition is measured as the supervisor does it inside the tick: the machine's guards,
+the ``transitions`` library's trigger, the new state's limits in the safety monitor, the reset of
+the new state's controller (the real controllers of a session) and the audit log events
+(rendered to JSON, handed to the log writer thread). Every transition of ``fsm_spec.yaml`` is
+timed, many times each; the figure is over all of them.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.fsm.machine import Event
+from daror_runtime.logs import configure_logging, flush_logs
+from daror_runtime.runtime import Runtime
+from daror_runtime.session.settings import SessionSettings
+from hal.isb import IsbLimits
+from hal.sim.backend import SimHal
+from hal.sim.pilot import SimulatedPilot
+
+
+def _session(directory: Path) -> tuple[Runtime, SimHal]:
+    hal = SimHal("exo_dummy_arm")
+    runtime = Runtime(hal, directory, settings=SessionSettings(dummy_arm=True))
+    runtime.open()
+    pilot = SimulatedPilot(hal.plant, hal.read_without_faults().q_rad)
+    hal.set_external_torque(pilot)
+
+    def relax_when_supported(
+        state: object, outcome: object
+    ) -> None:  # the pilot rests on the robot when it carries the arm
+        pilot.carried = 0.0 if getattr(state, "mode", "") in ("compensation", "hold", "identification") else 1.0
+
+    runtime.supervisor.listeners.append(relax_when_supported)
+    runtime.run_ticks(10)
+    return runtime, hal
+
+
+def bench_fsm_tick(quick: bool) -> BenchFigure:
+    """``FsmSupervisor.on_tick`` with no request and no fault, in compensation (the common tick)."""
+    with tempfile.TemporaryDirectory() as directory:
+        runtime, _ = _session(Path(directory))
+        supervisor, monitor = runtime.supervisor, runtime.monitor
+        _force_to(runtime, "compensation")
+        sample = runtime.signals.sample
+        no_faults: list = []
+        repeats = 20 if quick else 200
+        median, p90 = time_calls(
+            lambda: supervisor.on_tick(sample, no_faults, monitor), repeats=repeats, per_call=2000, scale=1e6
+        )
+        runtime.close()
+    return BenchFigure("FSM work per tick, no transition (supervisor.on_tick)", median, p90, "us", repeats, target=10.0)
+
+
+def bench_fsm_transition(quick: bool) -> BenchFigure:
+    """Every transition of the spec (advance 1->10, revert, fail, acknowledge, reset), each timed in the tick."""
+    with tempfile.TemporaryDirectory() as directory:
+        configure_logging("critical", json_path=Path(directory) / "audit.jsonl", json_level="info")
+        runtime, hal = _session(Path(directory) / "session")
+        supervisor = runtime.supervisor
+        rounds = 5 if quick else 40
+        samples: list[float] = []
+        worst = ("", 0.0)
+        for _ in range(rounds):
+            _force_guards(runtime)
+            for event in [Event.ADVANCE] * 9 + [Event.REVERT, Event.ADVANCE]:
+                _force_guards(runtime)
+                _settle(runtime)
+                source = supervisor.state_name
+                start = time.perf_counter()
+                response = supervisor.fire(event)
+                elapsed = (time.perf_counter() - start) * 1e3
+                if not response.accepted:
+                    raise RuntimeError(f"benchmark walk refused {event} in {source}: {response.reason}")
+                samples.append(elapsed)
+                if elapsed > worst[1]:
+                    worst = (f"{event.value} {source}", elapsed)
+                runtime.run_ticks(2)
+            hal.press_estop(0, True)
+            start = time.perf_counter()
+            runtime.run_ticks(1)  # the tick that fails (read, check, fail transition, filter, write)
+            samples.append((time.perf_counter() - start) * 1e3)
+            hal.press_estop(0, False)
+            runtime.run_ticks(2)
+            for event in (Event.ACKNOWLEDGE, Event.RESET):
+                start = time.perf_counter()
+                supervisor.fire(event)
+                samples.append((time.perf_counter() - start) * 1e3)
+            runtime.run_ticks(2)
+        runtime.close()
+        flush_logs()
+        configure_logging("warning")
+    note = f"{len(samples)} transitions over the whole spec; slowest {worst[0]} {worst[1]:.3f} ms; max {max(samples):.3f} ms"
+    return BenchFigure(
+        "FSM transition in the tick (guards, trigger, limits, controller reset, audit log)",
+        float(np.median(samples)),
+        float(np.percentile(samples, 90)),
+        "ms",
+        len(samples),
+        target=1.0,
+        note=note,
+    )
+
+
+def _force_guards(runtime: Runtime) -> None:
+    """Every advance guard true (the session's evidence, set directly: the benchmark times transitions)."""
+    from daror_runtime.fsm.signals import Checklist, EstopButton, SelectedModel
+
+    signals = runtime.signals
+    signals.estop_tested.update(EstopButton)
+    signals.confirmed.update(Checklist)
+    signals.isb_limits = signals.isb_limits or IsbLimits()
+    signals.model = SelectedModel("AP", "ap", None, 0.5, 1.5)
+
+
+def _settle(runtime: Runtime) -> None:
+    """Let the arm come to rest (the robot_at_rest guard) before a transition that needs it."""
+    runtime.run_until(lambda: runtime.at_rest, 5.0)
+
+
+def _force_to(runtime: Runtime, name: str) -> None:
+    supervisor = runtime.supervisor
+    while supervisor.state_name != name:
+        _force_guards(runtime)
+        _settle(runtime)
+        response = supervisor.fire(Event.ADVANCE)
+        if not response.accepted:
+            raise RuntimeError(f"cannot reach {name}: {response.reason}")
+        runtime.run_ticks(2)
+
+
+BENCHMARKS = [bench_fsm_tick, bench_fsm_transition]
