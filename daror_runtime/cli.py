@@ -351,27 +351,25 @@ def cmd_fsm_check(args: argparse.Namespace, console: Console) -> int:
 def cmd_fsm_diagram(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.fsm.diagram import mermaid
     from daror_runtime.fsm.spec import load_fsm_spec
-    from daror_runtime.util.atomic import write_text_atomic
 
-    text = mermaid(load_fsm_spec(args.spec))
-    if args.out is None:
-        sys.stdout.write(text)
-    else:
-        write_text_atomic(args.out, text)
-        console.print(f"wrote {args.out}")
-    return 0
+    return _emit(mermaid(load_fsm_spec(args.spec)), args.out, console)
 
 
 def cmd_fsm_schema(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.fsm.spec import spec_json_schema_text
+
+    return _emit(spec_json_schema_text(), args.out, console)
+
+
+def _emit(text: str, out: Path | None, console: Console) -> int:
+    """``text`` to standard output, or atomically to ``out``."""
     from daror_runtime.util.atomic import write_text_atomic
 
-    text = spec_json_schema_text()
-    if args.out is None:
+    if out is None:
         sys.stdout.write(text)
     else:
-        write_text_atomic(args.out, text)
-        console.print(f"wrote {args.out}")
+        write_text_atomic(out, text)
+        console.print(f"wrote {out}")
     return 0
 
 

@@ -139,6 +139,7 @@ class ControlLoop:
         """One tick. Never raises for hardware, controller or recorder errors: they become faults."""
         timing = self.clock.wait()
         monitor = self.monitor
+        monitor.begin_tick()
         try:
             sample: Sample | None = self.hal.read()
         except HalError as exc:

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from hypothesis import settings
 
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.logs import configure_logging
+from daror_runtime.logs import configure_logging, flush_logs
 from hal.robot import RobotDescription, load_description
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.static_dataset import StationarySet, generate_stationary
@@ -26,6 +27,14 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 def as_dataset(points: StationarySet, source: str = "<simulated>") -> StationaryDataset:
     """The measured part of a simulated set, as the runtime's dataset type."""
     return StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s, source)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _quiet_logs_after_each_module() -> Iterator[None]:
+    """A module that configured logging (a JSON file, a console level) does not leak it to the next."""
+    yield
+    flush_logs()
+    configure_logging("critical")
 
 
 @pytest.fixture(scope="session")

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
 from daror_runtime.errors import DarorError, UsageError
 from daror_runtime.fsm.supervisor import Response, Ticket
@@ -191,7 +192,7 @@ class ConsoleSession:
         condition = self._condition(rest)
         if not runtime.run_until(condition, timeout_s) and not condition():
             raise ScriptCheckError(f"'wait until {' '.join(rest)}' did not happen within {timeout_s:g} s")
-        self.out.print(f"[t={self._t():.3f} s] {' '.join(rest)}")
+        self.out.print(f"{self._stamp()} {escape(' '.join(rest))}")
 
     def _condition(self, words: list[str]) -> Callable[[], bool]:
         runtime = self.runtime
@@ -232,7 +233,7 @@ class ConsoleSession:
                 )
         else:
             raise CommandError("usage: expect state NAME | expect accepted | expect refused")
-        self.out.print(f"  ok: {' '.join(args)}")
+        self.out.print(f"  ok: {escape(' '.join(args))}")
 
     # --- the simulated world --------------------------------------------------------------
 
@@ -254,7 +255,7 @@ class ConsoleSession:
             raise CommandError(
                 "usage: sim estop operator|pilot on|off | sim fault KIND [JOINT] [VALUE] | sim clear | sim pilot ..."
             )
-        self.out.print(f"[t={self._t():.3f} s] world: {' '.join(args)}")
+        self.out.print(f"{self._stamp()} world: {escape(' '.join(args))}")
 
     def _pilot(self, world: SimWorld, args: list[str]) -> None:
         if len(args) == 2 and args[0] == "carry":
@@ -272,6 +273,9 @@ class ConsoleSession:
 
     # --- internals ------------------------------------------------------------------------
 
+    def _stamp(self) -> str:
+        return escape(f"[t={self._t():.3f} s]")
+
     def _t(self) -> float:
         sample = self.runtime.signals.sample
         return sample.t_s if sample is not None else 0.0
@@ -280,9 +284,11 @@ class ConsoleSession:
         response = self.runtime.wait(ticket, self.timeout_s)
         self.last.response = response
         if response.accepted:
-            self.out.print(f"[t={self._t():.3f} s] {response.request}: accepted, state {response.state}")
+            self.out.print(f"{self._stamp()} {escape(response.request)}: accepted, state {response.state}")
         else:
-            self.out.print(f"[t={self._t():.3f} s] {response.request}: [bold]refused[/bold] ({response.reason})")
+            self.out.print(
+                f"{self._stamp()} {escape(response.request)}: [bold]refused[/bold] ({escape(response.reason)})"
+            )
 
 
 def _arity(usage: str, args: list[str], n: int) -> None:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TextIO
 
 from rich.console import Console
+from rich.markup import escape
 
 from daror_runtime.console.commands import CommandError, ConsoleSession, ScriptCheckError
 from daror_runtime.console.world import SimWorld
@@ -61,7 +62,7 @@ def run_script(
     """
     count = 0
     for number, line in lines if lines is not None else read_script(path):
-        session.out.print(f"[dim]{path}:{number}[/dim] > {line}")
+        session.out.print(f"[dim]{escape(str(path))}:{number}[/dim] > {escape(line)}")
         try:
             session.execute(line)
         except ScriptCheckError as exc:
@@ -78,7 +79,7 @@ def run_interactive(session: ConsoleSession, stdin: TextIO | None = None) -> Non
     out = session.out
     out.print("daror console: type a command ('status', 'advance', ...), 'help' or 'quit'")
     while True:
-        out.print(f"[{session.runtime.supervisor.state_name}] > ", end="")
+        out.print(escape(f"[{session.runtime.supervisor.state_name}] > "), end="")
         line = stream.readline()
         if not line:
             break
@@ -88,14 +89,14 @@ def run_interactive(session: ConsoleSession, stdin: TextIO | None = None) -> Non
         if line == "help":
             from daror_runtime.console import commands
 
-            out.print(commands.__doc__ or "")
+            out.print(escape(commands.__doc__ or ""))
             continue
         try:
             session.execute(line)
         except (CommandError, InputError, ScriptCheckError) as exc:
-            out.print(f"  [bold]error[/bold]: {exc}")
+            out.print(f"  [bold]error[/bold]: {escape(str(exc))}")
         except DarorError as exc:
-            out.print(f"  [bold]failed[/bold]: {exc}")
+            out.print(f"  [bold]failed[/bold]: {escape(str(exc))}")
 
 
 def world_for(runtime: Runtime) -> SimWorld | None:

@@ -148,6 +148,7 @@ class FsmSupervisor:
         self._was_faulted = False
         self._fail_on_fault = True
         self._t_s = 0.0
+        self._tick_faults: list[Fault] = []  # the loop's list of this tick's faults (ours go in too)
         self.transitions = 0
         self.listeners: list[Callable[[StateSpec | FailSpec, Outcome], None]] = []
         self._enter(spec.first, None)
@@ -190,6 +191,7 @@ class FsmSupervisor:
         """The FSM's part of a tick (called by the loop after the safety check)."""
         signals = self.signals
         signals.sample = sample
+        self._tick_faults = faults
         if sample is not None:
             self._t_s = sample.t_s
         if faults:
@@ -259,9 +261,7 @@ class FsmSupervisor:
             except Exception as exc:  # a bug in a request: the robot stops (a software fault), the loop goes on
                 log.exception("request raised", request=ticket.request, state=self.state_name)
                 response = Response(ticket.request, False, self.state_name, f"internal error: {exc!r}")
-                fault = self.monitor.report(FaultKind.SOFTWARE, self._t_s, f"request {ticket.request!r} raised {exc!r}")
-                if fault is not None:
-                    self._route([fault], self.signals.sample)
+                self._own_fault(f"request {ticket.request!r} raised {exc!r}", self.signals.sample)
             ticket.resolve(response)
 
     def _route(self, faults: list[Fault], sample: Sample | None) -> None:
@@ -354,11 +354,14 @@ class FsmSupervisor:
         try:
             controller.reset(sample)
         except ControlError as exc:
-            fault = self.monitor.report(
-                FaultKind.SOFTWARE, sample.t_s, f"{type(controller).__name__} cannot start: {exc}"
-            )
-            if fault is not None:
-                self._route([fault], sample)
+            self._own_fault(f"{type(controller).__name__} cannot start: {exc}", sample)
+
+    def _own_fault(self, message: str, sample: Sample | None) -> None:
+        """A software fault the supervisor found: latched, in the tick's faults, routed now."""
+        fault = self.monitor.report(FaultKind.SOFTWARE, self._t_s, message)
+        if fault is not None:
+            self._tick_faults.append(fault)
+            self._route([fault], sample)
 
 
 def _fault_list(faults: list[Fault]) -> list[dict[str, object]]:

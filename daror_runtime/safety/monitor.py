@@ -56,6 +56,10 @@ class SafetyMonitor:
         self._isb_angles = isb_angles
         self._latched: dict[tuple[FaultKind, int | None], Fault] = {}
         self._present: set[tuple[FaultKind, int | None]] = set()
+        # Faults reported from outside check() (overrun, HAL, software) have no condition to test:
+        # one counts as present while it was reported in this tick or the one before.
+        self._reported_now: set[tuple[FaultKind, int | None]] = set()
+        self._reported_before: set[tuple[FaultKind, int | None]] = set()
         self._previous = np.zeros(2 * (N_JOINTS + 1))  # last finite q (4), a "seen one" flag, and their values before
         self._previous_seq: int | None = None
         self._same_seq = 0
@@ -103,30 +107,38 @@ class SafetyMonitor:
     def latched(self) -> list[Fault]:
         return list(self._latched.values())
 
+    def _holds(self, key: tuple[FaultKind, int | None]) -> bool:
+        return key in self._present or key in self._reported_now or key in self._reported_before
+
     @property
     def clearable(self) -> bool:
         """True when the condition of every latched fault is gone (:meth:`clear` would unlatch them all)."""
-        present = self._present
-        return all(key not in present for key in self._latched)
+        return not any(self._holds(key) for key in self._latched)
 
     def conditions_present(self) -> set[FaultKind]:
-        """Fault classes whose condition held at the last check."""
-        return {kind for kind, _ in self._present}
+        """Fault classes whose condition held at the last check (or were reported this tick or the last)."""
+        return {kind for kind, _ in self._present | self._reported_now | self._reported_before}
 
     def clear(self) -> list[Fault]:
         """Unlatch every fault whose condition is gone; returns the faults that remain latched."""
         for key in list(self._latched):
-            if key not in self._present:
+            if not self._holds(key):
                 del self._latched[key]
         return self.latched
 
     def clear_kinds(self, kinds: Iterable[FaultKind]) -> bool:
         """Unlatch faults of ``kinds`` whose condition is gone (an e-stop test once released); True if any."""
         wanted = set(kinds)
-        gone = [key for key in self._latched if key[0] in wanted and key not in self._present]
+        gone = [key for key in self._latched if key[0] in wanted and not self._holds(key)]
         for key in gone:
             del self._latched[key]
         return bool(gone)
+
+    def begin_tick(self) -> None:
+        """A new tick starts (the loop calls it first): reports older than the last tick no longer hold."""
+        if self._reported_now or self._reported_before:
+            self._reported_before = self._reported_now
+            self._reported_now = set()
 
     def reset_history(self) -> None:
         """Forget the previous sample (after the HAL was reopened: no jump or staleness across it)."""
@@ -200,14 +212,15 @@ class SafetyMonitor:
         new = []
         for key, fault in found.items():
             # A condition that went away and came back is a new occurrence, even while still latched
-            # (it needs its own acknowledgement); a report from outside check() has no "went away".
-            if key not in self._present and not (transient and key in self._latched):
+            # (it needs its own acknowledgement). A report is new unless it was reported last tick too.
+            if not self._holds(key):
                 new.append(fault)
                 log.error("fault", **fault.as_dict())
                 self._latched[key] = fault
             else:
                 self._latched.setdefault(key, fault)
         if transient:
+            self._reported_now.update(found)
             return new
         self._present = set(found)
         return new
