@@ -287,14 +287,7 @@ class FsmInTheTick(RuleBasedStateMachine):
         assert result.command.enable is False
         if was_pressed:
             return  # no new edge
-        if source == FAIL:
-            assert self.state == FAIL
-            self.acknowledged_since_fault = False
-        elif SPEC.state(source).fail_on_fault:
-            assert self.state == FAIL, f"an e-stop in {source} must fail the robot in the same tick"
-            self.acknowledged_since_fault = False
-        else:
-            assert self.state == source, f"an e-stop in the test state {source} must not fail"
+        if self.check_new_fault(source, "an e-stop"):
             assert EstopButton(("operator", "pilot")[button]) in self.signals.estop_tested
 
     @rule(button=st.sampled_from([0, 1]))
@@ -310,16 +303,17 @@ class FsmInTheTick(RuleBasedStateMachine):
         setattr(self.hal, "drive_fault" if kind == "drive" else "nan", True)
         result = self.tick()
         assert result.command.enable is False, "a fault must remove torque in the same tick"
-        if already:
-            return
-        if source == FAIL:
-            assert self.state == FAIL
+        if not already:
+            self.check_new_fault(source, "a fault")
+
+    def check_new_fault(self, source: str, what: str) -> bool:
+        """After the tick of a new fault (or e-stop) in ``source``: FAIL, or unchanged in a test state (True)."""
+        if source == FAIL or SPEC.state(source).fail_on_fault:
+            assert self.state == FAIL, f"{what} in {source} must fail the robot in the same tick"
             self.acknowledged_since_fault = False
-        elif SPEC.state(source).fail_on_fault:
-            assert self.state == FAIL, f"a fault in {source} must fail the robot in the same tick"
-            self.acknowledged_since_fault = False
-        else:
-            assert self.state == source, f"a fault in the test state {source} must not fail"
+            return False
+        assert self.state == source, f"{what} in the test state {source} must not fail"
+        return True
 
     @rule()
     def fault_recurs(self) -> None:
