@@ -258,6 +258,115 @@ def cmd_cvf(args: argparse.Namespace, console: Console) -> int:
     return 0 if all(e.result.conservative for e in evaluations) or not args.strict else 1
 
 
+# --- residual ---------------------------------------------------------------------------
+
+
+def cmd_residual(args: argparse.Namespace, console: Console) -> int:
+    from rich.table import Table
+
+    from daror_runtime.residual.pipeline import parse_families, run_residual
+    from hal.robot import load_description
+
+    families = parse_families(args.effects)
+    for name in ("summary.json", "model.json"):
+        _refuse_overwriting(args.out / name, args.train, args.validate)
+    description = load_description(args.robot)
+    log.info("residual requested", train=str(args.train), validate=str(args.validate), base=args.base)
+    run = run_residual(
+        args.train, args.validate, args.out, description, args.base.lower(), families, dummy_arm=args.dummy_arm
+    )
+    before, after = run.closure.before, run.closure.after
+    table = Table(title=f"Validation errors, {args.base.upper()} before and after ({len(run.inputs.validate)} points)")
+    for column in ("", "before (Nm)", "after (Nm)"):
+        table.add_column(column, justify="right" if column else "left")
+    for j in range(4):
+        table.add_row(f"joint {j + 1}", f"{before.rmse_per_joint_nm[j]:.4f}", f"{after.rmse_per_joint_nm[j]:.4f}")
+    table.add_row("RMSE", f"{before.rmse_nm:.4f}", f"{after.rmse_nm:.4f}")
+    table.add_row("nRMSE", f"{before.nrmse:.4f}", f"{after.nrmse:.4f}")
+    console.print(table)
+    if not run.diagnosis.found:
+        console.print("no effect found: nothing was added")
+    for i, found in enumerate(run.diagnosis.found):
+        gain = run.closure.rmse_gain_nm(i)
+        held = "" if gain >= 0 else ": did not hold on the validation data"
+        console.print(f"found: {found.sentence} (validation RMSE {-gain:+.4f} Nm{held})")
+    for c in run.diagnosis.structured_correlates[:5]:
+        console.print(f"unexplained: joint {c.joint} residual depends on {c.signal} (R^2 {c.r2:.2f})")
+    for note in run.diagnosis.notes:
+        console.print(f"note: {note}")
+    console.print(f"{args.out}: summary.json, report.md, model.json, diagnosis.json and plots written")
+    log.info(
+        "residual written",
+        out=str(args.out),
+        effects=[f.effect.label for f in run.diagnosis.found],
+        rmse_before=before.rmse_nm,
+        rmse_after=after.rmse_nm,
+        unexplained=run.diagnosis.unexplained,
+    )
+    return 0
+
+
+# --- study ----------------------------------------------------------------------------
+
+
+def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from daror_runtime.data.load import load_stationary
+    from daror_runtime.studies.data_efficiency import check_kind, parse_sizes, run_data_efficiency
+    from daror_runtime.studies.data_efficiency_report import (
+        check_out_dir,
+        output_paths,
+        summary_table,
+        write_outputs,
+    )
+    from hal.robot import load_description
+
+    # Every cheap check before loading data or fitting: a refusal costs nothing and writes nothing.
+    kind = check_kind(args.kind)
+    sizes = parse_sizes(args.sizes) if args.sizes is not None else None
+    check_out_dir(args.out)
+    for path in output_paths(args.out):
+        _refuse_overwriting(path, args.train, args.validate)
+    description = load_description()
+    train = load_stationary(args.train)
+    validate = load_stationary(args.validate)
+    log.info("data-efficiency study requested", kind=kind, train=str(args.train), validate=str(args.validate))
+    with Progress(
+        TextColumn(f"[bold]{kind}[/bold] data efficiency"),
+        BarColumn(),
+        TextColumn("{task.completed:.0f} fits"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("study", total=None)
+        result = run_data_efficiency(
+            train,
+            validate,
+            description,
+            kind=kind,
+            sizes=sizes,
+            draws=args.draws,
+            seed=args.seed,
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+        )
+    paths = write_outputs(result, args.out)
+    console.print(summary_table(result))
+    console.print(f"  full-data fit ({result.train_points} points): validation RMSE {result.full_data_rmse:.4g} Nm")
+    if result.enough_points is None:
+        console.print(f"  no size studied has a mean RMSE within {result.tolerance:.0%} of the full-data RMSE")
+    else:
+        console.print(
+            f"  enough points: {result.enough_points} ({result.enough_points / result.train_points:.1%} of the "
+            f"training set): mean RMSE within {result.tolerance:.0%} of the full-data RMSE from there on"
+        )
+    console.print(f"  {sum(s.fitted + s.refused for s in result.sizes)} fits in {result.duration_s:.1f} s")
+    for path in paths:
+        console.print(f"{path}: written")
+    return 0
+
+
 # --- demo / bench -----------------------------------------------------------------------
 
 
@@ -462,6 +571,49 @@ def build_parser() -> argparse.ArgumentParser:
     cvf.add_argument("--strict", action="store_true", help="exit 1 when a model is not conservative")
     cvf.set_defaults(handler=cmd_cvf)
 
+    residual = commands.add_parser(
+        "residual", help="close the loop: find the residual, trace it to physical effects, add them, report"
+    )
+    residual.add_argument("--train", type=Path, required=True, help="training data (stationary dataset or raw log)")
+    residual.add_argument("--validate", type=Path, required=True, help="validation data: every reported RMSE is on it")
+    residual.add_argument("--base", default="plf+", help="base model kind: plf+ (default), plf or ap")
+    residual.add_argument(
+        "--effects",
+        help="comma-separated families to test (default all): direction_offset, joint_stiffness, gravity_tilt, "
+        "encoder_offset, torque_gain",
+    )
+    residual.add_argument("--dummy-arm", action="store_true", help="with --base ap: add the Dummy Arm (Eq. 4.5, 4.7)")
+    residual.add_argument("--robot", type=Path, help="robot description (default: the packaged DAROR-01)")
+    residual.add_argument(
+        "--out", type=Path, required=True, help="output folder: summary.json, report.md, plots, model.json"
+    )
+    residual.set_defaults(handler=cmd_residual)
+
+    study = commands.add_parser("study", help="studies on recorded data (thesis Sec. 5.3)")
+    study_cmds = study.add_subparsers(dest="study_command", required=True, metavar="WHAT")
+    efficiency = study_cmds.add_parser(
+        "data-efficiency", help="validation RMSE against the number of training points (Sec. 5.3.1, Fig. 5.4)"
+    )
+    efficiency.add_argument(
+        "--train", type=Path, required=True, metavar="FILE", help="training set: stationary dataset or raw log"
+    )
+    efficiency.add_argument(
+        "--validate", type=Path, required=True, metavar="FILE", help="validation set: stationary dataset or raw log"
+    )
+    efficiency.add_argument("--kind", default="plf+", help="fitted model kind: plf, plf+ (default plf+)")
+    efficiency.add_argument(
+        "--sizes",
+        metavar="N,N,...",
+        help="comma-separated training-set sizes in points, 1..N (default: ~18 sizes, geometric, "
+        "from the smallest identifiable size to all N points)",
+    )
+    efficiency.add_argument("--draws", type=int, default=100, help="random subsets (models) per size (default 100)")
+    efficiency.add_argument("--seed", type=int, default=0, help="seed of the random subsets (default 0)")
+    efficiency.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="directory for data_efficiency.json, .png and .md"
+    )
+    efficiency.set_defaults(handler=cmd_study_data_efficiency)
+
     con = commands.add_parser("console", help="operator console session (interactive, or a script with --script)")
     con.add_argument("--hal", choices=["sim", "can-sim", "can"], default="sim", help="backend (default sim)")
     con.add_argument("--scenario", default="exo_dummy_arm", help="simulated plant scenario (--hal sim)")
@@ -498,7 +650,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
     command = " ".join(
-        x for x in (args.command, getattr(args, "simulate_command", None), getattr(args, "fsm_command", None)) if x
+        x
+        for x in (
+            args.command,
+            getattr(args, "simulate_command", None),
+            getattr(args, "fsm_command", None),
+            getattr(args, "study_command", None),
+        )
+        if x
     )
     handler: Handler = args.handler
     try:

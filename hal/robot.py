@@ -231,6 +231,30 @@ class Kinematics:
         self.inter_rotation = rot_y(np.deg2rad(geometry.inter_axis_deg))
         self.elbow_offset_m = np.asarray(geometry.elbow_offset_m, dtype=float)
 
+    def with_base_rotation(self, base_rotation: FloatArray) -> Kinematics:
+        """A copy of this chain whose stator 1 has the world orientation ``base_rotation``.
+
+        For the simulator's as-built truth (a base mounted tilted, ``hal.sim.scenario``); the
+        geometry record keeps the nominal angles, only ``base_rotation`` differs.
+
+        Args:
+            base_rotation: (3, 3) proper rotation matrix, ``0R_{1,s}``.
+
+        Raises:
+            ShapeError: ``base_rotation`` is not (3, 3), or not a proper rotation (orthonormal
+                to 1e-9, determinant +1).
+        """
+        rotation = np.array(base_rotation, dtype=float)
+        if rotation.shape != (3, 3):
+            raise ShapeError(f"base_rotation: expected shape (3, 3), got {rotation.shape}")
+        if not (np.allclose(rotation @ rotation.T, np.eye(3), rtol=0.0, atol=1e-9) and np.linalg.det(rotation) > 0):
+            raise ShapeError("base_rotation: not a proper rotation matrix (orthonormal, determinant +1)")
+        # A fresh instance, not a mutated copy: stator_offsets is a cached_property that would
+        # otherwise keep the old base rotation.
+        tilted = Kinematics(self.geometry)
+        tilted.base_rotation = rotation
+        return tilted
+
     @cached_property
     def stator_offsets(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Constant rotation from the previous rotor (world for joint 1) to each stator."""

@@ -184,7 +184,15 @@ def load_dataset(path: Path | str) -> StationaryDataset | RawLog:
     Raises:
         DataError: the file does not match either contract.
     """
-    table = read_table(path)
+    return dataset_from_table(read_table(path))
+
+
+def dataset_from_table(table: Table) -> StationaryDataset | RawLog:
+    """Validate a table as whichever of the two dataset kinds it is.
+
+    Raises:
+        DataError: the table does not match either contract.
+    """
     if "t" in table.columns:
         # t with only some dq columns is a raw log that lost a column, not a stationary dataset
         # whose every (moving) sample would count as a stationary point: refuse it.

@@ -42,6 +42,14 @@ class CompensationModel(ABC):
     def torque_batch(self, q: FloatArray) -> FloatArray:
         """Holding torque (N, 4) at N configurations (N, 4)."""
 
+    def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
+        """What the torque sensors would read at N configurations (N, 4).
+
+        The same as :meth:`torque_batch` unless the model knows sensor effects that depend on
+        how a joint arrived (``direction``: sign of each joint's last motion, (N, 4)).
+        """
+        return self.torque_batch(q)
+
     @abstractmethod
     def parameters(self) -> dict[str, Any]:
         """JSON-ready parameters; :meth:`from_parameters` rebuilds an identical model from them."""

@@ -44,7 +44,9 @@ class Evaluation:
 
 def evaluate_models(models: Sequence[CompensationModel], data: StationaryDataset) -> list[Evaluation]:
     """Errors of every model on ``data`` (Eq. 4.31-4.32)."""
-    return [Evaluation(m.name, m.kind, error_metrics(data.tau_nm, m.torque_batch(data.q_rad))) for m in models]
+    return [
+        Evaluation(m.name, m.kind, error_metrics(data.tau_nm, m.predict(data.q_rad, data.direction))) for m in models
+    ]
 
 
 def evaluation_document(evaluations: Sequence[Evaluation]) -> dict[str, Any]:

@@ -55,6 +55,12 @@ def _fit_plf_plus(dataset: StationaryDataset, description: RobotDescription, opt
     return fit_plf_plus(dataset, description, options.name)
 
 
+def _fit_augmented(dataset: StationaryDataset, description: RobotDescription, options: FitOptions) -> FitResult:
+    from daror_runtime.residual.model import fit_augmented
+
+    return fit_augmented(dataset, description, options.name)
+
+
 KINDS: dict[str, ModelKind] = {
     k.kind: k
     for k in (
@@ -75,6 +81,12 @@ KINDS: dict[str, ModelKind] = {
             "PLF + fifth-order elbow stiffness polynomial, Sec. 4.2.2",
             "daror_runtime.models.linear:PLFPlusModel",
             f"{__name__}:_fit_plf_plus",
+        ),
+        ModelKind(
+            "augmented",
+            "a base model plus the physical effects the data support (daror residual)",
+            "daror_runtime.residual.model:AugmentedModel",
+            f"{__name__}:_fit_augmented",
         ),
     )
 }

@@ -14,7 +14,8 @@ What the drives do, per tick, in this order (``write``):
    with the motor torque and the pilot's external torque held constant;
 3. both encoders of every joint are read (white noise, quantisation), the drive updates its
    velocity estimate (low-passed encoder difference) and the measured spring torque (with the
-   direction-dependent error of Sec. 2.2.2).
+   direction-dependent error of Sec. 2.2.2, computed with the nominal spring constant; the
+   scenario's undeclared angle offset and torque drift on top, docs/simulation.md).
 
 Sim-only hooks for tests (not part of the Hal contract): :meth:`SimHal.set_external_torque`,
 :meth:`SimHal.press_estop`, :meth:`SimHal.inject_fault`, :meth:`SimHal.clear_faults`,
@@ -36,6 +37,7 @@ from hal.robot import N_JOINTS, FloatArray, RobotDescription
 from hal.sim import dynamics
 from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
 from hal.sim.scenario import Scenario, load_scenario
+from hal.sim.sensors import SECONDS_PER_MINUTE
 from hal.sim.static_dataset import stream
 
 #: Random stream of the encoder noise; ids 1-5 belong to hal.sim.static_dataset.
@@ -90,7 +92,11 @@ class SimHal(Hal):
             )
         sensors = self.scenario.sensors
         self._drive_vector = np.zeros(dynamics.DRIVE_VECTOR_SIZE)
-        self._drive_vector[dynamics.S_STIFFNESS : dynamics.S_STIFFNESS + N_JOINTS] = self._plant.stiffness_nm_per_rad
+        # The drives compute torque with the description's nominal constant, not the plant's
+        # as-built one (scenario sea_stiffness_scale): a stiffness error reads as a torque gain error.
+        self._drive_vector[dynamics.S_STIFFNESS : dynamics.S_STIFFNESS + N_JOINTS] = (
+            self.description.sea.spring_stiffness_nm_per_rad
+        )
         self._drive_vector[dynamics.S_RESOLUTION] = self.description.sea.encoder_resolution_rad
         self._drive_vector[dynamics.S_QUANTISE] = 1.0 if sensors.quantise else 0.0
         self._drive_vector[dynamics.S_NOISE] = sensors.encoder_noise_rad
@@ -102,6 +108,14 @@ class SimHal(Hal):
             -2.0 * math.pi * sensors.velocity_filter_hz * self._dt
         )
         self._drive_vector[dynamics.S_INVERSE_PLAY] = 1.0 / sensors.direction_play_rad
+        # Undeclared sensor effects: calibration constants, not faults (clear_faults keeps them).
+        self._drive_vector[dynamics.S_ANGLE_OFFSET : dynamics.S_ANGLE_OFFSET + N_JOINTS] = np.deg2rad(
+            sensors.angle_offset_deg
+        )
+        # Per second, so the tick multiplies once; the same quotient as hal.sim.sensors.read_encoders.
+        self._drive_vector[dynamics.S_TORQUE_DRIFT : dynamics.S_TORQUE_DRIFT + N_JOINTS] = (
+            np.asarray(sensors.torque_drift_nm_per_min, dtype=float) / SECONDS_PER_MINUTE
+        )
         self._drive_vector[dynamics.S_DT] = self._dt
         self._drive_vector[dynamics.S_SUBSTEPS] = self._plant.substeps(self._dt)
         self._drive_vector[dynamics.S_FIFO_LENGTH] = self._plant.command_delay_ticks + 1

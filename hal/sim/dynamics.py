@@ -74,7 +74,10 @@ P_INVERSE_SMOOTHING = P_INVERSE_MOTOR_INERTIA + N_JOINTS  # 1 / eps
 P_N_SPRINGS = P_INVERSE_SMOOTHING + 1
 P_SPRINGS = P_N_SPRINGS + 1  # MAX_SPRINGS of SPRING_SIZE each
 SPRING_SIZE = 5  # joint index 0-3, stiffness, slack angle, +1 resists flexion / -1 extension, damping
-MAX_SPRINGS = 12  # the Dummy Arm's elbow springs and an end stop at each end of every joint
+# The Dummy Arm's elbow springs (2), an end stop at each end of every joint (8) and a pair per
+# undeclared two-sided joint spring (up to 4 pairs); unused slots cost nothing (the kernels loop
+# over P_N_SPRINGS), and springs are the last block, so no other offset moves.
+MAX_SPRINGS = 20
 PARAM_SIZE = P_SPRINGS + MAX_SPRINGS * SPRING_SIZE
 
 # --- scratch layout -----------------------------------------------------------------------------
@@ -671,7 +674,11 @@ S_NOISE_BLOCK = S_NOISE_INDEX + 1  # standard normals, NOISE_BLOCK_TICKS x NOISE
 NOISE_BLOCK_SIZE = NOISE_BLOCK_TICKS * NOISE_PER_TICK
 S_SUBSTEPS = S_NOISE_BLOCK + NOISE_BLOCK_SIZE  # RK4 steps per tick (>= 1)
 S_PREVIOUS_TRUE_Q = S_SUBSTEPS + 1  # true link angles at the previous reading (play operator), 4
-DRIVE_VECTOR_SIZE = S_PREVIOUS_TRUE_Q + N_JOINTS
+# Undeclared sensor effects (scenario sensors.*; docs/simulation.md "Undeclared effects"). Appended
+# at the end so that no index above moves. Zero means absent: sense skips them then.
+S_ANGLE_OFFSET = S_PREVIOUS_TRUE_Q + N_JOINTS  # calibration error of each joint's zero, both encoders, rad, 4
+S_TORQUE_DRIFT = S_ANGLE_OFFSET + N_JOINTS  # drift of the measured torque, Nm per second of robot time, 4
+DRIVE_VECTOR_SIZE = S_TORQUE_DRIFT + N_JOINTS
 
 #: What the tick kernel returns.
 TICK_ENABLED, TICK_DISABLED, TICK_BAD_COMMAND, TICK_DIVERGED, TICK_NO_NOISE = 0, 1, -1, -2, -3
@@ -689,6 +696,12 @@ def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
 
     ``out`` (4, 4): rows q, velocity estimate, theta, measured torque. Uses the next
     NOISE_PER_TICK numbers of the noise block; returns False (nothing read) if it is used up.
+    The reading is taken at robot time ``s[S_TICK] * s[S_DT]`` (the torque drift grows with it).
+
+    The undeclared effects match :func:`hal.sim.sensors.read_encoders`: the torque uses the
+    drive's (nominal) ``S_STIFFNESS``, whatever the plant's spring is; ``S_ANGLE_OFFSET`` is
+    added to both reported angles after quantisation and after the torque and velocity (a
+    common offset cancels in both); ``S_TORQUE_DRIFT`` times the robot time is added to the torque.
     """
     if not noise_left(s):
         return False
@@ -697,6 +710,7 @@ def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
     started = s[S_STARTED] > 0.0
     alpha = s[S_FILTER_ALPHA]
     inverse_dt = 1.0 / s[S_DT]
+    t = s[S_TICK] * s[S_DT]  # the same product as the sample's t_s in hal.sim.backend
     noise = S_NOISE_BLOCK + int(s[S_NOISE_INDEX])
     for j in range(N_JOINTS):
         q = x[j] + std * s[noise + j]
@@ -718,10 +732,20 @@ def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
         else:
             s[S_VELOCITY + j] = 0.0
         s[S_PREVIOUS_Q + j] = q
+        tau = s[S_STIFFNESS + j] * (theta - q) + s[S_DIRECTION_ERROR + j] * s[S_DIRECTION + j]
+        # Each undeclared effect only where declared: a scenario without it reads the very same
+        # floats as before the effect existed (adding 0.0 would turn a -0.0 reading into +0.0).
+        drift = s[S_TORQUE_DRIFT + j]
+        if drift != 0.0:
+            tau += drift * t
+        offset = s[S_ANGLE_OFFSET + j]
+        if offset != 0.0:
+            q += offset
+            theta += offset
         out[0, j] = q
         out[1, j] = s[S_VELOCITY + j]
         out[2, j] = theta
-        out[3, j] = s[S_STIFFNESS + j] * (theta - q) + s[S_DIRECTION_ERROR + j] * s[S_DIRECTION + j]
+        out[3, j] = tau
     s[S_STARTED] = 1.0
     s[S_NOISE_INDEX] += NOISE_PER_TICK
     return True
@@ -746,7 +770,8 @@ def hal_tick(
 
     Queues the command (an enabled one acts ``fifo length - 1`` ticks later; a disabled one
     empties the FIFO and acts now), removes the torque of faulted drives, integrates one RK4
-    step (split into ``s[S_SUBSTEPS]`` RK4 substeps), reads the encoders, counts the tick. Returns TICK_ENABLED or TICK_DISABLED (what the
+    step (split into ``s[S_SUBSTEPS]`` RK4 substeps), counts the tick, reads the encoders
+    (stamped with the new tick count). Returns TICK_ENABLED or TICK_DISABLED (what the
     power stages did), TICK_BAD_COMMAND (non-finite torque: FIFO emptied, no step) or
     TICK_DIVERGED (FIFO emptied, state as after the last good RK4 substep), or TICK_NO_NOISE (nothing done:
     refill the noise block and call again).
@@ -779,6 +804,8 @@ def hal_tick(
         if not rk4_step(x, inputs, h, p, work):
             flush_commands(s)
             return TICK_DIVERGED
-    sense(x, s, out)
+    # Counted before reading: the reading belongs to the new plant time, tick + 1 ticks in
+    # (sense takes its time stamp from S_TICK; the backend's sample says t_s = (tick + 1) dt).
     s[S_TICK] = tick + 1
+    sense(x, s, out)
     return TICK_ENABLED if on else TICK_DISABLED

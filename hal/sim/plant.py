@@ -1,8 +1,8 @@
 """The dynamic simulated plant: rigid-body DAROR-01 chain, one series elastic actuator per joint.
 
 :class:`DynamicPlant` turns a scenario's as-built truth (link masses, centres of mass and
-inertias, the Dummy Arm and its elbow springs, the drive train) into the parameter vector of the
-numba kernels in :mod:`hal.sim.dynamics` and owns the state ``(q, q', theta, theta')``. The
+inertias, the Dummy Arm and its elbow springs, the drive train, and the undeclared effects
+mounting tilt, joint springs and SEA stiffness scale) into the parameter vector of the numba kernels in :mod:`hal.sim.dynamics` and owns the state ``(q, q', theta, theta')``. The
 physics and the integrator are documented there and in ``docs/simulation.md``.
 
 Gravity here is the same physics as :class:`hal.sim.statics.StaticPlant` (world positions of the
@@ -151,8 +151,12 @@ class DynamicPlant:
                 "the dynamic plant needs the as-built drive train of every SEA"
             )
         mass, com, inertia = composite_bodies(scenario)
-        kinematics = self.description.kinematics()
-        self.stiffness_nm_per_rad = np.full(N_JOINTS, self.description.sea.spring_stiffness_nm_per_rad)
+        # As built: the base's mounting tilt is in the chain the kernels get (the same chain as
+        # Scenario.static_plant's, so gravity agrees with the static plant's).
+        kinematics = scenario.true_kinematics(self.description)
+        #: As-built SEA spring constants (4,) Nm/rad: nominal x sensors' ``sea_stiffness_scale``.
+        #: The simulated drives compute torque with the nominal constant (hal.sim.backend).
+        self.stiffness_nm_per_rad = scenario.stiffness_nm_per_rad(self.description)
         self.spring_damping_nms_per_rad = _per_joint(
             scenario, "spring_damping_nms_per_rad", drive.spring_damping_nms_per_rad, False
         )
@@ -170,6 +174,11 @@ class DynamicPlant:
                 )
                 for s in scenario.dummy_arm.elbow_springs
             ]
+        # Undeclared two-sided joint springs: the static plant's flexion/extension pair, undamped.
+        springs += [
+            (s.joint - 1, s.stiffness_nm_per_rad, s.slack_angle_rad, 1.0 if s.resists == "flexion" else -1.0)
+            for s in scenario.joint_pull_springs()
+        ]
         stops = scenario.end_stops
         margin = np.deg2rad(stops.margin_deg)
         for j, (lower, upper) in enumerate(

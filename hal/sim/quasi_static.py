@@ -80,7 +80,16 @@ def quasi_static_log(
     plant = scenario.static_plant(description)
     tau = plant.holding_torque_nm(q) + settings.inertia_kgm2 * ddq + settings.viscous_nms_per_rad * dq
     direction = last_motion_sign(dq)
-    readings = read_encoders(q, tau, direction, scenario.sensors, description.sea, rng)
     t = np.arange(len(q)) * dt
+    readings = read_encoders(
+        q,
+        tau,
+        direction,
+        scenario.sensors,
+        description.sea,
+        rng,
+        stiffness_nm_per_rad=scenario.stiffness_nm_per_rad(description),
+        t_s=t,
+    )
     velocity = np.gradient(readings.q_rad, dt, axis=0)
     return QuasiStaticLog(t, readings.q_rad, velocity, readings.torque_nm, readings.theta_rad, moving)

@@ -1,0 +1,101 @@
+"""The two files a residual analysis reads, and the checks that they belong together.
+
+Training and validation data must come from the same robot and carry the same columns: a
+direction effect fitted on ``dir`` cannot be validated on a file without it, and a file with a
+fifth joint's columns is another robot's data. Both are refused before anything is fitted.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from daror_runtime.data.load import dataset_from_table
+from daror_runtime.data.schema import RawLog, StationaryDataset
+from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
+from daror_runtime.data.tables import read_table
+from daror_runtime.errors import DataError
+from hal.robot import N_JOINTS
+
+#: Fewer validation points than this give RMSE figures that mean little (and nRMSE peaks that
+#: one point decides); the thesis validates on 166.
+MIN_VALIDATION_POINTS = 20
+
+_JOINT_COLUMN = re.compile(r"^(q|dq|tau|dir|theta|tau_cmd)(\d+)$")
+
+
+@dataclass(frozen=True)
+class ResidualInputs:
+    """Training and validation data of one analysis, checked to belong together."""
+
+    train: StationaryDataset
+    validate: StationaryDataset
+
+    @property
+    def has_direction(self) -> bool:
+        return self.train.direction is not None
+
+    @property
+    def has_time(self) -> bool:
+        return self.train.t_s is not None
+
+
+def _extra_joints(columns: list[str]) -> list[str]:
+    """Joint columns numbered beyond the DAROR-01's four (``q5``, ``tau6``, ...)."""
+    extra = []
+    for name in columns:
+        match = _JOINT_COLUMN.match(name)
+        if match and not 1 <= int(match.group(2)) <= N_JOINTS:
+            extra.append(name)
+    return extra
+
+
+def load_residual_file(path: Path | str, reduction: ReductionSettings | None = None) -> StationaryDataset:
+    """Stationary points of ``path`` (a raw log is reduced first), refusing another robot's data.
+
+    Raises:
+        DataError: the file does not match the dataset contract, holds joints beyond 1-4, or a
+            raw log holds no stationary point.
+    """
+    table = read_table(path)
+    extra = _extra_joints(list(table.columns))
+    if extra:
+        raise DataError(
+            f"{path}: column(s) {', '.join(extra)} belong to a robot with more than {N_JOINTS} joints; "
+            f"expected DAROR-01 data with joints 1-{N_JOINTS}"
+        )
+    data = dataset_from_table(table)
+    return reduce_to_stationary(data, reduction) if isinstance(data, RawLog) else data
+
+
+def check_pair(train: StationaryDataset, validate: StationaryDataset) -> ResidualInputs:
+    """Refuse a training/validation pair that cannot be analysed together.
+
+    Raises:
+        DataError: a validation set smaller than :data:`MIN_VALIDATION_POINTS`, or ``dir``
+            present in one file only (the message names both files).
+    """
+    if len(validate) < MIN_VALIDATION_POINTS:
+        raise DataError(
+            f"{validate.source}: {len(validate)} validation points; expected at least {MIN_VALIDATION_POINTS} "
+            "for before/after figures that mean something"
+        )
+    if (train.direction is None) != (validate.direction is None):
+        with_dir, without = (train, validate) if train.direction is not None else (validate, train)
+        raise DataError(
+            f"{without.source}: no dir1..dir4 columns, but {with_dir.source} has them; training and validation "
+            "files must carry the same columns (record both with directions, or drop them from both)"
+        )
+    return ResidualInputs(train, validate)
+
+
+def load_pair(
+    train_path: Path | str, validate_path: Path | str, reduction: ReductionSettings | None = None
+) -> ResidualInputs:
+    """Load and check the training and validation files of an analysis.
+
+    Raises:
+        DataError: see :func:`load_residual_file` and :func:`check_pair`.
+    """
+    return check_pair(load_residual_file(train_path, reduction), load_residual_file(validate_path, reduction))

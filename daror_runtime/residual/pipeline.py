@@ -1,0 +1,80 @@
+"""``daror residual`` as a function: load, check, diagnose, close the loop, report."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from daror_runtime.errors import DataError, UsageError
+from daror_runtime.residual.data import ResidualInputs, load_pair
+from daror_runtime.residual.diagnosis import Closure, Diagnosis, closure, diagnose
+from daror_runtime.residual.effects import FAMILIES, family
+from daror_runtime.residual.evidence import DiagnosisSettings
+from daror_runtime.residual.model import AugmentedModel, augmented_model
+from daror_runtime.residual.report import write_report
+from daror_runtime.residual.structure import base_model
+from hal.robot import RobotDescription
+
+
+@dataclass(frozen=True)
+class ResidualRun:
+    inputs: ResidualInputs
+    diagnosis: Diagnosis
+    closure: Closure
+    model: AugmentedModel
+    files: dict[str, Path]
+
+
+def parse_families(text: str | None) -> tuple[str, ...] | None:
+    """``--effects a,b`` as family names (None: all families).
+
+    Raises:
+        UsageError: an unknown or repeated name.
+    """
+    if text is None:
+        return None
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names:
+        raise UsageError(f"--effects {text!r}: expected comma-separated family names: {', '.join(FAMILIES)}")
+    for name in names:
+        family(name)
+    if len(set(names)) != len(names):
+        raise UsageError(f"--effects {text!r}: a family is named twice")
+    return names
+
+
+def run_residual(
+    train_path: Path | str,
+    validate_path: Path | str,
+    out_dir: Path | str,
+    description: RobotDescription,
+    base_kind: str = "plf+",
+    families: tuple[str, ...] | None = None,
+    dummy_arm: bool = False,
+    settings: DiagnosisSettings | None = None,
+) -> ResidualRun:
+    """The whole analysis; every check runs before anything is fitted or written.
+
+    Raises:
+        DataError: a file that does not match, a pair that does not belong together, or a
+            direction effect asked for on data without ``dir``.
+        UsageError: an unknown base kind or family.
+        IdentifiabilityError: the training data cannot identify the base model.
+    """
+    base_model(base_kind, description, dummy_arm)  # refuses an unknown base before reading data
+    inputs = load_pair(train_path, validate_path)
+    settings = settings or DiagnosisSettings()
+    if families is not None:
+        if not inputs.has_direction:
+            asked = [n for n in families if family(n).needs_direction]
+            if asked:
+                raise DataError(
+                    f"{inputs.train.source}: no dir1..dir4 columns, but --effects asks for {', '.join(asked)}, "
+                    "which needs the sign of each joint's last motion; record dir1..dir4 or drop it from --effects"
+                )
+        settings = replace(settings, families=families)
+    diagnosis = diagnose(inputs.train, description, base_kind, settings, dummy_arm)
+    result = closure(diagnosis, inputs.validate)
+    model = augmented_model(diagnosis.final_fit)
+    files = write_report(out_dir, diagnosis, result, model, inputs.train, inputs.validate, train_path)
+    return ResidualRun(inputs, diagnosis, result, model, files)

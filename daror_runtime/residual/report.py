@@ -1,0 +1,342 @@
+"""What ``daror residual`` writes into its output folder.
+
+* ``summary.json``: exactly the document of DESIGN.md section 5 (other code reads it);
+* ``diagnosis.json``: everything behind it (every round's candidates and their evidence, the
+  residual's correlates, the settings), for a person who wants to check the decision;
+* ``report.md``: the readable report: before/after RMSE and nRMSE per joint on the
+  validation data, the effects found with their physical parameters, the candidates, what
+  remains unexplained, and the plots;
+* ``residual_signals.png``: the training residual of the base model (and of the augmented
+  model) against each candidate's signal, per joint;
+* ``before_after.png``: validation torque, base and augmented model per joint (like Fig. 5.2);
+* ``model.json``: the augmented model, an ordinary model file.
+
+Every file is written to a temporary name and renamed, so a failure leaves no partial file.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.models.files import model_document, training_summary
+from daror_runtime.models.metrics import ErrorMetrics
+from daror_runtime.residual.diagnosis import Closure, Diagnosis
+from daror_runtime.residual.model import AugmentedModel
+from daror_runtime.util.atomic import atomic_path, write_text_atomic
+from hal.robot import N_JOINTS
+
+SUMMARY_KEYS = (
+    "base_model",
+    "rmse_before",
+    "rmse_after",
+    "nrmse_before",
+    "nrmse_after",
+    "rmse_per_joint_before",
+    "rmse_per_joint_after",
+    "effects",
+    "unexplained",
+)
+
+
+def summary_document(diagnosis: Diagnosis, result: Closure) -> dict[str, Any]:
+    """``DIR/summary.json`` as DESIGN.md section 5 specifies; all RMSE figures on the validation file."""
+    return {
+        "base_model": diagnosis.base_kind,
+        "rmse_before": result.before.rmse_nm,
+        "rmse_after": result.after.rmse_nm,
+        "nrmse_before": result.before.nrmse,
+        "nrmse_after": result.after.nrmse,
+        "rmse_per_joint_before": list(result.before.rmse_per_joint_nm),
+        "rmse_per_joint_after": list(result.after.rmse_per_joint_nm),
+        "effects": [
+            {
+                "name": f.effect.family,
+                "joints": [] if f.effect.joint is None else [f.effect.joint],
+                "parameters": f.parameters,
+                "rmse_gain": result.rmse_gain_nm(i),
+            }
+            for i, f in enumerate(diagnosis.found)
+        ],
+        "unexplained": diagnosis.unexplained,
+    }
+
+
+def diagnosis_document(
+    diagnosis: Diagnosis, result: Closure, train: StationaryDataset, validate: StationaryDataset
+) -> dict[str, Any]:
+    """``DIR/diagnosis.json``: the evidence behind the summary."""
+    return {
+        "train": {"source": train.source, "n_points": len(train)},
+        "validate": {"source": validate.source, "n_points": len(validate)},
+        "base_model": diagnosis.base_kind,
+        "settings": asdict(diagnosis.settings),
+        "training_rmse_before": float(np.sqrt(diagnosis.base_fit.rss / diagnosis.base_fit.n_rows)),
+        "training_rmse_after": float(np.sqrt(diagnosis.final_fit.rss / diagnosis.final_fit.n_rows)),
+        "validation_before": result.before.to_dict(),
+        "validation_after": result.after.to_dict(),
+        "found": [
+            {"effect": f.effect.family, "joint": f.effect.joint, "sentence": f.sentence, **f.evidence.to_dict()}
+            for f in diagnosis.found
+        ],
+        "rounds": [[e.to_dict() for e in round_] for round_ in diagnosis.rounds],
+        "correlates": [c.to_dict() for c in diagnosis.correlates],
+        "unexplained": diagnosis.unexplained,
+        "notes": diagnosis.notes,
+        "duration_s": diagnosis.duration_s,
+    }
+
+
+def _metrics_table(before: ErrorMetrics, after: ErrorMetrics) -> list[str]:
+    lines = [
+        "| | RMSE before (Nm) | RMSE after (Nm) | change |",
+        "|---|---|---|---|",
+    ]
+    for j in range(N_JOINTS):
+        b, a = before.rmse_per_joint_nm[j], after.rmse_per_joint_nm[j]
+        lines.append(f"| joint {j + 1} | {b:.4f} | {a:.4f} | {_change(b, a)} |")
+    lines.append(
+        f"| **all joints** | **{before.rmse_nm:.4f}** | **{after.rmse_nm:.4f}** | {_change(before.rmse_nm, after.rmse_nm)} |"
+    )
+    lines.append(
+        f"| nRMSE (Eq. 4.32) | {before.nrmse:.4f} | {after.nrmse:.4f} | {_change(before.nrmse, after.nrmse)} |"
+    )
+    return lines
+
+
+def _change(before: float, after: float) -> str:
+    return f"{(after / before - 1) * 100:+.1f} %" if before > 0 else "n/a"
+
+
+def report_markdown(
+    diagnosis: Diagnosis, result: Closure, train: StationaryDataset, validate: StationaryDataset, plots: list[str]
+) -> str:
+    """The readable report (Markdown)."""
+    base = diagnosis.base_kind.upper()
+    lines = [
+        f"# Residual analysis: {base} + effects",
+        "",
+        f"- training data: `{train.source}` ({len(train)} stationary points)",
+        f"- validation data: `{validate.source}` ({len(validate)} stationary points); every figure below is on it",
+        f"- base model: {base}; diagnosis took {diagnosis.duration_s:.1f} s",
+        "",
+        "## Before and after, on the validation data",
+        "",
+        *_metrics_table(result.before, result.after),
+        "",
+        "## Effects found",
+        "",
+    ]
+    if not diagnosis.found:
+        lines.append(
+            f"None. No candidate effect passed the evidence tests on top of {base}: nothing was added, "
+            "and the augmented model equals the base model."
+        )
+    for i, f in enumerate(diagnosis.found, start=1):
+        e = f.evidence
+        lines.append(
+            f"{i}. **{f.sentence}**. Validation RMSE {-result.rmse_gain_nm(i - 1):+.4f} Nm when added; "
+            f"held-out (training CV) RMSE {e.cv_rmse_before_nm:.4f} -> {e.cv_rmse_after_nm:.4f} Nm, "
+            f"dBIC {e.delta_bic:.1f}, F test p = {e.p_value:.2g}."
+        )
+        if result.rmse_gain_nm(i - 1) < 0:
+            lines.append(
+                "   **It did not hold on the validation data** (the RMSE rose). The training data supported it, "
+                "but it is not a stable property of the robot: with unexplained structure present (below), it "
+                "most likely stands in for that structure."
+            )
+    lines += ["", "## Candidates of the last round", ""]
+    if diagnosis.rounds:
+        lines += [
+            "| candidate | verdict | outside the model's span | dBIC | p | held-out RMSE change |",
+            "|---|---|---|---|---|---|",
+        ]
+        for e in diagnosis.rounds[-1]:
+            lines.append(
+                f"| {e.effect.label} | {e.verdict} | {e.orthogonal_fraction:.3g} | {e.delta_bic:.1f} | "
+                f"{e.p_value:.2g} | {-e.cv_gain * 100:+.1f} % |"
+            )
+    lines += ["", "## What remains", ""]
+    structured = diagnosis.structured_correlates
+    if structured:
+        lines.append(
+            "**Unexplained structure remains**: the residual of the augmented model still depends on signals "
+            "that no effect family explains:"
+        )
+        lines.append("")
+        for c in structured[:8]:
+            lines.append(
+                f"- joint {c.joint} residual against `{c.signal}`: R^2 = {c.r2:.2f}, r = {c.pearson_r:+.2f}, p = {c.p_value:.2g}"
+            )
+    else:
+        strongest = diagnosis.correlates[0] if diagnosis.correlates else None
+        detail = (
+            f" (strongest: joint {strongest.joint} against `{strongest.signal}`, R^2 = {strongest.r2:.3f})"
+            if strongest
+            else ""
+        )
+        lines.append(f"No structure left: the residual depends on no tested signal{detail}.")
+    if diagnosis.notes:
+        lines += ["", "## Notes", "", *[f"- {n}" for n in diagnosis.notes]]
+    lines += ["", "## Plots", ""]
+    lines += [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _save_figure(figure: Any, path: Path) -> None:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buffer.getvalue())
+
+
+def plot_residual_signals(diagnosis: Diagnosis, train: StationaryDataset, path: Path) -> None:
+    """Training residual, base (grey) and augmented (blue), against each candidate's signal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    before, after = diagnosis.base_fit.residual_nm, diagnosis.final_fit.residual_nm
+    model_torque = train.tau_nm - before
+    signals: list[tuple[str, Any]] = [
+        ("joint angle q_j (deg)  [joint_stiffness, encoder_offset]", lambda j: np.degrees(train.q_rad[:, j])),
+        ("modelled torque (Nm)  [torque_gain]", lambda j: model_torque[:, j]),
+    ]
+    if train.direction is not None:
+        direction = train.direction
+        signals.insert(0, ("last motion dir_j  [direction_offset]", lambda j: direction[:, j]))
+    time_values = train.t_s if train.t_s is not None else np.arange(len(train), dtype=float)
+    signals.append(
+        ("time t (s)  [none: drift]" if train.t_s is not None else "sample order  [none: drift]", lambda j: time_values)
+    )
+    figure, axes = plt.subplots(N_JOINTS, len(signals), figsize=(4.2 * len(signals), 2.6 * N_JOINTS), squeeze=False)
+    rng = np.random.default_rng(0)
+    for j in range(N_JOINTS):
+        for c, (label, values) in enumerate(signals):
+            ax = axes[j, c]
+            x = values(j)
+            jitter = rng.uniform(-0.15, 0.15, x.shape) if label.startswith("last motion") else 0.0
+            ax.scatter(x + jitter, before[:, j], s=3, color="0.6", label=f"{diagnosis.base_kind.upper()}")
+            ax.scatter(x + jitter, after[:, j], s=3, color="tab:blue", label="augmented")
+            ax.axhline(0.0, color="k", linewidth=0.6)
+            if j == N_JOINTS - 1:
+                ax.set_xlabel(label)
+            if c == 0:
+                ax.set_ylabel(f"joint {j + 1} residual (Nm)")
+    axes[0, 0].legend(loc="upper right", fontsize=7, markerscale=3)
+    figure.suptitle("Training residual against each candidate's signal")
+    figure.tight_layout()
+    _save_figure(figure, path)
+    plt.close(figure)
+
+
+def plot_before_after(diagnosis: Diagnosis, model: AugmentedModel, validate: StationaryDataset, path: Path) -> None:
+    """Validation torque, base and augmented model per joint (like the thesis's Fig. 5.2)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    base = diagnosis.base_fit.predict(validate)
+    augmented = model.predict(validate.q_rad, validate.direction)
+    index = np.arange(len(validate))
+    figure, axes = plt.subplots(N_JOINTS, 1, figsize=(11, 2.3 * N_JOINTS), sharex=True)
+    for j in range(N_JOINTS):
+        ax = axes[j]
+        ax.plot(index, validate.tau_nm[:, j], ".", color="k", markersize=3, label="measured")
+        ax.plot(index, base[:, j], "-", color="0.55", linewidth=1, label=diagnosis.base_kind.upper())
+        ax.plot(index, augmented[:, j], "-", color="tab:blue", linewidth=1, label="augmented")
+        ax.set_ylabel(f"tau{j + 1} (Nm)")
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1].set_xlabel("validation point")
+    figure.suptitle("Validation data and the models, before and after")
+    figure.tight_layout()
+    _save_figure(figure, path)
+    plt.close(figure)
+
+
+REPORT_FILES = ("residual_signals.png", "before_after.png", "model.json", "diagnosis.json", "report.md", "summary.json")
+
+
+def write_report(
+    out_dir: Path | str,
+    diagnosis: Diagnosis,
+    result: Closure,
+    model: AugmentedModel,
+    train: StationaryDataset,
+    validate: StationaryDataset,
+    train_path: Path | str | None = None,
+) -> dict[str, Path]:
+    """Write every file of the report into ``out_dir``; returns their paths by role.
+
+    The files are written into a temporary folder beside ``out_dir`` and moved in only when all
+    of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was.
+    """
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        _write_files(staging, diagnosis, result, model, train, validate, train_path)
+        out.mkdir(exist_ok=True)
+        for name in REPORT_FILES:
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return {name: out / name for name in REPORT_FILES}
+
+
+def _write_files(
+    out: Path,
+    diagnosis: Diagnosis,
+    result: Closure,
+    model: AugmentedModel,
+    train: StationaryDataset,
+    validate: StationaryDataset,
+    train_path: Path | str | None,
+) -> None:
+    paths = {
+        "signals_plot": out / "residual_signals.png",
+        "before_after_plot": out / "before_after.png",
+        "model": out / "model.json",
+        "diagnosis": out / "diagnosis.json",
+        "report": out / "report.md",
+        "summary": out / "summary.json",
+    }
+    plot_residual_signals(diagnosis, train, paths["signals_plot"])
+    plot_before_after(diagnosis, model, validate, paths["before_after_plot"])
+    document = model_document(model, training_summary(train, train_path))
+    write_text_atomic(paths["model"], json.dumps(document, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(paths["diagnosis"], _json(diagnosis_document(diagnosis, result, train, validate)))
+    plots = [paths["before_after_plot"].name, paths["signals_plot"].name]
+    write_text_atomic(paths["report"], report_markdown(diagnosis, result, train, validate, plots))
+    # The summary last: its presence says the whole report is there.
+    write_text_atomic(paths["summary"], _json(summary_document(diagnosis, result)))
+
+
+def _json(document: dict[str, Any]) -> str:
+    """Strict JSON (no NaN): figures that could not be measured are null."""
+    return json.dumps(_clean(document), indent=2, allow_nan=False) + "\n"
+
+
+def _clean(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
