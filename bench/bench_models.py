@@ -7,9 +7,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
-from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.bench import BenchFigure, time_calls, time_torque_one_q
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.cvf import cvf_test
 from daror_runtime.models.linear import fit_plf, fit_plf_plus
@@ -46,15 +44,7 @@ def bench_plf_fit_25000(quick: bool) -> BenchFigure:
 def bench_plf_plus_torque_one_q(quick: bool) -> BenchFigure:
     data, description = _dataset_25000(), load_description()
     model = fit_plf_plus(data, description).model
-    configurations = [np.asarray(q) for q in data.q_rad[:1000]]
-    state = {"i": 0}
-
-    def one() -> None:
-        state["i"] = (state["i"] + 1) % len(configurations)
-        model.torque(configurations[state["i"]])
-
-    repeats = 20 if quick else 200
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    median, p90, repeats = time_torque_one_q(model, data.q_rad, quick)
     return BenchFigure("PLF+ torque, one q", median, p90, "us", repeats, 20.0, None, "per call, ndarray in and out")
 
 

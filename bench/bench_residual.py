@@ -6,6 +6,7 @@
 * The whole ``daror residual`` job on the same files (diagnosis, closure, report, plots): no target.
 * The augmented model's torque for one q (it runs inside the 1 kHz tick): target below 20 us,
   the budget of PLF+.
+* The data-efficiency study (Fig. 5.4) on dataset B, 100 draws per size: no target.
 """
 
 from __future__ import annotations
@@ -13,14 +14,13 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
-from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.bench import BenchFigure, time_calls, time_torque_one_q
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.residual.diagnosis import closure, diagnose
 from daror_runtime.residual.model import augmented_model
 from daror_runtime.residual.pipeline import run_residual
+from daror_runtime.studies.data_efficiency import run_data_efficiency
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
@@ -76,16 +76,35 @@ def bench_augmented_torque_one_q(quick: bool) -> BenchFigure:
     train, _ = _data()
     description = load_description()
     model = augmented_model(diagnose(train, description).final_fit)
-    configurations = [np.asarray(q) for q in train.q_rad[:1000]]
-    state = {"i": 0}
-
-    def one() -> None:
-        state["i"] = (state["i"] + 1) % len(configurations)
-        model.torque(configurations[state["i"]])
-
-    repeats = 20 if quick else 200
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    median, p90, repeats = time_torque_one_q(model, train.q_rad, quick)
     return BenchFigure("augmented model torque, one q", median, p90, "us", repeats, 20.0, None, "dataset B effects")
 
 
-BENCHMARKS = [bench_residual_diagnosis, bench_residual_job, bench_augmented_torque_one_q]
+def bench_data_efficiency_study(quick: bool) -> BenchFigure:
+    scenario = load_scenario("exo_dummy_arm")
+    train = generate_stationary(scenario, "training")
+    validate = generate_stationary(scenario, "validation")
+    as_data = lambda s: StationaryDataset(s.q_rad, s.tau_nm, s.direction, s.t_s)  # noqa: E731
+    description = load_description()
+    repeats = 1 if quick else 3
+    median, p90 = time_calls(
+        lambda: run_data_efficiency(as_data(train), as_data(validate), description), repeats=repeats, scale=1.0
+    )
+    return BenchFigure(
+        f"data-efficiency study, PLF+, {len(train)} points, 100 draws x 18 sizes",
+        median,
+        p90,
+        "s",
+        repeats,
+        None,
+        "Fig. 5.4: 100 models per size",
+        "1,800 fits",
+    )
+
+
+BENCHMARKS = [
+    bench_residual_diagnosis,
+    bench_residual_job,
+    bench_augmented_torque_one_q,
+    bench_data_efficiency_study,
+]

@@ -50,6 +50,20 @@ class BenchFigure:
         return self.median >= self.target if self.at_least else self.median <= self.target
 
 
+def time_torque_one_q(model: Any, configurations: np.ndarray, quick: bool) -> tuple[float, float, int]:
+    """Median and p90 (us) of ``model.torque(q)`` over rotating rows of ``configurations``, and the repeats."""
+    rows = [np.asarray(q) for q in configurations[:1000]]
+    state = {"i": 0}
+
+    def one() -> None:
+        state["i"] = (state["i"] + 1) % len(rows)
+        model.torque(rows[state["i"]])
+
+    repeats = 20 if quick else 200
+    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    return median, p90, repeats
+
+
 def time_calls(fn: Callable[[], object], repeats: int, per_call: int = 1, scale: float = 1e3) -> tuple[float, float]:
     """Median and p90 of ``repeats`` timings of ``per_call`` calls each, per call, times ``scale``."""
     fn()  # warm-up: imports, caches, first-touch allocations

@@ -63,6 +63,15 @@ def _joint_angles(text: str) -> list[float]:
     return values
 
 
+def _progress(console: Console, label: str, counter: str) -> Any:
+    """A transient rich progress bar: ``label``, the bar, ``counter`` (a task format), time left."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn(label), BarColumn(), TextColumn(counter), TimeRemainingColumn(), console=console, transient=True
+    )
+
+
 def _refuse_overwriting(out: Path | str, *inputs: Path | str | None) -> None:
     for source in inputs:
         if source is not None and Path(out).resolve() == Path(source).resolve():
@@ -110,7 +119,6 @@ def cmd_simulate_list(args: argparse.Namespace, console: Console) -> int:
 
 
 def cmd_identify(args: argparse.Namespace, console: Console) -> int:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from daror_runtime.data.load import raw_log_path, write_dataset
     from daror_runtime.identification.protocol import ProtocolSettings, run_protocol
@@ -139,13 +147,10 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
     recording.unlink(missing_ok=True)
     log.info("identify requested", scenario=scenario.name, trajectory=args.trajectory, out=str(out))
     hal.open()
-    with Progress(
-        TextColumn(f"[bold]{args.trajectory}[/bold] on {scenario.name}"),
-        BarColumn(),
-        TextColumn("{task.completed:.0f}/{task.total:.0f} s robot time"),
-        TimeRemainingColumn(),
-        console=console,
-        transient=True,
+    with _progress(
+        console,
+        f"[bold]{args.trajectory}[/bold] on {scenario.name}",
+        "{task.completed:.0f}/{task.total:.0f} s robot time",
     ) as bar:
         task = bar.add_task("identify", total=trajectory.duration_s)
         result = run_protocol(
@@ -310,7 +315,6 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
 
 
 def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from daror_runtime.data.load import load_stationary
     from daror_runtime.studies.data_efficiency import check_kind, parse_sizes, run_data_efficiency
@@ -332,14 +336,7 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
     train = load_stationary(args.train)
     validate = load_stationary(args.validate)
     log.info("data-efficiency study requested", kind=kind, train=str(args.train), validate=str(args.validate))
-    with Progress(
-        TextColumn(f"[bold]{kind}[/bold] data efficiency"),
-        BarColumn(),
-        TextColumn("{task.completed:.0f} fits"),
-        TimeRemainingColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
+    with _progress(console, f"[bold]{kind}[/bold] data efficiency", "{task.completed:.0f} fits") as bar:
         task = bar.add_task("study", total=None)
         result = run_data_efficiency(
             train,

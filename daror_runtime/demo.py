@@ -5,6 +5,9 @@ Arm, start to compensation through every state of ``fsm_spec.yaml``, driven by t
 console script; the report lists the transitions, the identification, the model's validation and
 what the robot carries once the pilot relaxes.
 
+Part 3 (:mod:`daror_runtime.residual`): the session's own identification data go through
+``daror residual``: PLF+'s residual traced to physical effects, added, before/after reported.
+
 Part 2, for dataset A (``exo``) and B (``exo_dummy_arm``): record a training and a validation set of
 stationary points, build the A Priori model and fit PLF and PLF+, evaluate them on the
 validation set (Table III) and run the closed-path energy test (Table IV). Everything lands in
@@ -24,6 +27,7 @@ from rich.table import Table
 
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.errors import DarorError
 from daror_runtime.models.compare import (
     THESIS_TABLE_III,
     THESIS_TABLE_IV,
@@ -153,6 +157,36 @@ def _session_tables(session: SessionReport) -> tuple[Table, str]:
     return table, "\n".join(md)
 
 
+def _close_the_loop(session: SessionReport, out: Path, console: Console) -> str:
+    """Part 3: the residual analysis on the session's identification data; its Markdown summary."""
+    from daror_runtime.residual.pipeline import run_residual
+
+    saved = session.status.get("identification_saved") or {}
+    if set(saved) != {"training", "validation"}:
+        raise DarorError("the session saved no training and validation data to close the loop on")
+    console.print("[bold]Closing the loop on the session's measured data (PLF+ residual)[/bold]")
+    run = run_residual(saved["training"], saved["validation"], out / "residual_session", load_description())
+    before, after = run.closure.before, run.closure.after
+    lines = [
+        f"PLF+ on the session's validation points: RMSE {before.rmse_nm:.3f} Nm before, {after.rmse_nm:.3f} Nm "
+        f"after adding what the data support (nRMSE {before.nrmse:.3f} -> {after.nrmse:.3f}).",
+        "",
+    ]
+    for i, found in enumerate(run.diagnosis.found):
+        lines.append(f"- found: {found.sentence} (validation RMSE {-run.closure.rmse_gain_nm(i):+.3f} Nm)")
+        console.print(f"  found: {found.sentence}")
+    if not run.diagnosis.found:
+        lines.append("- no effect beyond PLF+ is supported by the data")
+    for c in run.diagnosis.structured_correlates[:3]:
+        lines.append(f"- unexplained: joint {c.joint} residual depends on {c.signal} (R^2 {c.r2:.2f})")
+    lines.append("")
+    lines.append("Full report: `residual_session/report.md`.")
+    console.print(
+        f"  RMSE {before.rmse_nm:.3f} -> {after.rmse_nm:.3f} Nm; report: {out / 'residual_session' / 'report.md'}"
+    )
+    return "\n".join(lines)
+
+
 def run_demo(out: Path, console: Console) -> dict[str, Any]:
     """Run the demo into ``out``; returns the summary written to ``out/summary.json``."""
     from daror_runtime.session.rehearsal import rehearse
@@ -169,10 +203,12 @@ def run_demo(out: Path, console: Console) -> dict[str, Any]:
     console.print(table)
     cvf = cvf_models(runs[1].models)
     console.print(cvf_table(cvf, "Closed-path energy test, dataset B models (thesis Table IV)"))
+    residual_md = _close_the_loop(session, out, console)
     summary = {
         "datasets": {run.label: {"scenario": run.scenario, **evaluation_document(run.evaluations)} for run in runs},
         "cvf_B": cvf_document(cvf),
         "session": session.document(),
+        "residual_session": json.loads((out / "residual_session" / "summary.json").read_text()),
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     report = [
@@ -192,6 +228,10 @@ def run_demo(out: Path, console: Console) -> dict[str, Any]:
         "## Closed-path energy test (Sec. 4.4.4), dataset B models",
         "",
         _cvf_markdown(summary["cvf_B"]),
+        "",
+        "## Closing the loop on the session's own measurements (daror residual)",
+        "",
+        residual_md,
         "",
     ]
     write_text_atomic(out / "report.md", "\n".join(report))

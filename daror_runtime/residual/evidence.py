@@ -308,7 +308,9 @@ def residual_structure(
         p_value = float(scipy.stats.f.sf(f_stat, p - 1, n - p))
         spread = float(np.std(values))
         pearson = float(np.corrcoef(values, r)[0, 1]) if spread > 0 and np.std(r) > 0 else 0.0
-        structured = p_value < settings.unexplained_alpha / (len(tests) + N_JOINTS) and r2 >= settings.unexplained_min_r2
+        structured = (
+            p_value < settings.unexplained_alpha / (len(tests) + N_JOINTS) and r2 >= settings.unexplained_min_r2
+        )
         out.append(Correlate(j + 1, name, r2, p_value, pearson, structured))
     # Structure tied to how the robot got there (a direction error without dir columns, hysteresis,
     # anything that persists along a segment) makes neighbours in recording order alike even

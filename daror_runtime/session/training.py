@@ -40,7 +40,7 @@ def validate(model: CompensationModel, validation_path: Path) -> ErrorMetrics:
         DataError: the file is missing or malformed.
     """
     data = load_stationary(validation_path)
-    return error_metrics(data.tau_nm, model.torque_batch(data.q_rad))
+    return error_metrics(data.tau_nm, model.predict(data.q_rad, data.direction))
 
 
 def train_model(
