@@ -529,8 +529,11 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--rate-hz", type=float, default=1000.0, help="loop rate (default 1000)")
     ident.set_defaults(handler=cmd_identify)
 
-    fit = commands.add_parser("fit", help="fit a compensation model: ap, plf, plf+")
-    fit.add_argument("kind", help="model kind: ap, plf, plf+")
+    fit = commands.add_parser("fit", help="fit a compensation model: ap, plf, plf+, augmented")
+    fit.add_argument(
+        "kind",
+        help="model kind: ap, plf, plf+, augmented (PLF+ plus the effects the training data support, see daror residual)",
+    )
     fit.add_argument("--train", type=Path, help="stationary dataset or raw log (optional for ap)")
     fit.add_argument("--out", type=Path, required=True, help="model file to write (JSON)")
     fit.add_argument("--name", help="model name shown in tables (default: the kind's name)")

@@ -241,3 +241,14 @@ def test_dataset_type_is_what_the_loader_gives(files: tuple[Path, Path]) -> None
     assert isinstance(pair.train, StationaryDataset)
     assert pair.has_direction
     assert pair.has_time
+
+
+def test_fit_augmented_diagnoses_the_training_data_alone(files: tuple[Path, Path], tmp_path: Path) -> None:
+    out = tmp_path / "augmented.json"
+    assert main(["fit", "augmented", "--train", str(files[0]), "--out", str(out)]) == 0
+    model, contents = load_model(out)
+    assert contents.kind == "augmented"
+    assert contents.parameters["effects"] == ["direction_offset (joint 2)"]
+    assert contents.parameters["direction_offset_nm"][1] == pytest.approx(0.6, abs=0.01)
+    assert contents.fit["training"]["rmse"] < 0.03
+    assert model.torque(np.zeros(4)).shape == (4,)
