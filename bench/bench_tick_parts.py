@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.bench import BenchFigure, time_calls, time_each
 from daror_runtime.identification.trajectory import build_trajectory
 from daror_runtime.identification.waypoints import load_waypoints
 from hal.isb import default_shoulder
@@ -24,14 +24,8 @@ def bench_isb_single(quick: bool) -> BenchFigure:
 def bench_trajectory_reference(quick: bool) -> BenchFigure:
     training = build_trajectory(load_waypoints(), "training")
     times = np.arange(0.0, 60.0, 0.001).tolist()
-    state = {"i": 0}
-
-    def one() -> None:
-        state["i"] = (state["i"] + 1) % len(times)
-        training.reference(times[state["i"]])
-
     repeats = 20 if quick else 100
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    median, p90 = time_each(training.reference, times, repeats)
     note = f"training: {training.duration_s / 60:.2f} min, {len(training.stops)} stops, {training.nbytes / 1e6:.1f} MB"
     return BenchFigure("trajectory reference(t) (Python path)", median, p90, "us", repeats, note=note)
 

@@ -50,17 +50,21 @@ class BenchFigure:
         return self.median >= self.target if self.at_least else self.median <= self.target
 
 
-def time_torque_one_q(model: Any, configurations: np.ndarray, quick: bool) -> tuple[float, float, int]:
-    """Median and p90 (us) of ``model.torque(q)`` over rotating rows of ``configurations``, and the repeats."""
-    rows = [np.asarray(q) for q in configurations[:1000]]
+def time_each(call: Callable[[Any], object], items: Sequence[Any], repeats: int) -> tuple[float, float]:
+    """Median and p90 (us) per call of ``call(item)``, cycling through ``items`` (1,000 calls a sample)."""
     state = {"i": 0}
 
     def one() -> None:
-        state["i"] = (state["i"] + 1) % len(rows)
-        model.torque(rows[state["i"]])
+        state["i"] = (state["i"] + 1) % len(items)
+        call(items[state["i"]])
 
+    return time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+
+
+def time_torque_one_q(model: Any, configurations: np.ndarray, quick: bool) -> tuple[float, float, int]:
+    """Median and p90 (us) of ``model.torque(q)`` over rows of ``configurations``, and the repeats."""
     repeats = 20 if quick else 200
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    median, p90 = time_each(model.torque, [np.asarray(q) for q in configurations[:1000]], repeats)
     return median, p90, repeats
 
 
