@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from daror_runtime.errors import UsageError
+from daror_runtime.errors import ConfigurationError, UsageError
 from hal.robot import N_JOINTS, FloatArray, rot_x, rot_z
 
 
@@ -105,7 +105,9 @@ class EffectFamily(ABC):
 
     def columns(self, effect: Effect, context: ColumnContext, stiffness_order: int) -> FloatArray:
         """Column values on the effect's joint row, (n_linear, N)."""
-        raise NotImplementedError(f"{self.name} adds no least-squares columns")
+        raise ConfigurationError(
+            f"{self.name} adds no least-squares columns; only linear families are asked for columns"
+        )
 
     # nonlinear families
     initial: ClassVar[tuple[float, ...]] = ()
@@ -116,7 +118,7 @@ class EffectFamily(ABC):
 
     def apply(self, effect: Effect, values: FloatArray, transform: Transform) -> None:
         """Write this effect's nonlinear ``values`` into ``transform``."""
-        raise NotImplementedError(f"{self.name} has no nonlinear parameters")
+        raise ConfigurationError(f"{self.name} has no nonlinear parameters; only nonlinear families are applied")
 
     @abstractmethod
     def physical(

@@ -167,7 +167,8 @@ class Structure:
         return self._nonlinear_slices.get(effect)
 
     @cached_property
-    def _bounds(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    def nonlinear_bounds(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Initial value, lower and upper bound, and typical size of every nonlinear parameter."""
         initial, lower, upper, typical = [], [], [], []
         for effect in self.effects:
             fam = family(effect.family)
@@ -178,7 +179,7 @@ class Structure:
         return np.array(initial), np.array(lower), np.array(upper), np.array(typical)
 
     def initial_phi(self) -> FloatArray:
-        return self._bounds[0].copy()
+        return self.nonlinear_bounds[0].copy()
 
     def transform(self, phi: FloatArray) -> Transform:
         transform = Transform()
@@ -285,7 +286,7 @@ def fit_structure(structure: Structure, data: StationaryDataset, phi0: FloatArra
     if structure.n_nonlinear == 0:
         phi = np.zeros(0)
     else:
-        start, lower, upper, typical = structure._bounds
+        start, lower, upper, typical = structure.nonlinear_bounds
         if phi0 is not None:
             start = np.clip(phi0, lower + 1e-9 * typical, upper - 1e-9 * typical)
 
@@ -323,7 +324,7 @@ def nonlinear_jacobian(
 ) -> FloatArray:
     """d(prediction)/d(phi) at fixed linear parameters, (4 N, m), by central differences."""
     indices = range(structure.n_nonlinear) if which is None else range(*which.indices(structure.n_nonlinear))
-    _, _, _, typical = structure._bounds
+    _, _, _, typical = structure.nonlinear_bounds
     columns = []
     for i in indices:
         step = 1e-4 * typical[i]
