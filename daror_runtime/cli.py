@@ -385,7 +385,18 @@ def cmd_bench(args: argparse.Namespace, console: Console) -> int:
 
 def cmd_console(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.clocks import RealTimeClock
-    from daror_runtime.console.run import make_session, read_script, run_interactive, run_script
+    from daror_runtime.console.commands import parse_context
+    from daror_runtime.console.grammar import check_lines
+    from daror_runtime.console.run import (
+        hal_has_world,
+        history_path,
+        make_session,
+        read_script,
+        run_interactive,
+        run_piped,
+        run_script,
+        stdin_is_terminal,
+    )
     from daror_runtime.fsm.spec import load_fsm_spec
     from daror_runtime.runtime import Runtime
     from daror_runtime.session.settings import load_session_settings
@@ -393,31 +404,53 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
 
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
     settings = load_session_settings(args.settings)
-    lines = read_script(args.script) if args.script is not None else None
     if args.hal == "sim":
         from hal.sim.scenario import load_scenario
 
         hal = open_hal("sim", scenario=load_scenario(args.scenario))
     else:
         hal = open_hal(args.hal)
-    realtime = args.realtime or args.script is None
+    checked = None
+    if args.script is not None:  # the whole script is checked before anything runs or is written
+        checked = check_lines(
+            read_script(args.script), str(args.script), parse_context(spec, hal.description, hal_has_world(hal))
+        )
+    typed = checked is None and stdin_is_terminal()
+    realtime = args.realtime or typed
     clock = RealTimeClock(1.0 / hal.rate_hz) if realtime else None
     out = Path(args.out) if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S")
     runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock)
+    out.mkdir(parents=True, exist_ok=True)
+    configure_logging(
+        args.log_level or "critical",  # the console announces what the operator must see
+        args.log_json if args.log_json is not None else out / "audit.jsonl",
+    )
+    code = 0
+    reason = "the session ended with an error"
     runtime.open()
     try:
         session = make_session(runtime, console)
-        if realtime:
+        if realtime and not typed:
             runtime.start_background()
-        if lines is not None:
-            result = run_script(session, args.script, lines)
+        if checked is not None:
+            result = run_script(session, args.script, checked)
             console.print(f"script done: {result.lines_run} lines, state {result.state}")
+            reason = "quit" if result.quit else "the script ended"
+        elif typed:
+            run_interactive(session, history_path(), start=runtime.start_background)
+            reason = "quit"
         else:
-            run_interactive(session)
+            code = run_piped(session, sys.stdin)
+            reason = "quit or the end of the input"
+    except KeyboardInterrupt:
+        runtime.shutdown("interrupted by the operator (Ctrl-C)")
+        code = 130
     finally:
+        ended = runtime.shutdown(reason)  # torque off first, whatever happened
+        console.print(ended.sentence(), soft_wrap=True)
         runtime.close()
         console.print(f"session {runtime.session_id}: {out / 'session.json'}")
-    return 0
+    return code
 
 
 # --- fsm ------------------------------------------------------------------------------
@@ -486,9 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="daror", description="DAROR-01 control runtime and modelling tools")
     parser.add_argument(
         "--log-level",
-        default="warning",
+        default=None,
         choices=["debug", "info", "warning", "error"],
-        help="least severe event shown on stderr (default warning)",
+        help="least severe event shown on stderr (default warning; the console shows its own announcements)",
     )
     parser.add_argument("--log-json", type=Path, help="also append every event from info up as JSON lines to this file")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -614,14 +647,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     efficiency.set_defaults(handler=cmd_study_data_efficiency)
 
-    con = commands.add_parser("console", help="operator console session (interactive, or a script with --script)")
+    con = commands.add_parser(
+        "console",
+        help="operator console session: typed at a terminal, a --script, or lines piped in (audit log in --out)",
+    )
     con.add_argument("--hal", choices=["sim", "can-sim", "can"], default="sim", help="backend (default sim)")
     con.add_argument("--scenario", default="exo_dummy_arm", help="simulated plant scenario (--hal sim)")
-    con.add_argument("--script", type=Path, help="run these console lines (lock-step unless --realtime)")
+    con.add_argument(
+        "--script", type=Path, help="run these console lines, all checked first (lock-step unless --realtime)"
+    )
     con.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
     con.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
     con.add_argument("--out", type=Path, help="session directory (default sessions/DATE-TIME)")
-    con.add_argument("--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed)")
+    con.add_argument(
+        "--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed at a terminal)"
+    )
     con.set_defaults(handler=cmd_console)
 
     fsm = commands.add_parser("fsm", help="the safety FSM spec: check it, draw it, export its JSON Schema")
@@ -648,7 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    configure_logging(args.log_level, args.log_json)
+    configure_logging(args.log_level or "warning", args.log_json)
     command = " ".join(
         x
         for x in (

@@ -2,18 +2,21 @@
 
 * :class:`LockStepClock`: virtual time, as fast as the CPU allows. Used by tests, by the
   identification protocol in simulation and by the demo; time is owned by the simulated plant
-  (Drake style), the clock only counts ticks.
+  (Drake style), the clock only counts ticks. It never reports lateness or missed deadlines.
 * :class:`RealTimeClock`: sleeps until shortly before each deadline, then spins to it (sleep alone
-  wakes up 50-100 us late on Linux). A tick that starts after the *next* deadline has passed
-  overran; the clock counts overruns and consecutive overruns (the loop turns too many in a row
-  into a fault) and skips missed deadlines instead of bursting to catch up.
+  wakes up 50-100 us late on Linux). A tick that starts after the deadline it was due at overran.
+  The clock counts every deadline that passed before the tick started (a 20 ms stall at 1 kHz
+  misses 20 deadlines, not one) and skips the missed ones instead of bursting to catch up; the
+  loop's watchdog turns too many missed deadlines in a row, or one long stall, into a fault.
 
-Deadlines are ``start + k * period`` on one grid, so lateness never accumulates.
+Deadlines are ``t0 + k * period`` on one grid, so lateness never accumulates; the grid is anchored
+when the first tick of a run has ended (it runs cold, and no command of the loop was on the drives
+before it). Lateness is measured against the deadline a tick was originally due at, so a stall
+shows in the recording with its full length.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -23,54 +26,121 @@ from daror_runtime.errors import ConfigurationError
 
 
 class TickTiming(NamedTuple):
-    """When a tick started relative to its deadline (a NamedTuple: built every tick, it must be cheap)."""
+    """When a tick started relative to its deadline (a NamedTuple: built every tick, it must be cheap).
+
+    Attributes:
+        index: the tick's slot on the deadline grid (after any skipped deadlines).
+        deadline_s: that slot's deadline in s since the clock started (``index * period``).
+        lateness_s: the tick's start minus the deadline it was originally due at, in s (after a
+            20 ms stall, ~20 ms even though the tick took a later slot); 0 in lock-step.
+        overrun: the tick started after the deadline it was due at (the previous tick's work ran
+            past it).
+        consecutive_overruns: deadlines missed in a row, up to and including this tick's (reset by a
+            tick that starts on time); a tick that starts 20 ms late adds 20, not 1.
+        missed_deadlines: deadlines this tick alone missed: the skipped ones plus its own late start
+            (0 on time; ``floor(lateness / period) + 1`` when late).
+    """
 
     index: int
-    deadline_s: float  # since the clock started
-    lateness_s: float  # start - deadline; 0 in lock-step
-    overrun: bool  # the previous tick's work ran past this tick's deadline
+    deadline_s: float
+    lateness_s: float
+    overrun: bool
     consecutive_overruns: int
+    missed_deadlines: int = 0
+
+
+class ClockStats(NamedTuple):
+    """Totals of a clock since :meth:`Clock.start` (a read-only snapshot for a status view).
+
+    Attributes:
+        ticks: ticks started.
+        overruns: ticks that started after the deadline they were due at.
+        missed_deadlines: deadlines missed in all (each overrun's own plus the skipped ones).
+        skipped_deadlines: deadlines skipped over rather than run (``missed - overruns``).
+        worst_lateness_s: the latest start of a tick after the deadline it was due at, in s (0 in lock-step).
+    """
+
+    ticks: int
+    overruns: int
+    missed_deadlines: int
+    skipped_deadlines: int
+    worst_lateness_s: float
 
 
 class Clock(ABC):
+    """The tick clock the loop waits on.
+
+    Args:
+        period_s: tick period in s (1 ms at 1 kHz).
+
+    Raises:
+        ConfigurationError: the period is not positive.
+    """
+
     def __init__(self, period_s: float) -> None:
         if not period_s > 0:
             raise ConfigurationError(f"tick period must be positive, got {period_s} s")
         self.period_s = period_s
         self.ticks = 0
         self.overruns = 0
+        self.missed_deadlines = 0
         self.skipped_deadlines = 0
+        self.worst_lateness_s = 0.0
         self._consecutive = 0
 
     @abstractmethod
     def start(self) -> None:
-        """Start counting; the first :meth:`wait` returns at deadline 0."""
+        """Start counting (and reset the totals); the first :meth:`wait` returns at once as tick 0, at deadline 0."""
 
     @abstractmethod
     def wait(self) -> TickTiming:
-        """Return at the start of the next tick."""
+        """Return at the start of the next tick (a clock never started starts at its first wait)."""
+
+    @property
+    def stats(self) -> ClockStats:
+        """The totals since :meth:`start` (built on each read; never touched by the tick)."""
+        return ClockStats(
+            self.ticks, self.overruns, self.missed_deadlines, self.skipped_deadlines, self.worst_lateness_s
+        )
+
+    def _reset_totals(self) -> None:
+        self.ticks = 0
+        self.overruns = 0
+        self.missed_deadlines = 0
+        self.skipped_deadlines = 0
+        self.worst_lateness_s = 0.0
+        self._consecutive = 0
 
 
 class LockStepClock(Clock):
     """Virtual time: every tick starts exactly on its deadline, immediately."""
 
     def start(self) -> None:
-        self.ticks = 0
+        self._reset_totals()
 
     def wait(self) -> TickTiming:
         index = self.ticks
         self.ticks = index + 1
-        return TickTiming(index, index * self.period_s, 0.0, False, 0)
+        return TickTiming(index, index * self.period_s, 0.0, False, 0, 0)
 
 
 class RealTimeClock(Clock):
     """Wall-clock ticks: sleep, then spin the last ``spin_s`` to the deadline.
 
+    Tick 0 (the first :meth:`wait` after :meth:`start`, or ever) returns at once, and the grid is
+    anchored when it ends: tick 1 is on its deadline by definition. Neither the time between
+    opening a session and its first tick nor the first tick's own work (it runs cold: first calls
+    load compiled code, 10-40 ms measured) is a stall: no command of this loop was on the drives
+    before tick 0 wrote its own.
+
     Args:
-        period_s: tick period (1 ms at 1 kHz).
-        spin_s: how long before a deadline to stop sleeping and start spinning.
-        now: monotonic time source in seconds (injectable for tests).
-        sleep: sleep function (injectable for tests).
+        period_s: tick period in s (1 ms at 1 kHz).
+        spin_s: how long before a deadline to stop sleeping and start spinning, in s.
+        now: monotonic time source in s (injectable for tests).
+        sleep: sleep function taking s (injectable for tests).
+
+    Raises:
+        ConfigurationError: the period is not positive.
     """
 
     def __init__(
@@ -85,35 +155,52 @@ class RealTimeClock(Clock):
         self._now = now
         self._sleep = sleep
         self._t0 = 0.0
-        self._next = 0
+        self._next = -1  # -1: tick 0 is next; 0: tick 1 is next and anchors the grid
 
     def start(self) -> None:
-        self.ticks = 0
-        self._next = 0
-        self._consecutive = 0
-        self._t0 = self._now()
+        self._reset_totals()
+        self._next = -1
 
     def wait(self) -> TickTiming:
         index = self._next
-        deadline = self._t0 + index * self.period_s
+        period = self.period_s
+        if index <= 0:  # tick 0 at once; tick 1 at once too, and the grid starts one period before it
+            if index < 0:
+                self._next = 0
+                tick = 0
+            else:
+                self._t0 = self._now() - period
+                self._next = 2
+                tick = 1
+            self.ticks += 1
+            return TickTiming(tick, tick * period, 0.0, False, 0, 0)
+        due = self._t0 + index * period
         now = self._now()
-        overrun = index > 0 and now > deadline
-        if overrun:
+        if now > due:  # late: every deadline up to now was missed
+            lateness = now - due
+            skipped = int(lateness / period)  # floor: lateness > 0
+            missed = skipped + 1
             self.overruns += 1
-            self._consecutive += 1
-            behind = math.floor((now - deadline) / self.period_s)
-            if behind > 0:  # start on the most recent deadline rather than burst through the missed ones
-                self.skipped_deadlines += behind
-                index += behind
-                deadline += behind * self.period_s
-        else:
-            self._consecutive = 0
-            remaining = deadline - now
-            if remaining > self.spin_s:
-                self._sleep(remaining - self.spin_s)
-            while self._now() < deadline:
-                pass
-        started = self._now()
+            self.missed_deadlines += missed
+            self.skipped_deadlines += skipped
+            consecutive = self._consecutive + missed
+            self._consecutive = consecutive
+            if lateness > self.worst_lateness_s:
+                self.worst_lateness_s = lateness
+            index += skipped  # start in the most recent slot rather than burst through the missed ones
+            self._next = index + 1
+            self.ticks += 1
+            return TickTiming(index, index * period, lateness, True, consecutive, missed)
+        self._consecutive = 0
+        remaining = due - now
+        if remaining > self.spin_s:
+            self._sleep(remaining - self.spin_s)
+        now = self._now()
+        while now < due:
+            now = self._now()
+        lateness = now - due
+        if lateness > self.worst_lateness_s:
+            self.worst_lateness_s = lateness
         self._next = index + 1
         self.ticks += 1
-        return TickTiming(index, deadline - self._t0, started - deadline, overrun, self._consecutive)
+        return TickTiming(index, index * period, lateness, False, 0, 0)

@@ -14,11 +14,16 @@ every fault removes torque in the tick it is found (the filter runs after the fa
 tick are latched, and a HAL or software error is itself a fault); errors are never swallowed:
 an exception from the controller or the recorder is reported as a ``software`` fault with its
 message, logged, and the loop goes on with torque off.
+
+The overrun watchdog counts missed deadlines, not late wake-ups: ``overrun_limit`` deadlines
+missed in a row, or one stall that missed more than ``max_stall_periods`` deadlines at once, is an
+``overrun`` fault in the tick that finds it (the first tick after the stall), with torque off.
 """
 
 from __future__ import annotations
 
 import gc
+import time
 from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
@@ -28,7 +33,7 @@ from numba import njit
 
 from daror_runtime.clocks import Clock, TickTiming
 from daror_runtime.data.recorder import recording_columns
-from daror_runtime.errors import DarorError
+from daror_runtime.errors import ConfigurationError, DarorError
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.errors import HalError
@@ -37,11 +42,23 @@ from hal.interface import TORQUE_OFF, Command, Hal, Sample
 log = structlog.get_logger(__name__)
 
 #: Columns of the loop's recording, one row per tick: the raw-log columns (t, q, dq, tau, theta,
-#: tau_cmd), then whether the drives were enabled, whether a fault was latched, and the lateness.
+#: tau_cmd), then whether the drives were enabled, whether a fault was latched, and the lateness
+#: (s after the deadline the tick was originally due at: a 20 ms stall records ~0.02).
 RECORD_COLUMNS: tuple[str, ...] = recording_columns(theta=True, tau_cmd=True, extra=("enable", "faulted", "lateness_s"))
 
-#: Consecutive overruns that make a fault (a 1 kHz loop that misses 5 ms in a row is not in control).
+#: Deadlines missed in a row that make a fault (a 1 kHz loop that misses 5 ms in a row is not in control).
 DEFAULT_OVERRUN_LIMIT = 5
+
+#: Deadlines one stall may miss before it is a fault by itself. While the loop stalls, the drives
+#: hold the last torque command: the SEA torque loop runs open. The worst case is a command at a
+#: state's 30 Nm limit with the spring unloaded: it accelerates the motor side (0.25 kg m^2 at the
+#: gearbox output) at 120 rad/s^2, so after N ms the motor moved 0.06 N^2 mrad and gained
+#: 0.12 N rad/s. A stall that missed 3 deadlines started the next tick under 3 ms late, so the last
+#: command stood under 4 ms: at most 1 mrad (0.28 Nm on the 289 Nm/rad spring) and 0.48 rad/s (a
+#: quarter of the device's 2 rad/s). A 20 ms stall gives 24 mrad (7 Nm) and 2.4 rad/s, past the
+#: device's velocity limit. 3 periods is also 4x the worst lateness measured with SCHED_FIFO
+#: (0.75 ms, docs/performance.md), so a real-time run does not trip on jitter.
+DEFAULT_MAX_STALL_PERIODS = 3
 
 
 class TickController(Protocol):
@@ -96,6 +113,26 @@ class TickResult(NamedTuple):
     faults: list[Fault]  # new in this tick
 
 
+class LoopStats(NamedTuple):
+    """Totals of a loop since it started (a read-only snapshot for a status view).
+
+    Attributes:
+        ticks: ticks run.
+        overruns: ticks that started after the deadline they were due at (the clock's count).
+        missed_deadlines: deadlines missed in all, skipped ones included (the clock's count).
+        worst_lateness_s: the latest start of a tick after its deadline, in s (0 in lock-step).
+        worst_work_s: the longest a tick's own work took (everything after the clock's wait), in s.
+        mean_work_s: the mean of a tick's own work, in s (0 before the first tick).
+    """
+
+    ticks: int
+    overruns: int
+    missed_deadlines: int
+    worst_lateness_s: float
+    worst_work_s: float
+    mean_work_s: float
+
+
 class ControlLoop:
     """Runs ticks at the clock's rate over one HAL.
 
@@ -105,7 +142,12 @@ class ControlLoop:
         supervisor: decides the controller per tick.
         clock: real-time or lock-step.
         recorder: receives one row of :data:`RECORD_COLUMNS` per tick (optional).
-        overrun_limit: consecutive overruns that make an ``overrun`` fault.
+        overrun_limit: deadlines missed in a row that make an ``overrun`` fault (at least 1).
+        max_stall_periods: deadlines one stall may miss; a stall that missed more is an
+            ``overrun`` fault by itself (at least 0; see :data:`DEFAULT_MAX_STALL_PERIODS`).
+
+    Raises:
+        ConfigurationError: ``overrun_limit`` below 1 or ``max_stall_periods`` below 0.
     """
 
     def __init__(
@@ -116,28 +158,62 @@ class ControlLoop:
         clock: Clock,
         recorder: Recording | None = None,
         overrun_limit: int = DEFAULT_OVERRUN_LIMIT,
+        max_stall_periods: int = DEFAULT_MAX_STALL_PERIODS,
     ) -> None:
+        if overrun_limit < 1:
+            raise ConfigurationError(f"overrun_limit must be at least 1 missed deadline, got {overrun_limit}")
+        if max_stall_periods < 0:
+            raise ConfigurationError(f"max_stall_periods must be at least 0, got {max_stall_periods}")
         self.hal = hal
         self.monitor = monitor
         self.supervisor = supervisor
         self.clock = clock
         self.recorder = recorder
         self.overrun_limit = overrun_limit
+        self.max_stall_periods = max_stall_periods
         self.dt_s = clock.period_s
         self._row = np.zeros(len(RECORD_COLUMNS))
         self._last_t_s = 0.0
         self._started = False
         self.dropped_rows = 0
+        self.last_command: Command = TORQUE_OFF  # as written to the hardware in the last tick
+        # Load the row kernel now, not in the tick a recording starts in (5 ms the first time), for
+        # both kinds of sample array (numba compiles per type: a HAL's read-only arrays and plain ones).
+        for readonly in (True, False):
+            zeros = np.zeros(4)
+            zeros.flags.writeable = not readonly
+            _fill_tick_row(self._row, 0.0, zeros, zeros, zeros, zeros, np.zeros(4), 0.0, 0.0, 0.0)
+        self._ticks = 0
+        self._work_total_s = 0.0
+        self._work_worst_s = 0.0
+
+    @property
+    def stats(self) -> LoopStats:
+        """Totals since :meth:`start`: ticks, the clock's overruns and lateness, the tick's own work."""
+        clock = self.clock.stats
+        ticks = self._ticks
+        return LoopStats(
+            ticks,
+            clock.overruns,
+            clock.missed_deadlines,
+            clock.worst_lateness_s,
+            self._work_worst_s,
+            self._work_total_s / ticks if ticks else 0.0,
+        )
 
     def start(self) -> None:
-        """Start the clock; the HAL must be open."""
+        """Start the clock (and the totals of :attr:`stats`); the HAL must be open."""
         self.monitor.reset_history()
         self.clock.start()
+        self._ticks = 0
+        self._work_total_s = 0.0
+        self._work_worst_s = 0.0
         self._started = True
 
     def tick(self) -> TickResult:
         """One tick. Never raises for hardware, controller or recorder errors: they become faults."""
         timing = self.clock.wait()
+        began = time.perf_counter()
         monitor = self.monitor
         monitor.begin_tick()
         try:
@@ -149,10 +225,8 @@ class ControlLoop:
         else:
             self._last_t_s = sample.t_s
             faults = monitor.check(sample)
-        if timing.consecutive_overruns >= self.overrun_limit:
-            self._report(
-                faults, FaultKind.OVERRUN, f"{timing.consecutive_overruns} consecutive ticks missed their deadline"
-            )
+        if timing.overrun:
+            self._watchdog(faults, timing)
         controller = self.supervisor.on_tick(sample, faults, monitor)
         decided = len(faults)  # the supervisor saw these; later ones are passed to it at the end of the tick
         command = TORQUE_OFF
@@ -181,6 +255,12 @@ class ControlLoop:
             self._report(faults, FaultKind.HAL, f"writing the hardware failed: {exc}")
         if len(faults) > decided:
             self.supervisor.on_late_faults(sample, faults[decided:])
+        self.last_command = command
+        work = time.perf_counter() - began
+        self._ticks += 1
+        self._work_total_s += work
+        if work > self._work_worst_s:
+            self._work_worst_s = work
         return TickResult(timing, sample, command, faults)
 
     def run(
@@ -222,6 +302,27 @@ class ControlLoop:
             if disable_gc and was_enabled:
                 gc.enable()
         return result
+
+    def _watchdog(self, faults: list[Fault], timing: TickTiming) -> None:
+        """The overrun rules, for a tick that started late (a stall is named in ms and periods)."""
+        missed = timing.missed_deadlines
+        period_ms = self.dt_s * 1e3
+        late_ms = timing.lateness_s * 1e3
+        if missed > self.max_stall_periods:
+            self._report(
+                faults,
+                FaultKind.OVERRUN,
+                f"the loop stalled {late_ms:.1f} ms past a deadline: {missed} deadlines of {period_ms:g} ms missed "
+                f"at once (more than {self.max_stall_periods} periods); the torque loop ran open that long",
+            )
+        elif timing.consecutive_overruns >= self.overrun_limit:
+            self._report(
+                faults,
+                FaultKind.OVERRUN,
+                f"{timing.consecutive_overruns} consecutive deadlines of {period_ms:g} ms missed "
+                f"(limit {self.overrun_limit}); this tick started {late_ms:.1f} ms "
+                f"({late_ms / period_ms:.1f} periods) late",
+            )
 
     def _report(self, faults: list[Fault], kind: FaultKind, message: str) -> None:
         fault = self.monitor.report(kind, self._last_t_s, message)

@@ -22,7 +22,10 @@ modes have no controller.
 
 from __future__ import annotations
 
+import dataclasses
+import gc
 import json
+import sys
 import threading
 import time
 import uuid
@@ -40,17 +43,19 @@ from daror_runtime.control.position import LinkBounds
 from daror_runtime.data.recorder import Recorder
 from daror_runtime.errors import DarorError, InputError
 from daror_runtime.fsm.guards import GUARDS
-from daror_runtime.fsm.machine import Event
-from daror_runtime.fsm.signals import Checklist, SessionSignals
+from daror_runtime.fsm.machine import OPERATOR_EVENTS, Event
+from daror_runtime.fsm.signals import ESTOP_BUTTONS, Checklist, SessionSignals
 from daror_runtime.fsm.spec import FsmSpec, StateSpec, load_fsm_spec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
 from daror_runtime.identification.protocol import let_the_writer_catch_up
 from daror_runtime.logs import flush_logs, set_session_id
 from daror_runtime.loop import ControlLoop, TickResult
 from daror_runtime.models.linear import APModel
+from daror_runtime.models.registry import kind_entry
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
 from daror_runtime.session.controllers import IdentificationRun, build_mode_controllers
+from daror_runtime.session.events import AnnouncementKind, Announcements
 from daror_runtime.session.identification import (
     abandon_run,
     finish_run,
@@ -60,14 +65,37 @@ from daror_runtime.session.identification import (
 from daror_runtime.session.jobs import Jobs
 from daror_runtime.session.rom import RomEnvelope
 from daror_runtime.session.settings import SessionSettings
-from daror_runtime.session.training import TrainedModel, select_model_file, train_model
+from daror_runtime.session.status import (
+    EventGate,
+    GuardState,
+    JointReadings,
+    LoopStatus,
+    ModelStatus,
+    RuntimeStatus,
+)
+from daror_runtime.session.training import (
+    TrainedModel,
+    read_model_candidate,
+    train_model,
+    validate_candidate,
+)
 from daror_runtime.util.atomic import write_text_atomic
-from hal.interface import Hal
+from hal.errors import HalError
+from hal.interface import Command, DriveState, Hal, Sample
 from hal.isb import IsbLimits, Shoulder, monitor_isb_function
 
 log = structlog.get_logger(__name__)
 
 __all__ = ["RequestRefusedError", "Runtime"]
+
+
+#: The interpreter's thread switch interval while the loop runs in real time (s): how long another
+#: thread may keep the GIL once the loop thread asks for it.
+REALTIME_SWITCH_INTERVAL_S = 1e-4
+#: How often the service thread collects finished work and announces faults while the loop runs (s).
+SERVICE_PERIOD_S = 0.02
+#: Service periods between two collections of the garbage collector's young generations (1 s).
+YOUNG_COLLECTION_EVERY = 50
 
 
 class RequestRefusedError(InputError):
@@ -81,6 +109,31 @@ class _Progress:
     last_error: str | None = None
     last_identification: dict[str, Any] | None = None
     last_model: dict[str, Any] | None = None
+    last_model_refused: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class TorqueOff:
+    """How a session ended: torque off, confirmed (or not) from the drives' state read back."""
+
+    reason: str
+    state: str  # the FSM state the session was in
+    t_s: float | None
+    confirmed: bool  # no drive reported enabled after the torque-off command
+    drives: tuple[str, ...]
+    error: str | None = None
+
+    def sentence(self) -> str:
+        when = f" at t = {self.t_s:.3f} s" if self.t_s is not None else ""
+        if self.confirmed:
+            return f"torque off{when}: every drive disabled (state {self.state}; {self.reason})"
+        problem = f": {self.error}" if self.error else f" (drives: {', '.join(self.drives) or 'no reading'})"
+        return f"torque off commanded{when} but NOT confirmed{problem} (state {self.state}; {self.reason})"
+
+
+def _isb_degrees(limits: IsbLimits) -> dict[str, tuple[float, float]]:
+    names = ("elevation", "horizontal_rotation", "axial_rotation", "elbow")
+    return {name: (r.lower_deg, r.upper_deg) for name, r in zip(names, limits.ranges, strict=True)}
 
 
 class Runtime:
@@ -115,15 +168,20 @@ class Runtime:
         description = hal.description
         self.description = description
         self.shoulder = Shoulder.from_description(description)
+        for readonly in (True, False):  # loaded now, not in the tick that first records or checks ISB angles
+            q = np.zeros(4)
+            q.flags.writeable = not readonly
+            self.shoulder.isb_single(q)
         self.a_priori = APModel.from_description(description, self.settings.dummy_arm, self.settings.dummy_arm)
         self.bounds = LinkBounds.from_description(description)
         self.modes = build_mode_controllers(
             description,
             feedforward=self.a_priori,
-            compensation_model=self.a_priori,
+            compensation_model=None,  # none until one is approved for this pilot
             dt_s=self.dt_s,
             support_level=self.settings.support_level,
             support_ramp_per_s=self.settings.support_ramp_per_s,
+            handover_tolerance_nm=self.settings.handover_tolerance_nm,
         )
         device = SafetyLimits.from_description(description)
         self.monitor = SafetyMonitor(device.for_state(0.0, float(device.max_velocity_rad_s.max())))
@@ -139,8 +197,11 @@ class Runtime:
         )
         self.supervisor.listeners.append(self._state_changed)
         self.loop = ControlLoop(hal, self.monitor, self.supervisor, self.clock)
-        self.jobs = Jobs(threaded=not self.lock_step)
+        self.announcements = Announcements()
+        self.jobs = Jobs(threaded=not self.lock_step, on_failure=self._job_failed)
         self.progress = _Progress()
+        self._faults_announced = 0
+        self.ended: TorqueOff | None = None
         self._rom: RomEnvelope | None = None
         self._collecting = False
         self._opened = False
@@ -148,6 +209,8 @@ class Runtime:
         self._service_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._thread_error: BaseException | None = None
+        self._switch_interval_s = sys.getswitchinterval()
+        self._gc_was_enabled = True
 
     # --- lifecycle ------------------------------------------------------------------------
 
@@ -166,6 +229,50 @@ class Runtime:
             state=self.supervisor.state_name,
             directory=str(self.session_dir),
         )
+
+    def shutdown(self, reason: str) -> TorqueOff:
+        """End the session now: stop the loop, write torque off to the drives, confirm it from a fresh sample.
+
+        The first thing done when the operator quits or interrupts (Ctrl-C), in any state. The
+        loop is stopped first (it finishes the tick under way), then the drives are commanded off
+        and read back; the outcome is logged and announced, and :meth:`close` records it in
+        ``session.json``. Idempotent: a second call returns the first report.
+        """
+        if self.ended is not None:
+            return self.ended
+        state = self.supervisor.state_name
+        error: BaseException | None = None
+        try:
+            self.stop_background()
+        except DarorError as exc:  # the loop thread had failed: still take the torque off below
+            error = exc
+        drives: tuple[str, ...] = ()
+        t_s = self._t_s()
+        confirmed = False
+        if self._opened:
+            try:
+                self.hal.write(Command.torque_off())
+                sample = self.hal.read()
+            except HalError as exc:
+                log.error("torque off could not be confirmed", reason=str(exc))
+                error = error or exc
+            else:
+                self.signals.sample = sample
+                t_s = sample.t_s
+                drives = tuple(d.name.lower() for d in sample.drives)
+                confirmed = DriveState.ENABLED not in sample.drives
+        self.ended = TorqueOff(reason, state, t_s, confirmed, drives, None if error is None else str(error))
+        log.warning(
+            "session stopped: torque off",
+            reason=reason,
+            state=state,
+            t_s=t_s,
+            torque_off_confirmed=confirmed,
+            drives=list(drives),
+            error=self.ended.error,
+        )
+        self.announcements.announce(AnnouncementKind.SESSION, self.ended.sentence(), t_s)
+        return self.ended
 
     def close(self) -> None:
         """Stop the loop (torque off), finish background work, close the HAL, write ``session.json``."""
@@ -276,15 +383,18 @@ class Runtime:
         if self._thread is not None:
             return
         self._stop.clear()
+        if self.loop.stats.ticks > 0:  # a restart: a new grid, so the pause is not counted as a stall
+            self.clock.start()
 
         def loop() -> None:
             from daror_runtime.realtime import release_realtime, request_realtime
 
             if realtime:
                 request_realtime()
+            stop = self._stop.is_set
             try:
-                while not self._stop.is_set():
-                    self.loop.run(100)
+                while not stop():
+                    self.loop.run(100, stop=lambda _result: stop(), disable_gc=False)  # off for the whole run
             except BaseException as exc:
                 self._thread_error = exc
                 log.exception("control loop thread stopped")
@@ -293,8 +403,26 @@ class Runtime:
                     release_realtime()
 
         def service() -> None:
-            while not self._stop.wait(0.02):
+            n = 0
+            while not self._stop.wait(SERVICE_PERIOD_S):
                 self._service(0)
+                n += 1
+                if n % YOUNG_COLLECTION_EVERY == 0:
+                    gc.collect(1)  # the young generations only: well under a millisecond
+
+        # The cyclic garbage collector runs in whichever thread allocates and holds the GIL while it
+        # scans: a full collection in the console's thread is a stall of the loop. So it is off while
+        # the loop runs; what exists now is frozen out of every scan; the service thread collects
+        # the young generations once a second (what a session allocates is mostly freed by
+        # reference counting; cycles older than that wait for the end of the session).
+        gc.freeze()
+        self._gc_was_enabled = gc.isenabled()
+        gc.disable()
+        # Another Python thread (the console, a job) holds the GIL for up to the switch interval
+        # (5 ms by default) before the loop thread gets it: a stall the watchdog faults. 0.1 ms
+        # bounds that wait; the cost is more frequent switches in the other threads.
+        self._switch_interval_s = sys.getswitchinterval()
+        sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
 
         self._thread = threading.Thread(target=loop, name="daror-loop", daemon=True)
         self._service_thread = threading.Thread(target=service, name="daror-service", daemon=True)
@@ -310,6 +438,10 @@ class Runtime:
         if self._service_thread is not None:
             self._service_thread.join()
         self._thread = self._service_thread = None
+        sys.setswitchinterval(self._switch_interval_s)
+        if self._gc_was_enabled:
+            gc.enable()
+        gc.unfreeze()
         if self._thread_error is not None:
             error, self._thread_error = self._thread_error, None
             raise DarorError(f"the control loop thread failed: {error!r}") from error
@@ -347,16 +479,45 @@ class Runtime:
         def apply(supervisor: FsmSupervisor) -> Response:
             state = supervisor.state
             needed = isinstance(state, StateSpec) and any(
-                GUARDS[g].checklist == item for g in state.guards.advance if g in GUARDS
+                GUARDS[g].checklist == item for g in (*state.guards.advance, *state.guards.revert) if g in GUARDS
             )
             if not needed:
                 return self._refuse(f"confirm {item.value}", f"state {state.name} has no {item.value} checklist")
+            if item == Checklist.A_PRIORI_MODEL:
+                refusal = self._use_a_priori(supervisor)
+                if refusal is not None:
+                    return refusal
             supervisor.signals.confirmed.add(item)
             log.info("checklist confirmed", checklist=item.value, state=state.name, t_s=self._t_s())
             return Response(f"confirm {item.value}", True, state.name)
 
         log.info("request", request=f"confirm {item.value}", origin="operator", state=self.supervisor.state_name)
         return self.supervisor.post(f"confirm {item.value}", apply)
+
+    def _use_a_priori(self, supervisor: FsmSupervisor) -> Response | None:
+        """At a tick boundary: the operator approved the A Priori model; compensation uses it unless a validated model is in use."""
+        selected = supervisor.signals.model
+        if selected is not None and selected.validated:
+            return self._refuse(
+                f"confirm {Checklist.A_PRIORI_MODEL.value}",
+                f"the validated model {selected.name} ({selected.kind}) is in use; the A Priori model is not needed",
+            )
+        self.modes.compensation.model = self.a_priori
+        self.progress.last_model = self._a_priori_summary()
+        log.info("model in use", **self.progress.last_model, state=supervisor.state_name, t_s=self._t_s())
+        return None
+
+    def _a_priori_summary(self) -> dict[str, Any]:
+        return {
+            "name": self.a_priori.name,
+            "kind": self.a_priori.kind,
+            "path": None,
+            "validation_rmse_nm": None,
+            "validation_rmse_per_joint_nm": None,
+            "validated": False,
+            "approved_by": "operator (A Priori model confirmed)",
+            "includes_dummy_arm": self.settings.dummy_arm,
+        }
 
     def set_support(self, level: float) -> Ticket:
         """Set the compensation support level in [0, 1] (the delivered level ramps to it)."""
@@ -470,6 +631,10 @@ class Runtime:
             kind, self.description, sample.q_rad, waypoints, limits, self.settings.identification,
             self.a_priori, self.bounds, self.dt_s, self.session_dir,
         )  # fmt: skip
+        # Load its compiled kernels here, not in the tick that starts the run (5 ms measured);
+        # the start resets it again from that tick's sample.
+        run.controller.reset(sample)
+        run.controller.update(sample, self.dt_s)
         log.info(
             "request", request=f"identify {kind}", origin="operator", waypoints=len(waypoints), outside_limits=outside
         )
@@ -521,9 +686,11 @@ class Runtime:
         """Train ``kind`` (default: the session's) on this session's identification data, as a job.
 
         Raises:
+            UnknownModelKindError: ``kind`` is not a registered model kind.
             RequestRefusedError: the training or validation data are not saved yet.
         """
         kind = kind or self.settings.model_kind
+        kind_entry(kind)  # an unknown kind is refused now, not when the job runs
         saved = self.signals.identification_saved
         missing = [k for k in ("training", "validation") if k not in saved]
         if missing:
@@ -536,92 +703,193 @@ class Runtime:
         )
 
         def job() -> None:
-            trained = train_model(
-                kind, training, validation, self.description, self.settings.dummy_arm,
-                self.settings.max_validation_rmse_nm, self.session_dir,
-            )  # fmt: skip
-            self._post_model(trained, f"train {kind}")
+            try:
+                trained = train_model(
+                    kind, training, validation, self.description, self.settings.dummy_arm,
+                    self.settings.max_validation_rmse_nm, self.session_dir,
+                )  # fmt: skip
+            except DarorError as exc:
+                self.progress.last_error = f"train {kind}: {exc}"
+                raise
+            self._post_model(
+                trained, f"train {kind}", {"training_data": str(training), "validation_data": str(validation)}
+            )
 
         self.jobs.submit(f"train {kind}", job)
 
     def select_model(self, path: Path | str, validation: Path | str | None = None) -> None:
-        """Use an existing model file, validated on ``validation`` (default: this session's validation data), as a job."""
+        """Use an existing model file once it is validated on held-out data (default: this session's validation run).
+
+        The files are read and checked now (in the caller's thread); the validation runs as a job,
+        and the model reaches compensation only if it passes.
+
+        Raises:
+            RequestRefusedError: no validation data named and none recorded in this session.
+            ModelFileError, DataError, NotHeldOutError: a file that cannot be used (named in the message).
+        """
         validation_path = (
             Path(validation) if validation is not None else self.signals.identification_saved.get("validation")
         )
         if validation_path is None:
             raise RequestRefusedError(
-                "a model is validated on validation data: name a file or run the validation protocol"
+                "a model is validated on held-out data of this pilot: name a validation file or run the validation "
+                "protocol first"
             )
-        model_path = Path(path)
-        log.info(
-            "request", request="select model", origin="operator", model=str(model_path), validation=str(validation_path)
-        )
+        candidate = read_model_candidate(Path(path), validation_path, self.description)
+        log.info("request", request="select model", origin="operator", model=str(path), validation=str(validation_path))
 
         def job() -> None:
-            trained = select_model_file(
-                model_path, validation_path, self.settings.max_validation_rmse_nm, self.description
-            )
+            trained = validate_candidate(candidate, self.settings.max_validation_rmse_nm)
             self._post_model(trained, "select model")
 
         self.jobs.submit("select model", job)
 
-    def _post_model(self, trained: TrainedModel, request: str) -> None:
-        """From a job: hand the model to compensation at a tick boundary (never while it delivers support)."""
+    def _post_model(self, trained: TrainedModel, request: str, data: dict[str, str] | None = None) -> None:
+        """From a job: hand a validated model to compensation at a tick boundary; refuse one that failed.
+
+        Never while a compensation state delivers support (a model swap there is a torque step).
+        """
+        selected = trained.selected
+        summary = {
+            "name": selected.name,
+            "kind": selected.kind,
+            "path": str(selected.path),
+            "validation_rmse_nm": trained.validation.rmse_nm,
+            "validation_rmse_per_joint_nm": list(trained.validation.rmse_per_joint_nm),
+            "validated": selected.validated,
+            "max_validation_rmse_nm": selected.max_rmse_nm,
+            **(data or {}),
+        }
 
         def apply(supervisor: FsmSupervisor) -> Response:
-            if supervisor.state.mode == "compensation":
-                return self._refuse(
-                    request, f"{supervisor.state.name} delivers compensation: change models from another state"
+            if not selected.validated:
+                self.progress.last_model_refused = summary
+                in_use = self.progress.last_model
+                reason = (
+                    f"{selected.name} failed validation: RMSE {trained.validation.rmse_nm:.3g} Nm on held-out data, "
+                    f"above the session's limit of {selected.max_rmse_nm:g} Nm; it never drives the arm "
+                    f"(in use: {in_use['name'] if in_use else 'no model'})"
                 )
+                self.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", self._t_s())
+                return self._refuse(request, reason)
+            if supervisor.state.mode == "compensation":
+                reason = f"{supervisor.state.name} delivers compensation: change models from another state"
+                self.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", self._t_s())
+                return self._refuse(request, reason)
             self.modes.compensation.model = trained.model
-            supervisor.signals.model = trained.selected
-            self.progress.last_model = {
-                "name": trained.selected.name,
-                "kind": trained.selected.kind,
-                "path": str(trained.selected.path),
-                "validation_rmse_nm": trained.validation.rmse_nm,
-                "validation_rmse_per_joint_nm": list(trained.validation.rmse_per_joint_nm),
-                "validated": trained.selected.validated,
-            }
+            self.announcements.announce(
+                AnnouncementKind.MODEL,
+                f"{request} done: {selected.name} ({selected.kind}) validated, RMSE {trained.validation.rmse_nm:.3g} Nm "
+                f"<= {selected.max_rmse_nm:g} Nm on held-out data; it is the compensation model now",
+                self._t_s(),
+            )
+            supervisor.signals.model = selected
+            self.progress.last_model = {**summary, "approved_by": "validation on held-out data"}
             log.info("model in use", **self.progress.last_model, state=supervisor.state_name, t_s=self._t_s())
-            return Response(request, True, supervisor.state_name, detail=trained.selected)
+            return Response(request, True, supervisor.state_name, detail=selected)
 
-        self.supervisor.post(request, apply)
+        self.supervisor.post(request, apply, essential=True)
 
     # --- what the operator sees -----------------------------------------------------------
 
     def status(self) -> dict[str, Any]:
-        """A snapshot for the console (read between ticks; values may be one tick old)."""
+        """:meth:`snapshot` as a JSON-ready dictionary (``session.json``)."""
+        return self.snapshot().as_dict()
+
+    def snapshot(self) -> RuntimeStatus:
+        """What the operator sees, read between ticks (values may be one tick old)."""
         supervisor = self.supervisor
         state = supervisor.state
         signals = self.signals
         sample = signals.sample
         machine = supervisor.machine
-        events = {e.value: machine.unmet(e) for e in (Event.ADVANCE, Event.REVERT, Event.RESET, Event.ACKNOWLEDGE)}
+        gates = {}
+        for event in OPERATOR_EVENTS:
+            transition = machine.table.get((state.name, event))
+            if transition is None:
+                gates[event.value] = EventGate(event.value, False, why_not=machine.why_not(event))
+                continue
+            guards = tuple(
+                GuardState(g, GUARDS[g].description, bool(GUARDS[g].read(signals))) for g in transition.guards
+            )
+            gates[event.value] = EventGate(event.value, True, guards)
         run = self.modes.identification.run
-        return {
-            "session_id": self.session_id,
-            "t_s": sample.t_s if sample is not None else None,
-            "state": state.name,
-            "number": state.number if isinstance(state, StateSpec) else None,
-            "mode": state.mode,
-            "faults": [f.as_dict() for f in self.monitor.latched],
-            "available": {e: list(unmet) for e, unmet in events.items() if unmet is not None},
-            "estop_tested": sorted(b.value for b in signals.estop_tested),
-            "confirmed": sorted(c.value for c in signals.confirmed),
-            "isb_limits": None if signals.isb_limits is None else signals.isb_limits.model_dump(),
-            "identification_saved": {k: str(v) for k, v in signals.identification_saved.items()},
-            "identification_running": None
+        compensation = self.modes.compensation
+        stats = self.loop.stats
+        return RuntimeStatus(
+            session_id=self.session_id,
+            t_s=sample.t_s if sample is not None else None,
+            state=state.name,
+            number=state.number if isinstance(state, StateSpec) else None,
+            superstate=state.superstate if isinstance(state, StateSpec) else None,
+            mode=state.mode,
+            description=state.description,
+            estop_test_state=isinstance(state, StateSpec) and not state.fail_on_fault,
+            gates=gates,
+            faults=[f.as_dict() for f in self.monitor.latched],
+            estop_pressed={
+                b.value: bool(sample is not None and len(sample.estop) > i and sample.estop[i])
+                for i, b in enumerate(ESTOP_BUTTONS)
+            },
+            estop_tested=sorted(b.value for b in signals.estop_tested),
+            confirmed=sorted(c.value for c in signals.confirmed),
+            joints=None if sample is None else self._joint_readings(sample),
+            model=self._model_status(),
+            model_refused=self.progress.last_model_refused,
+            support_level=compensation.support_level,
+            delivered_support_level=compensation.delivered_support_level,
+            handover_nm=tuple(float(v) for v in compensation.handover.remaining_nm)
+            if compensation.handover.active
+            else (0.0,) * 4,
+            isb_limits_deg=None if signals.isb_limits is None else _isb_degrees(signals.isb_limits),
+            rom_recording=self._rom is not None,
+            identification_running=None
             if run is None or sample is None
             else {"kind": run.kind, "elapsed_s": sample.t_s - run.t0_s, "duration_s": run.duration_s},
-            "model": self.progress.last_model,
-            "support_level": self.modes.compensation.support_level,
-            "delivered_support_level": self.modes.compensation.delivered_support_level,
-            "jobs_pending": self.jobs.pending,
-            "last_error": self.progress.last_error,
-            "transitions": supervisor.transitions,
-        }
+            identification_saved={k: str(v) for k, v in signals.identification_saved.items()},
+            last_identification=self.progress.last_identification,
+            jobs_pending=self.jobs.pending,
+            last_error=self.progress.last_error,
+            loop=LoopStatus(
+                clock="lock-step" if self.lock_step else "real time",
+                rate_hz=self.hal.rate_hz,
+                ticks=stats.ticks,
+                overruns=stats.overruns,
+                missed_deadlines=stats.missed_deadlines,
+                worst_lateness_ms=stats.worst_lateness_s * 1e3,
+                tick_work_mean_us=stats.mean_work_s * 1e6,
+                tick_work_max_us=stats.worst_work_s * 1e6,
+                dropped_rows=self.loop.dropped_rows,
+            ),
+            transitions=supervisor.transitions,
+            a_priori_includes_dummy_arm=self.settings.dummy_arm,
+        )
+
+    def _joint_readings(self, sample: Sample) -> JointReadings:
+        return JointReadings(
+            q_deg=tuple(float(np.degrees(v)) for v in sample.q_rad),
+            dq_deg_s=tuple(float(np.degrees(v)) for v in sample.dq_rad_s),
+            spring_torque_nm=tuple(float(v) for v in sample.tau_nm),
+            motor_command_nm=tuple(float(v) for v in self.loop.last_command.motor_torque_nm),
+            drives=tuple(d.name.lower() for d in sample.drives),
+        )
+
+    def _model_status(self) -> ModelStatus | None:
+        summary = self.progress.last_model
+        if summary is None or self.modes.compensation.model is None:
+            return None
+        per_joint = summary.get("validation_rmse_per_joint_nm")
+        return ModelStatus(
+            name=summary["name"],
+            kind=summary["kind"],
+            path=summary.get("path"),
+            validated=bool(summary["validated"]),
+            approved_by=summary.get("approved_by", ""),
+            validation_rmse_nm=summary.get("validation_rmse_nm"),
+            validation_rmse_per_joint_nm=None if per_joint is None else tuple(per_joint),
+            max_validation_rmse_nm=summary.get("max_validation_rmse_nm"),
+            includes_dummy_arm=summary.get("includes_dummy_arm"),
+        )
 
     # --- internals ------------------------------------------------------------------------
 
@@ -633,8 +901,26 @@ class Runtime:
         log.warning("refused", request=request, state=self.supervisor.state_name, reason=reason, t_s=self._t_s())
         return Response(request, False, self.supervisor.state_name, reason)
 
+    def _job_failed(self, name: str, exc: BaseException) -> None:
+        self.announcements.announce(AnnouncementKind.JOB_FAILED, f"{name} failed: {exc}", self._t_s())
+
+    def _announce_faults(self) -> None:
+        """Between ticks: announce the fault occurrences the monitor latched since the last call."""
+        monitor = self.monitor
+        new = monitor.occurrences - self._faults_announced
+        if new <= 0:
+            return
+        self._faults_announced = monitor.occurrences
+        for fault in list(monitor.recent)[-min(new, len(monitor.recent)) :]:
+            self.announcements.announce(AnnouncementKind.FAULT, f"{fault.kind.value}: {fault.message}", fault.t_s)
+
     def _state_changed(self, state: Any, outcome: Any) -> None:
         """In the tick (a transition): stop what belonged to the state left; never blocks."""
+        if state.name == self.spec.fail.name:
+            text = f"{outcome.source} -> {state.name}: torque off ({outcome.event.value})"
+        else:
+            text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
+        self.announcements.announce(AnnouncementKind.TRANSITION, text, self._t_s())
         mode = self.modes.identification
         run = mode.run
         if run is not None and state.mode != "identification":
@@ -650,13 +936,15 @@ class Runtime:
             log.warning("range of motion recording discarded", reason=f"{outcome.event.value} to {state.name}")
 
     def _service(self, n: int) -> None:
-        """Between ticks: collect a finished run, let a lock-step writer catch up, run lock-step jobs."""
+        """Between ticks: announce faults, collect a finished run, let a lock-step writer catch up, run lock-step jobs."""
+        if self.monitor.occurrences != self._faults_announced:
+            self._announce_faults()
         mode = self.modes.identification
         finished = mode.finished_run
         if finished is not None and not self._collecting:
             mode.finished_run = None
             self._collecting = True
-            self.supervisor.post("identification finished", lambda supervisor: self._collect(finished))
+            self.supervisor.post("identification finished", lambda supervisor: self._collect(finished), essential=True)
         if self.lock_step:
             recorder = self.loop.recorder
             if n % 500 == 0 and isinstance(recorder, Recorder):
@@ -689,9 +977,14 @@ class Runtime:
 
             def saved(supervisor: FsmSupervisor) -> Response:
                 supervisor.signals.identification_saved[data.kind] = data.dataset_path
+                self.announcements.announce(
+                    AnnouncementKind.IDENTIFICATION,
+                    f"identification {data.kind} done: {data.points} stationary points saved to {data.dataset_path}",
+                    self._t_s(),
+                )
                 return Response("identification saved", True, supervisor.state_name, detail=data)
 
-            self.supervisor.post("identification saved", saved)
+            self.supervisor.post("identification saved", saved, essential=True)
 
         self.jobs.submit(f"save identification {run.kind}", job)
         return Response("identification finished", True, self.supervisor.state_name)
@@ -701,4 +994,5 @@ class Runtime:
             return
         document = self.status()
         document["failures"] = [f"{name}: {exc}" for name, exc in self.jobs.failures]
+        document["ended"] = None if self.ended is None else dataclasses.asdict(self.ended)
         write_text_atomic(self.session_dir / "session.json", json.dumps(document, indent=2, default=str) + "\n")

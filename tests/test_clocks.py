@@ -1,4 +1,4 @@
-"""Clocks: lock-step virtual time and the real-time clock's deadline, overrun and skip logic."""
+"""Clocks: lock-step virtual time and the real-time clock's deadline, overrun, missed-deadline and skip logic."""
 
 from __future__ import annotations
 
@@ -55,23 +55,96 @@ def test_overruns_are_counted_and_missed_deadlines_skipped() -> None:
     clock = RealTimeClock(0.001, now=fake.now, sleep=fake.sleep)
     clock.start()
     clock.wait()
-    fake.t += 0.0035  # the tick's work took 3.5 ms
+    clock.wait()  # tick 1 at 1 ms: the grid starts
+    fake.t += 0.0035  # the tick's work took 3.5 ms: deadlines 2 ms, 3 ms and 4 ms passed
     late = clock.wait()
     assert late.overrun
-    assert late.consecutive_overruns == 1
-    assert late.index == 3  # deadlines 1 and 2 were skipped, not burst through
+    assert late.index == 4  # deadlines 2 and 3 were skipped, not burst through
+    assert late.deadline_s == pytest.approx(0.004)
+    assert late.missed_deadlines == 3  # the two skipped ones and its own late start
+    assert late.consecutive_overruns == 3  # missed deadlines in a row, not late wake-ups
+    assert late.lateness_s == pytest.approx(0.0025, abs=1e-5)  # against the deadline it was due at (2 ms)
     assert clock.skipped_deadlines == 2
-    assert late.lateness_s == pytest.approx(0.0005, abs=1e-5)
-    fake.t += 0.0012
+    fake.t += 0.0012  # 1.2 ms of work from 4.5 ms: due at 5 ms, starts at 5.7 ms
     again = clock.wait()
     assert again.overrun
-    assert again.consecutive_overruns == 2
+    assert again.missed_deadlines == 1
+    assert again.consecutive_overruns == 4
+    assert again.lateness_s == pytest.approx(0.0007, abs=1e-5)
     on_time = clock.wait()
     assert not on_time.overrun
     assert on_time.consecutive_overruns == 0
+    assert on_time.missed_deadlines == 0
     assert clock.overruns == 2
+    stats = clock.stats
+    assert (stats.ticks, stats.overruns, stats.missed_deadlines, stats.skipped_deadlines) == (5, 2, 4, 2)
+    assert stats.worst_lateness_s == pytest.approx(0.0025, abs=1e-5)
+
+
+def test_a_20_ms_stall_misses_20_deadlines_and_is_20_ms_late() -> None:
+    """The tester's case: one long stall is one late wake-up but 20 missed deadlines and ~20 ms late."""
+    fake = FakeTime()
+    clock = RealTimeClock(0.001, now=fake.now, sleep=fake.sleep)
+    clock.start()
+    clock.wait()
+    clock.wait()  # on time at 1 ms
+    fake.t += 0.0205  # the tick's work stalled: 20.5 ms, so the next tick (due at 2 ms) starts at 21.5 ms
+    stalled = clock.wait()
+    assert stalled.overrun
+    assert stalled.missed_deadlines == 20  # due at 2 ms, 19 skipped (3..21 ms), its own late start
+    assert stalled.consecutive_overruns == 20
+    assert stalled.lateness_s == pytest.approx(0.0195, abs=1e-5)
+    assert stalled.index == 21
+    assert clock.stats.worst_lateness_s == pytest.approx(0.0195, abs=1e-5)
+    assert clock.stats.missed_deadlines == 20
+    assert clock.stats.overruns == 1
+
+
+def test_the_grid_starts_when_the_first_tick_ends() -> None:
+    """A session opens (start) well before its loop thread's first tick, and that tick runs cold
+    (first calls load compiled code): neither is a stall, no command of the loop was on the drives."""
+    fake = FakeTime()
+    clock = RealTimeClock(0.001, now=fake.now, sleep=fake.sleep)
+    clock.start()
+    fake.t += 0.2  # the console is built
+    first = clock.wait()
+    fake.t += 0.04  # the first tick's work: 40 ms, cold
+    timings = [first] + [clock.wait() for _ in range(3)]
+    assert [(t.index, t.overrun, t.missed_deadlines) for t in timings] == [(i, False, 0) for i in range(4)]
+    assert [t.lateness_s for t in timings[:2]] == [0.0, 0.0]
+    assert clock.stats.worst_lateness_s < 5e-6
+    fake.t += 0.04  # the same after tick 1 is a stall
+    assert clock.wait().missed_deadlines == 40
+
+
+def test_start_resets_the_totals_and_lock_step_reports_zeros() -> None:
+    fake = FakeTime()
+    clock = RealTimeClock(0.001, now=fake.now, sleep=fake.sleep)
+    clock.start()
+    clock.wait()
+    clock.wait()
+    fake.t += 0.005
+    clock.wait()
+    assert clock.stats.overruns == 1
+    clock.start()
+    assert clock.stats == (0, 0, 0, 0, 0.0)
+    lock_step = LockStepClock(0.001)
+    lock_step.start()
+    timings = [lock_step.wait() for _ in range(100)]
+    assert all(t.missed_deadlines == 0 and t.consecutive_overruns == 0 for t in timings)
+    assert lock_step.stats == (100, 0, 0, 0, 0.0)
 
 
 def test_period_must_be_positive() -> None:
     with pytest.raises(ConfigurationError):
         LockStepClock(0.0)
+
+
+def test_a_real_time_clock_never_started_starts_at_its_first_wait() -> None:
+    """Without start(), the grid must not begin at time 0 (that would be one stall of the machine's uptime)."""
+    fake = FakeTime()
+    clock = RealTimeClock(0.001, now=fake.now, sleep=fake.sleep)
+    timings = [clock.wait() for _ in range(3)]
+    assert [t.index for t in timings] == [0, 1, 2]
+    assert not any(t.overrun for t in timings)
+    assert clock.stats.missed_deadlines == 0

@@ -20,7 +20,8 @@ from rich.console import Console
 
 from daror_runtime.cli import main
 from daror_runtime.console.commands import CommandError, ConsoleSession, ScriptCheckError
-from daror_runtime.console.run import read_script, run_interactive, run_script
+from daror_runtime.console.grammar import COMMANDS, check_lines
+from daror_runtime.console.run import read_script, run_piped, run_script
 from daror_runtime.console.world import SimWorld
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH
 from daror_runtime.logs import configure_logging
@@ -118,7 +119,9 @@ def test_a_script_runs_to_its_end_and_writes_the_session(tmp_path: Path, capsys:
     assert [e["buttons"] for e in mine if e["event"] == "e-stop test"] == [["operator"], ["pilot"]]
 
 
-def test_an_unknown_command_stops_the_script_with_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_bad_line_anywhere_stops_the_script_before_it_runs_and_writes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     script = write(tmp_path / "typo.txt", "wait 0.1\nadvance\n\n# a typo next\nadvanse\nadvance\n")
     out = tmp_path / "session"
     code, stdout, err = console(capsys, "--script", script, "--out", out)
@@ -126,18 +129,49 @@ def test_an_unknown_command_stops_the_script_with_exit_2(tmp_path: Path, capsys:
     line = one_line(err)
     assert line.startswith("daror console: error: ")
     assert f"{script}: line 5: unknown command 'advanse'" in line
-    # the lines before it ran, the one after it did not; the runtime was closed and summarised
-    document = json.loads((out / "session.json").read_text(encoding="utf-8"))
-    assert document["state"] == "safety_check"
-    assert document["transitions"] == 1
-    assert "script done" not in stdout
+    # checked whole before the first line ran: no session, no directory, no file
+    assert not out.exists()
+    assert stdout == ""
 
 
-def test_bad_arguments_name_the_line_and_the_usage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    script = write(tmp_path / "args.txt", "wait 0.1\nsupport lots\n")
-    code, _, err = console(capsys, "--script", script, "--out", tmp_path / "session")
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("support lots", "support LEVEL: 'lots' is not a number"),
+        ("support 1.5", "support LEVEL: expected a number between 0 and 1, got 1.5"),
+        ("train banana", "train KIND: 'banana' is not one of"),
+        ("confirm straps", "confirm CHECKLIST: 'straps' is not one of"),
+        ("expect state nowhere", "expect state: 'nowhere' is not one of startup"),
+        ("wait until state nowhere", "wait until state: 'nowhere' is not one of"),
+        ("rom load missing.yaml", "rom load FILE: missing.yaml: no such file"),
+        ("model missing.json", "model FILE: missing.json: no such file"),
+        ("sim pilot carry 3", "sim pilot carry SHARE: expected a number between 0 and 1, got 3"),
+        ("sim fault meteor", "sim fault KIND: 'meteor' is not one of"),
+        ("wait -1", "wait SECONDS: expected a number between 0 and 86400, got -1"),
+    ],
+)
+def test_bad_words_are_refused_before_the_script_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, problem: str
+) -> None:
+    script = write(tmp_path / "args.txt", f"wait 0.1\nadvance\n{text}\n")
+    out = tmp_path / "session"
+    code, stdout, err = console(capsys, "--script", script, "--out", out)
     assert code == 2
-    assert f"{script}: line 2: support LEVEL: 'lots' is not a number" in one_line(err)
+    assert f"{script}: line 3: {problem}" in one_line(err)
+    assert not out.exists()
+    assert stdout == ""
+
+
+def test_a_corrupted_model_file_is_refused_before_the_script_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    broken = write(tmp_path / "model.json", '{"format": "daror-model", "format_version": 1, "kind": "plf+"')
+    script = write(tmp_path / "model.txt", f"wait 0.1\nmodel {broken}\n")
+    out = tmp_path / "session"
+    code, _, err = console(capsys, "--script", script, "--out", out)
+    assert code == 2
+    assert f"{script}: line 2: model: {broken}: not valid JSON" in one_line(err)
+    assert not out.exists()
 
 
 def test_a_failing_expect_exits_1_naming_the_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -223,7 +257,7 @@ class Lines:
 
     @property
     def last(self) -> Any:
-        return self.session.last.response
+        return self.session.tally.response
 
     def close(self) -> None:
         self.runtime.close()
@@ -274,14 +308,16 @@ def test_a_checklist_of_another_state_is_refused(lines: Lines) -> None:
     assert lines.last.reason == "state settings has no installation checklist"
     assert "confirm installation: refused (state settings has no installation checklist)" in printed
     assert lines.runtime.signals.confirmed == set()
-    with pytest.raises(RequestRefusedError, match="unknown checklist 'straps'"):
+    with pytest.raises(CommandError, match="'straps' is not one of settings, installation"):
         lines.run("confirm straps")
     with pytest.raises(CommandError, match="usage: confirm CHECKLIST"):
         lines.run("confirm")
+    with pytest.raises(RequestRefusedError, match="unknown checklist 'straps'"):
+        lines.runtime.confirm("straps")  # the runtime checks too, for callers other than the console
 
 
 def test_lines_that_are_not_commands(lines: Lines) -> None:
-    with pytest.raises(CommandError, match="unknown command 'advanse'; commands: "):
+    with pytest.raises(CommandError, match="unknown command 'advanse'; type help for the list of commands"):
         lines.run("advanse")
     with pytest.raises(CommandError, match="cannot split"):
         lines.run('sim estop "operator on')
@@ -289,7 +325,7 @@ def test_lines_that_are_not_commands(lines: Lines) -> None:
         lines.run("wait for 2")
     with pytest.raises(CommandError, match="wait until: expected idle, still, model or state NAME"):
         lines.run("wait until dawn")
-    with pytest.raises(CommandError, match="expected a duration >= 0"):
+    with pytest.raises(CommandError, match="expected a number between 0 and 86400"):
         lines.run("wait -1")
     with pytest.raises(CommandError, match="'nan' is not a finite number"):
         lines.run("support nan")
@@ -314,7 +350,7 @@ def test_the_simulated_world_acts_on_the_plant(lines: Lines) -> None:
     assert not lines.runtime.monitor.faulted
     assert lines.session.world is not None
     assert lines.session.world.pilot.carried == 0.25
-    with pytest.raises(CommandError, match="usage: sim estop"):
+    with pytest.raises(CommandError, match="sim estop: 'maybe' is not one of on, off"):
         lines.run("sim estop operator maybe")
 
 
@@ -330,11 +366,11 @@ def test_sim_commands_are_refused_without_a_simulated_world(tmp_path: Path) -> N
         hardware.close()
 
 
-# --- typed sessions ------------------------------------------------------------------------
+# --- lines piped in ------------------------------------------------------------------------
 
 
-def test_run_interactive_survives_bad_lines_and_stops_at_quit(lines: Lines) -> None:
-    typed = io.StringIO(
+def test_piped_lines_are_echoed_answered_and_the_session_goes_on(lines: Lines) -> None:
+    piped = io.StringIO(
         "status\n"
         "wait 0.2\n"
         "advanse\n"  # a typo: answered, the session goes on
@@ -344,30 +380,51 @@ def test_run_interactive_survives_bad_lines_and_stops_at_quit(lines: Lines) -> N
         "quit\n"
         "advance\n"  # never read
     )
-    run_interactive(lines.session, typed)
+    code = run_piped(lines.session, piped)
     printed = lines.buffer.getvalue()
+    assert code == 2  # a line was not a command
     assert lines.runtime.supervisor.state_name == "safety_check"
     assert lines.runtime.supervisor.transitions == 1
-    assert typed.read() == "advance\n"  # the line after quit was not consumed
+    assert piped.read() == "advance\n"  # the line after quit was not consumed
+    for line in ("status", "wait 0.2", "advanse", "identify training", "advance", "quit"):
+        assert f"> {line}\n" in printed  # every command echoed
     assert "error: unknown command 'advanse'" in printed
-    assert "error: identification runs only in a state with the identification mode, not in startup" in printed
-    assert "error: 'wait until state FAIL' did not happen within 0.01 s" in printed
+    assert "failed: identification runs only in a state with the identification mode, not in startup" in printed
+    assert "failed: 'wait until state FAIL' did not happen within 0.01 s" in printed
     assert "advance: accepted, state safety_check" in printed
-    assert '"state": "startup"' in printed  # the status, as JSON
-    assert printed.count("[startup] > ") == 6
-    assert printed.count("[safety_check] > ") == 1
+    assert "state 1 startup (pre_op)" in printed  # the status view
+    assert lines.session.tally.failed == 2
 
 
-def test_run_interactive_ends_at_the_end_of_input_and_shows_help(lines: Lines) -> None:
-    run_interactive(lines.session, io.StringIO("help\nwait 0.1\nadvance"))
-    printed = lines.buffer.getvalue()
-    assert "expect state NAME | expect accepted | expect refused" in printed  # the help text
-    assert "sim estop operator|pilot on|off" in printed
-    assert lines.runtime.supervisor.state_name == "safety_check"
+def test_piped_lines_exit_1_when_a_request_is_refused_and_0_when_all_went_well(tmp_path: Path) -> None:
+    refused = Lines(tmp_path / "a")
+    try:
+        assert run_piped(refused.session, io.StringIO("wait 0.1\nadvance\nadvance\n")) == 1  # e-stops untested
+    finally:
+        refused.close()
+    fine = Lines(tmp_path / "b")
+    try:
+        assert run_piped(fine.session, io.StringIO("wait 0.1\nadvance\nadvance\nexpect refused\n")) == 0
+    finally:
+        fine.close()
+
+
+def test_help_is_plain_words_for_every_command(lines: Lines) -> None:
+    printed = lines.run("help")
+    for spec in COMMANDS:
+        assert spec.usage in printed
+        assert spec.summary in printed
+        detail = lines.run(f"help {spec.name}")
+        assert spec.usage in detail
+        for markup in ("``", "::", ":class:", ":meth:", "**"):
+            assert markup not in printed + detail
+    with pytest.raises(CommandError, match="help: no command 'flying'"):
+        lines.run("help flying")
 
 
 def test_run_script_counts_the_lines_it_ran(tmp_path: Path, lines: Lines) -> None:
     script = write(tmp_path / "short.txt", SHORT_SESSION)
-    result = run_script(lines.session, script)
+    checked = check_lines(read_script(script), str(script), lines.session.context)
+    result = run_script(lines.session, script, checked)
     assert (result.lines_run, result.state) == (17, "settings")
     assert lines.runtime.supervisor.state_name == "settings"

@@ -41,7 +41,7 @@ from daror_runtime.control.sea_torque import SeaPlant, design_inner_loop, inner_
 from daror_runtime.errors import InputError, ShapeError
 from daror_runtime.models.base import CompensationModel
 from hal.interface import Command, DriveState, Sample
-from hal.robot import FloatArray, RobotDescription
+from hal.robot import FloatArray, RobotDescription, load_description
 from hal.sim.scenario import load_scenario
 
 PERIOD_S = 1e-3
@@ -499,12 +499,20 @@ def test_modes_satisfy_the_controller_protocol(torque: SeaTorqueController, desc
     np.testing.assert_allclose(command.motor_torque_nm, 0.0, atol=1e-12)  # at rest with zero torque: nothing to do
 
 
+def holding_sample(spring_nm: FloatArray, enabled: bool = True) -> Sample:
+    """At rest at q = 0 with the springs carrying ``spring_nm`` (motor angles ``spring / k``)."""
+    theta = np.asarray(spring_nm, dtype=float) / load_description().sea.spring_stiffness_nm_per_rad
+    drives = (DriveState.ENABLED if enabled else DriveState.DISABLED,) * 4
+    return Sample(0, 0.0, np.zeros(4), np.zeros(4), theta, np.asarray(spring_nm, dtype=float), (False, False), drives)
+
+
 def test_compensation_gives_support_times_model_torque(
     torque: SeaTorqueController, description: RobotDescription
 ) -> None:
     model_torque = np.array([2.0, -4.0, 1.5, 0.8])
     mode = Compensation(torque, ConstantModel(description, model_torque), support_level=0.5, ramp_per_s=None)
-    mode.reset(still_sample())
+    mode.reset(holding_sample(0.5 * model_torque))  # the springs already carry the support: nothing to hand over
+    assert not mode.handover.active
     mode.update(still_sample(), PERIOD_S)
     np.testing.assert_allclose(mode.last_reference_nm, 0.5 * model_torque)
     mode.support_level = 1.0
@@ -516,13 +524,18 @@ def test_compensation_ramps_in_and_refuses_bad_levels(
     torque: SeaTorqueController, description: RobotDescription
 ) -> None:
     model_torque = np.array([2.0, -4.0, 1.5, 0.8])
-    mode = Compensation(torque, ConstantModel(description, model_torque), support_level=0.5, ramp_per_s=0.5)
-    mode.reset(still_sample())
+    mode = Compensation(
+        torque, ConstantModel(description, model_torque), support_level=0.5, ramp_per_s=0.5, handover_tolerance_nm=0.0
+    )
+    mode.reset(holding_sample(np.zeros(4), enabled=False))  # torque was off: all the support is missing
     mode.update(still_sample(), PERIOD_S)
-    np.testing.assert_allclose(mode.last_reference_nm, 0.0005 * model_torque)  # 0.5/s for 1 ms
+    np.testing.assert_allclose(mode.last_reference_nm, 0.0005 * 0.5 * model_torque)  # 0.5/s of the gap for 1 ms
     for _ in range(999):
         mode.update(still_sample(), PERIOD_S)
-    np.testing.assert_allclose(mode.last_reference_nm, 0.5 * model_torque)  # 1 s at 0.5/s reaches 0.5
+    np.testing.assert_allclose(mode.last_reference_nm, 0.5 * 0.5 * model_torque)  # 1 s at 0.5/s: half the gap
+    for _ in range(1000):
+        mode.update(still_sample(), PERIOD_S)
+    np.testing.assert_allclose(mode.last_reference_nm, 0.5 * model_torque)  # 2 s: all of it
     mode.update(still_sample(), 5.0)  # a stalled tick counts as at most 10 ms
     for bad in (float("nan"), float("inf"), -0.1, 1.01, "half", True, None):
         with pytest.raises(ControlSettingError):
@@ -540,12 +553,16 @@ def test_compensation_refuses_a_non_finite_model_torque(
     torque: SeaTorqueController, description: RobotDescription
 ) -> None:
     mode = Compensation(torque, ConstantModel(description, np.array([1.0, np.nan, 0.0, 0.0])), ramp_per_s=None)
-    mode.reset(still_sample())
+    with pytest.raises(ControlError, match="entry pose"):  # refused before it starts
+        mode.reset(still_sample())
+    mode.handover.clear()
     with pytest.raises(ControlError, match="non-finite"):
         mode.update(still_sample(), PERIOD_S)
     wrong = Compensation(torque, ConstantModel(description, np.ones(3)), ramp_per_s=None)
     with pytest.raises(ShapeError):
         wrong.update(still_sample(), PERIOD_S)
+    with pytest.raises(ControlError, match="no compensation model"):
+        Compensation(torque, None).reset(still_sample())
 
 
 # --- position control -------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ def pilot_torque_rms(
     hal.set_external_torque(arm)
     controller = Compensation(SeaTorqueController(hal.description.sea, SeaTorqueDesign()), model, 1.0, None)
     controller.reset(hal.read())
+    controller.handover.clear()  # full support from the first tick: the stiff arm holds the pose, nothing to hand over
     monitor = SafetyMonitor(SafetyLimits.from_description(hal.description))
     loop = ControlLoop(hal, monitor, FixedSupervisor(controller), LockStepClock(1.0 / hal.rate_hz))  # type: ignore[arg-type]
     loop.run(int(seconds * hal.rate_hz), stop_on_fault=True)

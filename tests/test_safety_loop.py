@@ -215,7 +215,41 @@ def test_overrun() -> None:
     hal, loop = build(controller=SlowController(), clock=RealTimeClock(DT))
     result = run_until_fault(hal, loop, 20)
     assert [f.kind for f in result.faults] == [FaultKind.OVERRUN]
-    assert "5 consecutive ticks" in result.faults[0].message
+    assert result.timing.consecutive_overruns >= 5  # missed deadlines in a row, skipped ones included
+    assert "consecutive deadlines of 1 ms missed (limit 5)" in result.faults[0].message
+
+
+def test_overrun_of_one_long_stall() -> None:
+    """One 20 ms stall (the tester's case) is an overrun fault in the tick after it, torque off at the drives.
+
+    Time is a fake monotonic clock (``tests/test_clocks.py``) so the stall is exact: the 50th
+    update takes 20.5 ms, so the next tick, due 1 ms after the stalled one started, starts 19.5 ms
+    late, having missed 20 deadlines. Counted as late wake-ups it was one overrun, and no fault.
+    """
+    from tests.test_clocks import FakeTime
+
+    fake = FakeTime()
+
+    class StallOnce(HoldController):
+        def __init__(self) -> None:
+            super().__init__()
+            self.calls = 0
+
+        def update(self, sample: Sample, dt_s: float) -> Command:
+            self.calls += 1
+            if self.calls == 50:
+                fake.t += 0.0205
+            return super().update(sample, dt_s)
+
+    controller = StallOnce()
+    hal, loop = build(controller=controller, clock=RealTimeClock(DT, now=fake.now, sleep=fake.sleep))
+    result = run_until_fault(hal, loop, 100)
+    assert controller.calls == 50  # the fault is in the first tick after the stall
+    assert [f.kind for f in result.faults] == [FaultKind.OVERRUN]
+    assert result.timing.missed_deadlines == 20
+    assert result.timing.lateness_s == pytest.approx(0.0195, abs=1e-4)
+    assert "the loop stalled 19.5 ms" in result.faults[0].message
+    assert "20 deadlines of 1 ms missed at once" in result.faults[0].message
 
 
 def test_controller_exception_and_non_finite_torque() -> None:

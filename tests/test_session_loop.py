@@ -148,25 +148,6 @@ class OverrunClock(LockStepClock):
         return timing._replace(lateness_s=1.5 * self.period_s, overrun=True, consecutive_overruns=self._run)
 
 
-class RelaxingPilot:
-    """The world's pilot, who lets go of the arm's weight as far as the robot has taken it over.
-
-    In compensation the pilot carries ``1 - delivered support``; whenever the robot delivers no
-    support (other modes, or torque off after a fault) the pilot carries the whole arm, so a
-    fault test never drops the arm.
-    """
-
-    def __init__(self, runtime: Runtime, world: SimWorld) -> None:
-        self.runtime = runtime
-        self.pilot = world.pilot
-
-    def __call__(self, t_s: float, q_rad: FloatArray, dq_rad_s: FloatArray) -> FloatArray:
-        runtime = self.runtime
-        supported = runtime.supervisor.state.mode == "compensation" and not runtime.monitor.faulted
-        self.pilot.carried = 1.0 - runtime.modes.compensation.delivered_support_level if supported else 1.0
-        return self.pilot(t_s, q_rad, dq_rad_s)
-
-
 def torque_off(result: TickResult, hal: SimHal) -> bool:
     """The command written is torque-off and the simulated drives applied no torque in that tick."""
     return (
@@ -185,7 +166,7 @@ def accepted(response: Response) -> Response:
 
 
 class Session:
-    """A runtime on the simulated plant with a relaxing pilot, an overrun clock and a validated model.
+    """A runtime on the simulated plant with the world's pilot, an overrun clock and a validated model.
 
     The model is selected once (it outlives resets), so states 8 and 9 are passed without
     running the protocol (guard ``identification_data_or_model``).
@@ -198,8 +179,7 @@ class Session:
         self.visited: list[str] = []
         self.runtime.supervisor.listeners.append(lambda state, outcome: self.visited.append(state.name))
         self.runtime.open()
-        self.world = SimWorld(self.hal)
-        self.hal.set_external_torque(RelaxingPilot(self.runtime, self.world))
+        self.world = SimWorld(self.hal)  # its pilot carries what the robot does not: relaxes onto support
         self.healthy = True
         runtime = self.runtime
         runtime.run_ticks(1)
@@ -637,8 +617,12 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         assert runtime.signals.estop_tested == {EstopButton.PILOT}
         ok(runtime.confirm("safety_experience"))
         ok(runtime.advance())
-        # 6 rom_limits: the default limits contain every shipped waypoint
+        # 6 rom_limits: the default limits contain every shipped waypoint; no validated model yet, so
+        # operative_check needs the operator's approval of the A Priori model
         ok(runtime.set_isb_limits(IsbLimits()))
+        refused = runtime.wait(runtime.advance())
+        assert refused.unmet == ("compensation_model_approved",)
+        ok(runtime.confirm("a_priori_model"))
         ok(runtime.advance())
         # 7 operative_check: the pilot relaxes onto the a priori compensation, then an e-stop under support
         world.pilot_carries(0.0)
@@ -667,7 +651,6 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         world.pilot_stiffness(1.0)
         world.pilot_hold_here()
         compensation = runtime.modes.compensation
-        assert compensation.delivered_support_level < 0.6  # it starts at 0 on entry and ramps
         for level in (0.6, 1.0):
             ok(runtime.set_support(level))
             assert runtime.run_until(lambda: compensation.delivered_support_level == level, 3.0), level  # noqa: B023

@@ -1,67 +1,60 @@
-"""Console commands: one line, one request to the runtime (or one act of the simulated world).
+"""Executing console lines: one checked line, one request to the runtime (or one act of the simulated world).
 
-Operator requests (they take effect at the next tick boundary; the console shows the answer)::
-
-    advance | revert | reset | ack
-    confirm settings|installation|safety_experience
-    support LEVEL                      compensation support level in [0, 1]
-    rom start | rom stop | rom load FILE
-    identify training|validation | identify stop
-    train [ap|plf|plf+]                train on this session's identification data (a job)
-    model FILE [VALIDATION_FILE]       use a model file, validated on validation data (a job)
-    status
-
-Time (lock-step: robot time passes; real time: the console waits)::
-
-    wait SECONDS
-    wait until idle|still|model|state NAME [timeout SECONDS]
-
-Script checks (a failed check stops the script, exit code 1)::
-
-    expect state NAME | expect accepted | expect refused
-
-The simulated world (only with the simulated plant)::
-
-    sim estop operator|pilot on|off
-    sim fault nan|jump|stale|drive_fault|bus [JOINT] [VALUE] | sim clear
-    sim pilot carry SHARE | sim pilot stiffness SCALE | sim pilot hold | sim pilot sweep [SECONDS_PER_MOVE]
-
-Lines are split like a shell's; ``#`` starts a comment.
+The words of a line are checked first (:mod:`daror_runtime.console.grammar`); then an operator
+request is posted to the runtime and takes effect at the next tick boundary, and the answer is
+printed (accepted, or refused with the reason). ``help`` lists the commands in plain words;
+``status`` shows what the robot is doing and the next steps (:mod:`daror_runtime.console.view`).
+Whatever the runtime announces (a transition, a fault, finished work) is printed as it is drained,
+on its own line.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import shlex
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field
 
 from rich.console import Console
 from rich.markup import escape
 
-from daror_runtime.errors import DarorError, UsageError
+from daror_runtime.console.grammar import CommandError, ParseContext, Parsed, help_text, parse_line
+from daror_runtime.console.guide import next_steps
+from daror_runtime.console.view import announcement_line, render_status, stamp
+from daror_runtime.console.world import SimWorld
+from daror_runtime.errors import DarorError
+from daror_runtime.fsm.spec import FsmSpec
 from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.runtime import Runtime
-from hal.isb import load_isb_limits
+from hal.robot import RobotDescription
 
-from .world import SimWorld
-
-__all__ = ["CommandError", "ConsoleSession", "ScriptCheckError"]
-
-
-class CommandError(UsageError):
-    """A console line that is not a command, or has the wrong arguments (the message shows the usage)."""
+__all__ = ["CommandError", "ConsoleSession", "QuitRequested", "ScriptCheckError", "parse_context"]
 
 
 class ScriptCheckError(DarorError):
-    """An ``expect`` line of a script did not hold."""
+    """An ``expect`` line of a script did not hold, or a ``wait until`` timed out."""
+
+
+class QuitRequested(Exception):  # noqa: N818 - a request, not an error
+    """The operator typed quit: the session ends (torque off first)."""
 
 
 @dataclass
-class _Last:
-    response: Response | None = None
+class _Tally:
+    response: Response | None = None  # the last answered request
+    response_counted: bool = False  # its refusal was counted as a failure
+    failed: int = 0  # requests refused, checks that did not hold, commands that failed
+    bad_lines: int = 0  # lines that were not commands
+    failures: list[str] = field(default_factory=list)
+
+
+def parse_context(spec: FsmSpec, description: RobotDescription, has_world: bool) -> ParseContext:
+    """What lines are checked against in a session on ``spec`` and a robot ``description``."""
+    return ParseContext(
+        state_names=(*(s.name for s in spec.states), spec.fail.name),
+        has_world=has_world,
+        description=description,
+        fault_kinds=SimWorld.fault_kinds if has_world else (),
+    )
 
 
 class ConsoleSession:
@@ -81,149 +74,155 @@ class ConsoleSession:
         self.out = out
         self.world = world
         self.timeout_s = request_timeout_s
-        self.last = _Last()
-        self._commands: dict[str, Callable[[list[str]], None]] = {
-            "advance": self._fsm("advance"),
-            "revert": self._fsm("revert"),
-            "reset": self._fsm("reset"),
-            "ack": self._fsm("acknowledge"),
-            "acknowledge": self._fsm("acknowledge"),
-            "confirm": self._confirm,
-            "support": self._support,
+        self.context = parse_context(runtime.spec, runtime.description, world is not None)
+        self.tally = _Tally()
+        self._run: dict[str, Callable[[tuple], None]] = {  # type: ignore[type-arg]
+            "advance": lambda a: self._answer(runtime.advance()),
+            "revert": lambda a: self._answer(runtime.revert()),
+            "reset": lambda a: self._answer(runtime.reset()),
+            "ack": lambda a: self._answer(runtime.acknowledge()),
+            "confirm": lambda a: self._answer(runtime.confirm(a[0])),
+            "support": lambda a: self._answer(runtime.set_support(a[0])),
             "rom": self._rom,
             "identify": self._identify,
             "train": self._train,
             "model": self._model,
             "status": self._status,
+            "settings": self._settings,
+            "help": lambda a: self.say(help_text(a[0])),
             "wait": self._wait,
             "expect": self._expect,
             "sim": self._sim,
+            "quit": self._quit,
         }
 
     # --- entry ----------------------------------------------------------------------------
 
-    def execute(self, line: str) -> None:
-        """Run one line.
+    def parse(self, line: str) -> Parsed | None:
+        """Check a line (None: empty or a comment).
 
         Raises:
-            CommandError: unknown command or bad arguments.
-            ScriptCheckError: an ``expect`` did not hold.
+            CommandError: not a command, or bad words.
+        """
+        return parse_line(line, self.context)
+
+    def execute(self, line: str) -> None:
+        """Check and run one line, then print what the runtime announced meanwhile.
+
+        Raises:
+            CommandError: not a command, or bad words (nothing was done).
+            ScriptCheckError: an ``expect`` or ``wait until`` did not hold.
+            QuitRequested: the line was quit.
             InputError, DarorError: the runtime refused the request before queueing it.
         """
+        parsed = self.parse(line)
+        if parsed is not None:
+            self.run(parsed)
+
+    def run(self, parsed: Parsed) -> None:
+        """Run a checked line (see :meth:`execute`)."""
         try:
-            words = shlex.split(line, comments=True)
-        except ValueError as exc:
-            raise CommandError(f"cannot split {line!r}: {exc}") from None
-        if not words:
-            return
-        command = self._commands.get(words[0])
-        if command is None:
-            raise CommandError(f"unknown command {words[0]!r}; commands: {', '.join(sorted(self._commands))}")
-        command(words[1:])
+            self._run[parsed.command](parsed.args)
+        finally:
+            self.show_announcements()
+
+    def show_announcements(self) -> None:
+        """Print what the runtime announced since the last call, one line each."""
+        for item in self.runtime.announcements.drain():
+            self.say(announcement_line(item))
+
+    def say(self, text: str) -> None:
+        self.out.print(escape(text), soft_wrap=True)
+
+    def record_failure(self, text: str) -> None:
+        self.tally.failed += 1
+        self.tally.failures.append(text)
 
     # --- operator requests ----------------------------------------------------------------
 
-    def _fsm(self, event: str) -> Callable[[list[str]], None]:
-        def run(args: list[str]) -> None:
-            _arity(event, args, 0)
-            self._answer(self.runtime.request(event))
-
-        return run
-
-    def _confirm(self, args: list[str]) -> None:
-        _arity("confirm CHECKLIST", args, 1)
-        self._answer(self.runtime.confirm(args[0]))
-
-    def _support(self, args: list[str]) -> None:
-        _arity("support LEVEL", args, 1)
-        self._answer(self.runtime.set_support(_number("support LEVEL", args[0])))
-
-    def _rom(self, args: list[str]) -> None:
-        if args == ["start"]:
+    def _rom(self, args: tuple) -> None:  # type: ignore[type-arg]
+        if args[0] == "start":
             self._answer(self.runtime.rom_start())
-        elif args == ["stop"]:
+        elif args[0] == "stop":
             self._answer(self.runtime.rom_stop())
-        elif len(args) == 2 and args[0] == "load":
-            self._answer(self.runtime.set_isb_limits(load_isb_limits(args[1]), source=args[1]))
         else:
-            raise CommandError("usage: rom start | rom stop | rom load FILE")
+            self._answer(self.runtime.set_isb_limits(args[1], source=args[2]))
 
-    def _identify(self, args: list[str]) -> None:
-        if args == ["stop"]:
+    def _identify(self, args: tuple) -> None:  # type: ignore[type-arg]
+        if args[0] == "stop":
             self._answer(self.runtime.stop_identification())
-        elif len(args) == 1 and args[0] in ("training", "validation"):
-            self._answer(self.runtime.identify(args[0]))
         else:
-            raise CommandError("usage: identify training | identify validation | identify stop")
+            self._answer(self.runtime.identify(args[0]))
 
-    def _train(self, args: list[str]) -> None:
-        if len(args) > 1:
-            raise CommandError("usage: train [ap|plf|plf+]")
-        self.runtime.train(args[0] if args else None)
-        self.out.print("training queued (outside the tick); 'wait until model' waits for it")
+    def _train(self, args: tuple) -> None:  # type: ignore[type-arg]
+        self.runtime.train(args[0])
+        self.say("training queued (outside the loop); 'wait until idle' waits for it")
 
-    def _model(self, args: list[str]) -> None:
-        if len(args) not in (1, 2):
-            raise CommandError("usage: model FILE [VALIDATION_FILE]")
-        self.runtime.select_model(Path(args[0]), Path(args[1]) if len(args) == 2 else None)
-        self.out.print("model validation queued (outside the tick); 'wait until model' waits for it")
+    def _model(self, args: tuple) -> None:  # type: ignore[type-arg]
+        self.runtime.select_model(args[0], args[1])
+        self.say("model validation queued (outside the loop); 'wait until idle' waits for it")
 
-    def _status(self, args: list[str]) -> None:
-        _arity("status", args, 0)
-        self.out.print_json(json.dumps(self.runtime.status(), default=str))
+    def _status(self, args: tuple) -> None:  # type: ignore[type-arg]
+        status = self.runtime.snapshot()
+        if args[0]:
+            self.out.print_json(json.dumps(status.as_dict(), default=str))
+            return
+        world = self.world
+        notes = world.notes(self.runtime.settings) if world is not None else []
+        self.say(render_status(status, next_steps(status, world is not None), notes))
+
+    def _settings(self, args: tuple) -> None:  # type: ignore[type-arg]
+        settings = self.runtime.settings
+        self.say("session settings (daror console --settings FILE changes them):")
+        for key, value in settings.model_dump(mode="json").items():
+            if isinstance(value, dict):
+                for sub, subvalue in value.items():
+                    self.say(f"  {key}.{sub}: {subvalue}")
+            else:
+                self.say(f"  {key}: {value}")
+
+    def _quit(self, args: tuple) -> None:  # type: ignore[type-arg]
+        raise QuitRequested
 
     # --- time -----------------------------------------------------------------------------
 
-    def _wait(self, args: list[str]) -> None:
+    def _wait(self, args: tuple) -> None:  # type: ignore[type-arg]
         runtime = self.runtime
-        if len(args) == 1:
-            seconds = _number("wait SECONDS", args[0])
-            if seconds < 0:
-                raise CommandError("wait SECONDS: expected a duration >= 0")
-            self._advance_time(seconds)
+        if args[0] == "seconds":
+            runtime.pass_time(args[1])
             return
-        if not args or args[0] != "until" or len(args) < 2:
-            raise CommandError("usage: wait SECONDS | wait until idle|still|model|state NAME [timeout SECONDS]")
-        rest = args[1:]
-        timeout_s = 600.0
-        if len(rest) >= 2 and rest[-2] == "timeout":
-            timeout_s = _number("timeout SECONDS", rest[-1])
-            rest = rest[:-2]
-        condition = self._condition(rest)
+        _, what, name, timeout_s = args
+        condition = self._condition(what, name)
         if not runtime.run_until(condition, timeout_s) and not condition():
-            raise ScriptCheckError(f"'wait until {' '.join(rest)}' did not happen within {timeout_s:g} s")
-        self.out.print(f"{self._stamp()} {escape(' '.join(rest))}")
+            raise ScriptCheckError(
+                f"'wait until {what}{' ' + name if name else ''}' did not happen within {timeout_s:g} s"
+            )
+        self.say(f"{stamp(self._t())} {what}{' ' + name if name else ''}")
 
-    def _condition(self, words: list[str]) -> Callable[[], bool]:
+    def _condition(self, what: str, name: str | None) -> Callable[[], bool]:
         runtime = self.runtime
-        if words == ["idle"]:
+        if what == "idle":
             return lambda: not runtime.busy
-        if words == ["still"]:
+        if what == "still":
+            world = self.world
 
             def still() -> bool:
-                moving = self.world is not None and self.world.pilot.moving
-                return not moving and runtime.at_rest
+                return not (world is not None and world.pilot.moving) and runtime.at_rest
 
             return still
-        if words == ["model"]:
+        if what == "model":
             return lambda: runtime.signals.model is not None and not runtime.jobs.pending
-        if len(words) == 2 and words[0] == "state":
-            name = words[1]
-            return lambda: runtime.supervisor.state_name == name
-        raise CommandError("wait until: expected idle, still, model or state NAME")
-
-    def _advance_time(self, seconds: float) -> None:
-        self.runtime.pass_time(seconds)
+        return lambda: runtime.supervisor.state_name == name
 
     # --- checks ---------------------------------------------------------------------------
 
-    def _expect(self, args: list[str]) -> None:
-        if len(args) == 2 and args[0] == "state":
+    def _expect(self, args: tuple) -> None:  # type: ignore[type-arg]
+        if args[0] == "state":
             state = self.runtime.supervisor.state_name
             if state != args[1]:
                 raise ScriptCheckError(f"expected state {args[1]}, the robot is in {state}")
-        elif args in (["accepted"], ["refused"]):
-            response = self.last.response
+        else:
+            response = self.tally.response
             if response is None:
                 raise ScriptCheckError("expect accepted/refused: no request was answered yet")
             if response.accepted != (args[0] == "accepted"):
@@ -231,76 +230,56 @@ class ConsoleSession:
                     f"expected {response.request!r} to be {args[0]}; it was "
                     + ("accepted" if response.accepted else f"refused ({response.reason})")
                 )
-        else:
-            raise CommandError("usage: expect state NAME | expect accepted | expect refused")
-        self.out.print(f"  ok: {escape(' '.join(args))}")
+            if self.tally.response_counted:  # a refusal that was expected is no failure
+                self.tally.failed -= 1
+                self.tally.failures.pop()
+                self.tally.response_counted = False
+        self.say(f"  ok: {' '.join(str(a) for a in args)}")
 
     # --- the simulated world --------------------------------------------------------------
 
-    def _sim(self, args: list[str]) -> None:
+    def _sim(self, args: tuple) -> None:  # type: ignore[type-arg]
         world = self.world
-        if world is None:
+        if world is None:  # the grammar refuses these on hardware; a session without a world too
             raise CommandError("'sim' commands act on the simulated plant; this session runs on hardware")
-        if len(args) == 3 and args[0] == "estop" and args[2] in ("on", "off"):
-            world.estop(args[1], args[2] == "on")
-        elif args and args[0] == "fault" and 2 <= len(args) <= 4:
-            joint = int(_number("JOINT", args[2])) if len(args) >= 3 else None
-            value = _number("VALUE", args[3]) if len(args) == 4 else None
-            world.fault(args[1], joint, value)
-        elif args == ["clear"]:
+        what = args[0]
+        if what == "estop":
+            world.estop(args[1], args[2])
+        elif what == "fault":
+            world.fault(args[1], args[2], args[3])
+        elif what == "clear":
             world.clear_faults()
-        elif len(args) >= 2 and args[0] == "pilot":
+        else:
             self._pilot(world, args[1:])
-        else:
-            raise CommandError(
-                "usage: sim estop operator|pilot on|off | sim fault KIND [JOINT] [VALUE] | sim clear | sim pilot ..."
-            )
-        self.out.print(f"{self._stamp()} world: {escape(' '.join(args))}")
+        words = " ".join("" if a is None else str(a) for a in args).replace("True", "on").replace("False", "off")
+        self.say(f"{stamp(self._t())} world: {words.strip()}")
 
-    def _pilot(self, world: SimWorld, args: list[str]) -> None:
-        if len(args) == 2 and args[0] == "carry":
-            world.pilot_carries(_number("carry SHARE", args[1]))
-        elif len(args) == 2 and args[0] == "stiffness":
-            world.pilot_stiffness(_number("stiffness SCALE", args[1]))
-        elif args == ["hold"]:
+    def _pilot(self, world: SimWorld, args: tuple) -> None:  # type: ignore[type-arg]
+        what = args[0]
+        if what == "carry":
+            world.pilot_carries(args[1])
+        elif what == "stiffness":
+            world.pilot_stiffness(args[1])
+        elif what == "hold":
             world.pilot_hold_here()
-        elif args[0] == "sweep" and len(args) <= 2:
-            seconds = _number("sweep SECONDS_PER_MOVE", args[1]) if len(args) == 2 else 2.0
-            end = world.pilot_sweep(self.runtime.settings.identification, seconds)
-            self.out.print(f"  the pilot moves through the session's waypoints until t = {end:.1f} s")
+        elif what == "stop":
+            world.pilot_stop()
         else:
-            raise CommandError("usage: sim pilot carry SHARE | stiffness SCALE | hold | sweep [SECONDS_PER_MOVE]")
+            end = world.pilot_sweep(self.runtime.settings.identification, args[1])
+            self.say(f"  the pilot moves through the session's waypoints until t = {end:.1f} s")
 
     # --- internals ------------------------------------------------------------------------
 
-    def _stamp(self) -> str:
-        return escape(f"[t={self._t():.3f} s]")
-
-    def _t(self) -> float:
+    def _t(self) -> float | None:
         sample = self.runtime.signals.sample
-        return sample.t_s if sample is not None else 0.0
+        return sample.t_s if sample is not None else None
 
     def _answer(self, ticket: Ticket) -> None:
         response = self.runtime.wait(ticket, self.timeout_s)
-        self.last.response = response
+        self.tally.response = response
+        self.tally.response_counted = not response.accepted
         if response.accepted:
-            self.out.print(f"{self._stamp()} {escape(response.request)}: accepted, state {response.state}")
+            self.say(f"{stamp(self._t())} {response.request}: accepted, state {response.state}")
         else:
-            self.out.print(
-                f"{self._stamp()} {escape(response.request)}: [bold]refused[/bold] ({escape(response.reason)})"
-            )
-
-
-def _arity(usage: str, args: list[str], n: int) -> None:
-    if len(args) != n:
-        raise CommandError(f"usage: {usage}")
-
-
-def _number(what: str, text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise CommandError(f"{what}: {text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise CommandError(f"{what}: {text!r} is not a finite number")
-    return value
+            self.record_failure(f"{response.request}: refused ({response.reason})")
+            self.say(f"{stamp(self._t())} {response.request}: refused ({response.reason})")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from daror_runtime.errors import UsageError
 from daror_runtime.identification.waypoints import load_waypoints
-from daror_runtime.session.settings import IdentificationSettings
+from daror_runtime.session.settings import IdentificationSettings, SessionSettings
 from hal.isb import Shoulder
 from hal.robot import FloatArray
 from hal.sim.backend import FAULT_KINDS, SimHal
@@ -23,6 +23,8 @@ BUTTONS = {"operator": 0, "pilot": 1}
 class SimWorld:
     """The pilot and the buttons of a :class:`SimHal` (opened)."""
 
+    fault_kinds: tuple[str, ...] = FAULT_KINDS
+
     def __init__(self, hal: SimHal) -> None:
         self.hal = hal
         self.pilot = SimulatedPilot(hal.plant, hal.read_without_faults().q_rad)
@@ -31,6 +33,18 @@ class SimWorld:
     @property
     def t_s(self) -> float:
         return self.hal.time_s
+
+    def notes(self, settings: SessionSettings) -> list[str]:
+        """What the operator should know about the settings against this simulated world."""
+        has_arm = self.hal.scenario.dummy_arm is not None
+        if has_arm and not settings.dummy_arm:
+            return [
+                "the simulated plant carries the Dummy Arm but the settings say dummy_arm: false: the A Priori "
+                "model leaves the arm's weight to the pilot (a validated model includes it)"
+            ]
+        if settings.dummy_arm and not has_arm:
+            return ["the settings say dummy_arm: true but the simulated plant has no Dummy Arm"]
+        return []
 
     def estop(self, button: str, pressed: bool) -> None:
         if button not in BUTTONS:
@@ -54,14 +68,24 @@ class SimWorld:
         self.pilot.set_stiffness_scale(scale)
 
     def pilot_hold_here(self) -> None:
-        """The pilot keeps the arm where it is now."""
-        self.pilot.move_to(self.hal.truth().q_rad, self.t_s, 1e-3)
+        """The pilot keeps the arm where it is now (any motion under way is dropped)."""
+        self.pilot.hold(self.hal.truth().q_rad)
 
-    def pilot_move(self, q_rad: FloatArray, seconds: float) -> float:
+    def pilot_stop(self) -> None:
+        """The pilot stops moving: the motion under way is dropped where the pilot's target is now."""
+        self.pilot.stop(self.t_s)
+
+    def pilot_move(self, q_rad: FloatArray, seconds: float | None = None) -> float:
+        """The pilot moves the arm to ``q_rad`` (replacing any motion under way); returns the end time."""
         return self.pilot.move_to(q_rad, self.t_s, seconds)
 
-    def pilot_sweep(self, settings: IdentificationSettings, seconds_per_move: float) -> float:
-        """The pilot moves through the session's waypoints (what the operator records as the range of motion)."""
+    def pilot_sweep(self, settings: IdentificationSettings, seconds_per_move: float | None = None) -> float:
+        """The pilot moves through the session's waypoints (what the operator records as the range of motion).
+
+        Replaces any motion under way. ``seconds_per_move`` None: each move at the pilot's own pace
+        (a peak joint speed of :data:`hal.sim.pilot.DEFAULT_PEAK_SPEED_RAD_S`, a third of the
+        slowest velocity limit of the states where the pilot moves). Returns the end time.
+        """
         waypoints = load_waypoints(settings.waypoints_file)
         shoulder = Shoulder.from_description(self.hal.description)
         numbers = [n for n in waypoints.training_order if (n - 1) % settings.waypoint_stride == 0]

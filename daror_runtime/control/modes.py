@@ -5,6 +5,9 @@
   follows the pilot with the least resistance the passive torque loop allows.
 * :class:`Compensation`: SEA torque control to ``support x model.torque(q)`` (Sec. 2.2.3): gravity
   and stiffness compensation with a support level in [0, 1] the operator sets between ticks.
+
+Both SEA torque modes enter bumplessly: the torque the springs carry at entry is handed over
+(:mod:`daror_runtime.control.handover`), never dropped or stepped.
 * :class:`~daror_runtime.control.position.PositionPD`: joint PD through the torque loop
   (Sec. 2.2.4), for the identification protocol.
 
@@ -20,6 +23,7 @@ import math
 import numpy as np
 
 from daror_runtime.control.base import ControlError, ControlSettingError
+from daror_runtime.control.handover import DEFAULT_TOLERANCE_NM, MAX_RAMP_DT_S, Handover, handover_reference
 from daror_runtime.control.position import PositionPD
 from daror_runtime.control.sea_torque import SeaTorqueController
 from daror_runtime.errors import ShapeError
@@ -44,31 +48,46 @@ class TorqueOff:
 
 
 class MinimalImpedance:
-    """Zero spring torque (minimal-impedance mode, Sec. 2.2.3), through the SEA torque controller."""
+    """Zero spring torque (minimal-impedance mode, Sec. 2.2.3), through the SEA torque controller.
+
+    Entering it never drops what the springs were carrying: the torque held at entry ramps out at
+    ``ramp_per_s`` (the whole of it in ``1 / ramp_per_s`` s, :class:`~daror_runtime.control.handover.Handover`),
+    so a pilot whose arm the robot was supporting has time to take its weight.
+    """
 
     commands: tuple[str, ...] = ("motor_torque",)
 
-    def __init__(self, torque: SeaTorqueController) -> None:
+    def __init__(self, torque: SeaTorqueController, ramp_per_s: float = 0.5) -> None:
         self.torque = torque
+        self.handover = Handover(ramp_per_s, by_motion=False)
         self._zero = np.zeros(torque.n_joints)
         self._zero.flags.writeable = False  # shared every tick; nobody may change it
+        self._reference = np.zeros(torque.n_joints)
         self.last_reference_nm: FloatArray = self._zero
 
     def reset(self, sample: Sample) -> None:
-        """Start the torque loop at the sample (no jump).
+        """Start the torque loop at the sample (no jump); the torque the springs carry ramps out.
 
         Raises:
             ControlError: the sample is not finite.
         """
         self.torque.reset(sample)
+        self.handover.start(sample, self.torque.spring_torque_nm(sample), self._zero)
 
     def update(self, sample: Sample, dt_s: float) -> Command:
-        """Motor torques (Nm) that drive the spring torque to zero.
+        """Motor torques (Nm) that drive the spring torque to zero (after the entry's ramp).
 
         Raises:
             ShapeError, ControlError: see :meth:`SeaTorqueController.motor_torque`.
         """
-        return Command(self.torque.motor_torque(self._zero, sample, dt_s), True)
+        reference = self._zero
+        if self.handover.active:
+            self.handover.set_dt(dt_s)
+            handover_reference(self._zero, sample.q_rad, self.handover.state, self._reference)
+            reference = self._reference
+        command = Command(self.torque.motor_torque(reference, sample, dt_s), True)
+        self.last_reference_nm = reference
+        return command
 
 
 class Compensation:
@@ -76,11 +95,19 @@ class Compensation:
 
     Args:
         torque: the SEA torque controller.
-        model: the selected compensation model (pure function of ``q``).
+        model: the compensation model in use (pure function of ``q``), or None until one is
+            approved (validated on this pilot's held-out data, or the A Priori model the operator
+            confirmed): :meth:`reset` refuses to start without one, so no state can apply the
+            torque of a model nobody approved.
         support_level: fraction of the model torque to deliver, in [0, 1].
-        ramp_per_s: the delivered level moves toward the set level at most this fast (1/s), so
-            neither entering the mode nor the operator's change hits the pilot with a torque step;
-            None applies changes at once. On :meth:`reset` the delivered level starts at 0.
+        ramp_per_s: the operator's changes of the support level reach the arm at most this fast
+            (1/s), and the entry's handover (:class:`~daror_runtime.control.handover.Handover`)
+            brings in missing support at this rate; None applies level changes at once.
+        handover_tolerance_nm: missing support per joint, at entry, that is handed over by the
+            pilot's motion rather than by time (what a validated model may be off by at one pose).
+
+    Entering the mode is bumpless: the reference starts at the torque the springs carry and never
+    dips below what was holding the arm until the pilot moves it (docs/control.md, "handover").
 
     Raises:
         ControlSettingError: a support level outside [0, 1] or not finite, or a ramp that is not
@@ -92,17 +119,20 @@ class Compensation:
     def __init__(
         self,
         torque: SeaTorqueController,
-        model: CompensationModel,
+        model: CompensationModel | None,
         support_level: float = 1.0,
         ramp_per_s: float | None = 0.5,
+        handover_tolerance_nm: float = DEFAULT_TOLERANCE_NM,
     ) -> None:
         if ramp_per_s is not None and not (math.isfinite(ramp_per_s) and ramp_per_s > 0.0):
             raise ControlSettingError(f"support ramp must be a positive rate per second or None, got {ramp_per_s!r}")
         self.torque = torque
         self.model = model
         self.ramp_per_s = ramp_per_s
+        self.handover = Handover(ramp_per_s or 0.5, by_motion=True, tolerance_nm=handover_tolerance_nm)
         self._target = _checked_level(support_level)
-        self._level = self._target if ramp_per_s is None else 0.0
+        self._level = self._target
+        self._support = np.zeros(torque.n_joints)
         self.last_reference_nm: FloatArray = np.zeros(torque.n_joints)
 
     @property
@@ -123,47 +153,62 @@ class Compensation:
 
     @property
     def delivered_support_level(self) -> float:
-        """The level applied in the last tick (ramping toward :attr:`support_level`)."""
+        """The level applied in the last tick (ramping toward :attr:`support_level` after a change)."""
         return self._level
 
     def reset(self, sample: Sample) -> None:
-        """Start the torque loop at the sample; the delivered level starts at 0 and ramps in.
+        """Start the torque loop at the sample and hand over from the torque the springs carry.
 
         Raises:
-            ControlError: the sample is not finite.
+            ControlError: no approved model, the sample is not finite, or the model's torque there
+                is not finite.
         """
+        model = self.model
+        if model is None:
+            raise ControlError("no compensation model is approved for this pilot: compensation cannot start")
         self.torque.reset(sample)
-        self._level = self._target if self.ramp_per_s is None else 0.0
+        self._level = self._target
+        target = self._level * np.asarray(model.torque(sample.q_rad), dtype=float)
+        if target.shape != (self.torque.n_joints,) or not np.all(np.isfinite(target)):
+            raise ControlError(f"compensation model {model.name!r} returned {target.tolist()} at the entry pose")
+        self.handover.start(sample, self.torque.spring_torque_nm(sample), target)
 
     def update(self, sample: Sample, dt_s: float) -> Command:
-        """Motor torques (Nm) delivering ``support x model torque`` at the springs.
+        """Motor torques (Nm) delivering ``support x model torque`` (plus the entry's handover) at the springs.
 
         Raises:
             ShapeError: the model returns a torque of the wrong shape.
-            ControlError: the model's torque is not finite, or see
+            ControlError: no model, the model's torque is not finite, or see
                 :meth:`SeaTorqueController.motor_torque`.
         """
+        model = self.model
+        if model is None:
+            raise ControlError("no compensation model is approved for this pilot")
         if self.ramp_per_s is not None and self._level != self._target:
             # A stalled tick (large dt) must not turn the ramp into a step: count at most 10 ms.
-            step = self.ramp_per_s * min(max(dt_s, 0.0), 0.01) if math.isfinite(dt_s) else 0.0
+            step = self.ramp_per_s * min(max(dt_s, 0.0), MAX_RAMP_DT_S) if math.isfinite(dt_s) else 0.0
             self._level = (
                 min(self._target, self._level + step)
                 if self._target > self._level
                 else max(self._target, self._level - step)
             )
-        model_torque = self.model.torque(sample.q_rad)
+        model_torque = model.torque(sample.q_rad)
         try:
             tau_ref = model_torque * self._level  # an (n,) float array; the kernel checks shape and finiteness
         except TypeError:
-            raise ShapeError(
-                f"compensation model {self.model.name!r} returned {model_torque!r}, not an array"
-            ) from None
+            raise ShapeError(f"compensation model {model.name!r} returned {model_torque!r}, not an array") from None
+        if self.handover.active:
+            if np.shape(tau_ref) != self._support.shape:
+                raise ShapeError(f"compensation model {model.name!r} returned a torque of shape {np.shape(tau_ref)}")
+            self.handover.set_dt(dt_s)
+            handover_reference(np.asarray(tau_ref, dtype=float), sample.q_rad, self.handover.state, self._support)
+            tau_ref = self._support.copy()
         try:
             command = self.torque.motor_torque(tau_ref, sample, dt_s)
         except ControlError:
             if not np.all(np.isfinite(tau_ref)):  # name the culprit: the model, not the torque loop
                 raise ControlError(
-                    f"compensation model {self.model.name!r} returned a non-finite torque {model_torque}"
+                    f"compensation model {model.name!r} returned a non-finite torque {model_torque}"
                 ) from None
             raise
         self.last_reference_nm = tau_ref

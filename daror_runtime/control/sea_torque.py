@@ -537,10 +537,7 @@ class SeaTorqueController:
             tau0, theta0 = np.zeros(self.n_joints), np.zeros(self.n_joints)
         else:
             theta0 = np.asarray(sample.theta_rad, dtype=float)
-            if self.design.torque_from_encoders:
-                tau0 = self.sea.spring_stiffness_nm_per_rad * (theta0 - np.asarray(sample.q_rad, dtype=float))
-            else:
-                tau0 = np.asarray(sample.tau_nm, dtype=float)
+            tau0 = self.spring_torque_nm(sample)
             if not (np.all(np.isfinite(tau0)) and np.all(np.isfinite(theta0))):
                 raise ControlError("cannot start the torque controller from a sample with non-finite torque or angle")
         # Every filter in the steady state of "this torque, commanded forever": the derivative's input
@@ -554,6 +551,17 @@ class SeaTorqueController:
         self._work[_W_DHAT] = 0.0
         self._work[_W_U] = tau0
         self._work[_W_PREV] = tau0  # the reference slews from the torque the springs carry now
+
+    def spring_torque_nm(self, sample: Sample) -> FloatArray:
+        """The spring torque (n_joints,) in Nm this controller regulates, read from ``sample``.
+
+        ``k (theta - q)`` from the two encoders (``torque_from_encoders``) or the drive's reading.
+        """
+        if self.design.torque_from_encoders:
+            return self.sea.spring_stiffness_nm_per_rad * (
+                np.asarray(sample.theta_rad, dtype=float) - np.asarray(sample.q_rad, dtype=float)
+            )
+        return np.array(sample.tau_nm, dtype=float)
 
     def motor_torque(self, tau_ref_nm: FloatArray, sample: Sample, dt_s: float) -> FloatArray:
         """Motor torque (n_joints,) in Nm at the gearbox output, within +-``max_motor_torque_nm``.

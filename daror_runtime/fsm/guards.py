@@ -36,6 +36,7 @@ class Guard:
     read: GuardFunction
     checklist: Checklist | None = None
     estop_test: bool = False  # satisfied by pressing an e-stop in the state (a test state's evidence)
+    approves_model: bool = False  # holds only when the compensation model in use is approved for the pilot
 
 
 class GuardRegistry(Mapping[str, Guard]):
@@ -45,12 +46,18 @@ class GuardRegistry(Mapping[str, Guard]):
         self._guards: dict[str, Guard] = {}
 
     def register(
-        self, name: str, description: str, *, checklist: Checklist | None = None, estop_test: bool = False
+        self,
+        name: str,
+        description: str,
+        *,
+        checklist: Checklist | None = None,
+        estop_test: bool = False,
+        approves_model: bool = False,
     ) -> Callable[[GuardFunction], GuardFunction]:
         def add(read: GuardFunction) -> GuardFunction:
             if name in self._guards:
                 raise ValueError(f"guard {name!r} registered twice")
-            self._guards[name] = Guard(name, description, read, checklist, estop_test)
+            self._guards[name] = Guard(name, description, read, checklist, estop_test, approves_model)
             return read
 
         return add
@@ -179,9 +186,24 @@ def _identification_data_or_model(s: SessionSignals) -> bool:
     return saved or (s.model is not None and s.model.validated)
 
 
-@guard("model_trained_and_validated", "a model is selected whose validation error is within the session's limit")
+@guard(
+    "model_trained_and_validated",
+    "a model is selected whose validation error on this pilot's held-out data is within the session's limit",
+    approves_model=True,
+)
 def _model_trained_and_validated(s: SessionSignals) -> bool:
     return s.model is not None and s.model.validated
+
+
+@guard(
+    "compensation_model_approved",
+    "the compensation model is approved for this pilot: a model validated on the pilot's held-out data is "
+    "selected, or the operator confirmed the A Priori model in this state",
+    checklist=Checklist.A_PRIORI_MODEL,
+    approves_model=True,
+)
+def _compensation_model_approved(s: SessionSignals) -> bool:
+    return (s.model is not None and s.model.validated) or Checklist.A_PRIORI_MODEL in s.confirmed
 
 
 #: Guards the machine itself uses (not named in specs): acknowledging needs something to acknowledge.

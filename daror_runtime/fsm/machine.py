@@ -222,7 +222,7 @@ class SafetyMachine:
         source = self._name
         transition = self.table.get((source, event))
         if transition is None:
-            return Outcome(event, False, source, None, (), self._why_none(event))
+            return Outcome(event, False, source, None, (), self.why_not(event))
         guards = self._guards
         unmet = tuple(g for g in transition.guards if not guards[g]())
         if unmet:
@@ -244,7 +244,8 @@ class SafetyMachine:
             )
         return outcome
 
-    def _why_none(self, event: Event) -> str:
+    def why_not(self, event: Event) -> str:
+        """Why ``event`` has no transition from the current state (a sentence for the operator)."""
         state = self.state
         if not isinstance(state, StateSpec):  # FAIL
             return (

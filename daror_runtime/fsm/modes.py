@@ -9,6 +9,10 @@ between them at tick boundaries. The properties here are what the spec's checks 
 * ``pilot_driven``: the robot never moves on its own in this mode; only the pilot moves it. The
   e-stop test states (where a fault does not enter FAIL) may only use pilot-driven modes that
   apply torque: there must be torque for the e-stop to remove, and no motion the robot starts.
+* ``applies_model``: the mode's torque is a compensation model's. Every transition into a state
+  with such a mode must carry a guard that approves the model (validated on the pilot's held-out
+  data, or the A Priori model confirmed by the operator): a model nobody approved never drives
+  the arm.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ class ModeInfo:
     description: str
     applies_torque: bool
     pilot_driven: bool
+    applies_model: bool = False
 
 
 MODES: dict[str, ModeInfo] = {
@@ -51,6 +56,7 @@ MODES: dict[str, ModeInfo] = {
             "gravity and stiffness compensation with the selected model at the operator's support level",
             applies_torque=True,
             pilot_driven=True,
+            applies_model=True,
         ),
     )
 }

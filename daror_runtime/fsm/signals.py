@@ -43,6 +43,7 @@ class Checklist(StrEnum):
     SETTINGS = "settings"  # session settings reviewed: pilot, support level, model, limits
     INSTALLATION = "installation"  # pilot installed: straps, alignment of the shoulder, cables
     SAFETY_EXPERIENCE = "safety_experience"  # the pilot felt the safety limits and knows the e-stop
+    A_PRIORI_MODEL = "a_priori_model"  # the A Priori model may support this pilot until a validated one exists
 
 
 @dataclass(frozen=True)

@@ -272,6 +272,7 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
             )
         if "isb_limits_recorded" in state.guards.advance:
             isb_recorded_before = True
+    yield from _model_approval_problems(spec)
     fail_mode = MODES.get(spec.fail.mode)
     if fail_mode is None:
         yield ("fail", "mode"), f"unknown mode {spec.fail.mode!r}; expected one of {', '.join(MODES)}"
@@ -286,6 +287,40 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
             ("fail", "guards", "reset"),
             f"FAIL must be left only after the fault is cleared and acknowledged: add {', '.join(missing)}",
         )
+
+
+def _approves_model(guards: list[str]) -> bool:
+    return any(g in GUARDS and GUARDS[g].approves_model for g in guards)
+
+
+def _model_approval_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """A model nobody approved never drives the arm: every way into a state that applies a model is guarded."""
+    approving = ", ".join(g.name for g in GUARDS.values() if g.approves_model)
+    for i, state in enumerate(spec.states):
+        mode = MODES.get(state.mode)
+        if mode is None or not mode.applies_model:
+            continue
+        if i == 0:
+            yield (
+                ("states", i, "mode"),
+                f"state {state.label} is the first state (entered by every reset) but its mode {mode.name!r} applies a "
+                "compensation model, which nobody has approved when a session starts",
+            )
+            continue
+        previous = spec.states[i - 1]
+        if not _approves_model(previous.guards.advance):
+            yield (
+                ("states", i - 1, "guards", "advance"),
+                f"advancing from {previous.label} enters {state.label}, whose mode {mode.name!r} applies a compensation "
+                f"model: the advance guards need one that approves the model ({approving})",
+            )
+        following = spec.states[i + 1] if i + 1 < len(spec.states) else None
+        if following is not None and not _approves_model(following.guards.revert):
+            yield (
+                ("states", i + 1, "guards", "revert"),
+                f"reverting from {following.label} enters {state.label}, whose mode {mode.name!r} applies a compensation "
+                f"model: the revert guards need one that approves the model ({approving})",
+            )
 
 
 def check_spec(spec: FsmSpec, source: str = "fsm spec", root: yaml.Node | None = None) -> None:

@@ -5,13 +5,21 @@ Per tick (DESIGN.md section 3), after the safety monitor checked the sample::
     on_tick(sample, faults, monitor):
         faults of this tick  -> fail (same tick), or, in an e-stop test state, recorded as the test
         released e-stop      -> unlatched again in a test state (it was a test)
-        queued requests      -> applied in the order posted (operator events, confirmations, ...)
+        queued requests      -> applied in the order posted (operator events, confirmations, ...),
+                                at most ``max_requests_per_tick`` and at most one state change
         state's controller   -> returned; the loop runs it unless a fault is latched
 
 Rules kept here:
 
 * Requests take effect only here, at a tick boundary; :meth:`FsmSupervisor.post` may be called
   from any thread and returns a :class:`Ticket` that is resolved in the tick that applied it.
+* The queue is bounded, so a flood of requests cannot stall a tick: at most
+  ``max_pending_requests`` wait (a post beyond that is refused at once, its ticket resolved with
+  the reason; a burst of refusals is logged as one warning and a summary, not one line each), and
+  a tick applies at most ``max_requests_per_tick`` of them and stops after the first that changed
+  the state (the next request is decided in a later tick, against the new state's limits, guards
+  and freshly reset controller). The rest wait, in order. Posting takes a lock only around the
+  length check and the append; the tick pops without it (``deque.popleft`` is atomic).
 * A fault fires ``fail`` in the tick it was found, also when the loop finds it late in the tick
   (a controller error: :meth:`FsmSupervisor.on_late_faults`). Entering a state that fails on
   faults while a fault is latched (a reset or revert out of a test state) fails at once.
@@ -52,7 +60,22 @@ from hal.isb import IsbLimits
 
 log = structlog.get_logger(__name__)
 
-__all__ = ["FsmSupervisor", "Response", "Ticket"]
+__all__ = ["DEFAULT_MAX_PENDING_REQUESTS", "DEFAULT_MAX_REQUESTS_PER_TICK", "FsmSupervisor", "Response", "Ticket"]
+
+#: Requests that may wait for the loop. An operator presses a few buttons a second and the
+#: runtime's own jobs post one request each; 64 is far above both, and small enough that the
+#: queue drains in a few ticks.
+DEFAULT_MAX_PENDING_REQUESTS = 64
+
+#: Requests one tick applies at most. A refused FSM event costs ~0.1 ms of the tick with the audit
+#: log on (its two log events are rendered in the tick), a transition ~0.5 ms; 4 keep a tick's
+#: request work near 0.4 ms of the 1 ms period (the rest of the tick is ~0.04 ms), two are what an
+#: operator's step needs (a confirmation, then the advance), and 64 waiting requests drain in 16
+#: ticks (16 ms).
+DEFAULT_MAX_REQUESTS_PER_TICK = 4
+
+#: While a flood lasts, a summary of its refusals is logged every this many.
+_FLOOD_LOG_EVERY = 10_000
 
 
 @dataclass(frozen=True)
@@ -111,9 +134,13 @@ class FsmSupervisor:
         isb_function: builds the monitor's ISB-angle function for recorded limits (needed when a
             state enforces them).
         isb_margin_rad: tolerance added outside the recorded ISB limits.
+        max_pending_requests: requests that may wait for the loop; a post beyond them is refused
+            at once (at least 1).
+        max_requests_per_tick: requests one tick applies at most (at least 1); a tick also stops
+            after the first request that changed the state.
 
     Raises:
-        ConfigurationError: a mode of the spec has no controller entry.
+        ConfigurationError: a mode of the spec has no controller entry; a queue bound below 1.
     """
 
     def __init__(
@@ -125,7 +152,14 @@ class FsmSupervisor:
         signals: SessionSignals | None = None,
         isb_function: IsbFunctionFactory | None = None,
         isb_margin_rad: float = 0.0,
+        max_pending_requests: int = DEFAULT_MAX_PENDING_REQUESTS,
+        max_requests_per_tick: int = DEFAULT_MAX_REQUESTS_PER_TICK,
     ) -> None:
+        if max_pending_requests < 1 or max_requests_per_tick < 1:
+            raise ConfigurationError(
+                f"the request queue needs max_pending_requests >= 1 and max_requests_per_tick >= 1, "
+                f"got {max_pending_requests} and {max_requests_per_tick}"
+            )
         modes = {s.mode for s in spec.states} | {spec.fail.mode}
         missing = sorted(modes - set(controllers))
         if missing:
@@ -143,6 +177,11 @@ class FsmSupervisor:
         self.isb_margin_rad = isb_margin_rad
         self.machine = SafetyMachine(spec, GUARDS.bind(self.signals), on_acknowledge=self._acknowledged)
         self._requests: deque[tuple[Action, Ticket]] = deque()
+        self.max_pending_requests = max_pending_requests
+        self.max_requests_per_tick = max_requests_per_tick
+        self._post_lock = threading.Lock()  # held by post (check + append) and for the flood counters only
+        self._flood_refused = 0  # refusals of the current burst
+        self.refused_requests = 0  # refused because too many waited, since the start
         self._controller: Controller | None = None
         self._needs_reset = False
         self._was_faulted = False
@@ -172,16 +211,46 @@ class FsmSupervisor:
         """True while posted requests wait for the next tick boundary."""
         return bool(self._requests)
 
+    @property
+    def waiting_requests(self) -> int:
+        """How many posted requests wait for a tick (at most ``max_pending_requests``, plus essential ones)."""
+        return len(self._requests)
+
     # --- requests (any thread) ------------------------------------------------------------
 
-    def post(self, request: str, action: Action) -> Ticket:
-        """Queue ``action`` for the next tick boundary; ``request`` names it in the log."""
+    def post(self, request: str, action: Action, *, essential: bool = False) -> Ticket:
+        """Queue ``action`` for a tick boundary; ``request`` names it in the log. Any thread; never blocks long.
+
+        When ``max_pending_requests`` already wait, the request is refused at once: the returned
+        ticket is already resolved with ``accepted=False`` and the reason. The first refusal of a
+        burst is logged as a warning, then a summary every 10,000 and one when the burst ends (the
+        first tick that finds the queue empty again).
+
+        Args:
+            request: the request's name in the log and in its response.
+            action: applied at a tick boundary; returns the response.
+            essential: the runtime's own bookkeeping (a finished run collected, a saved dataset,
+                a trained model handed over): queued even beyond the bound, since losing it would
+                lose data, and there is at most one per job, not one per caller's wish.
+        """
         ticket = Ticket(request)
-        self._requests.append((action, ticket))
+        with self._post_lock:  # the length check and the append as one step (held for nothing else)
+            if essential or len(self._requests) < self.max_pending_requests:
+                self._requests.append((action, ticket))
+                return ticket
+            self._flood_refused = refused = self._flood_refused + 1
+            self.refused_requests += 1
+        limit = self.max_pending_requests
+        reason = f"too many requests waiting for the loop ({limit}); this one was refused"
+        ticket.resolve(Response(request, False, self.state_name, reason))
+        if refused == 1:
+            log.warning("requests refused: too many waiting for the loop", request=request, limit=limit)
+        elif refused % _FLOOD_LOG_EVERY == 0:
+            log.warning("requests still refused: too many waiting for the loop", refused=refused, limit=limit)
         return ticket
 
     def post_event(self, event: Event | str, origin: str = "operator") -> Ticket:
-        """Queue an FSM event (advance, revert, reset, acknowledge) from ``origin``."""
+        """Queue an FSM event (advance, revert, reset, acknowledge) from ``origin`` (see :meth:`post`)."""
         event = Event(event)
         return self.post(event.value, lambda supervisor: supervisor.fire(event, origin))
 
@@ -200,6 +269,11 @@ class FsmSupervisor:
             monitor.clear_kinds((FaultKind.ESTOP,))
         if self._requests:
             self._apply_requests()
+        elif self._flood_refused:  # a flood ended with nothing left to apply: say how many were refused
+            with self._post_lock:  # post holds it only for a length check and an append
+                ended, self._flood_refused = self._flood_refused, 0
+            if ended:
+                self._log_flood_end(ended)
         faulted = monitor.faulted
         if self._was_faulted and not faulted:
             self._needs_reset = True  # torque comes back: start the controller from the present
@@ -249,10 +323,23 @@ class FsmSupervisor:
 
     # --- internals ------------------------------------------------------------------------
 
+    def _log_flood_end(self, refused: int) -> None:
+        log.warning(
+            "requests refused: too many were waiting for the loop",
+            refused=refused,
+            limit=self.max_pending_requests,
+            total_refused=self.refused_requests,
+            t_s=self._t_s,
+        )
+
     def _apply_requests(self) -> None:
+        """Apply waiting requests in order: at most ``max_requests_per_tick``, and none after a state change."""
         requests = self._requests
-        while requests:
-            action, ticket = requests.popleft()
+        transitions = self.transitions
+        for _ in range(self.max_requests_per_tick):
+            if not requests or self.transitions != transitions:
+                return
+            action, ticket = requests.popleft()  # atomic in CPython; only the tick pops, so no lock
             try:
                 response = action(self)
             except DarorError as exc:  # a request that cannot be applied is refused, never half-applied

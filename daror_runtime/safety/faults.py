@@ -23,7 +23,7 @@ class FaultKind(StrEnum):
     JUMP = "jump"  # an implausible jump of a joint angle between two samples
     STALE = "stale"  # the hardware stopped delivering fresh samples
     ESTOP = "estop"  # an e-stop is pressed
-    OVERRUN = "overrun"  # too many consecutive ticks missed their deadline
+    OVERRUN = "overrun"  # too many deadlines missed in a row, or one long stall
     DRIVE = "drive"  # a drive reports a fault
     HAL = "hal"  # the backend latched an error (bus, thread)
     SOFTWARE = "software"  # the controller or recorder failed, or produced a non-finite command

@@ -17,6 +17,7 @@ a condition is only reported again after it went away (no fault storm from one h
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterable
 
 import numpy as np
@@ -32,6 +33,8 @@ from hal.robot import N_JOINTS, FloatArray
 log = structlog.get_logger(__name__)
 
 IsbFunction = Callable[[FloatArray], FloatArray]
+#: New fault occurrences kept in :attr:`SafetyMonitor.recent` for whoever announces them.
+RECENT_FAULTS = 64
 
 #: Order of the signal groups in the vector the fast path checks.
 _GROUPS = (
@@ -63,7 +66,18 @@ class SafetyMonitor:
         self._previous = np.zeros(2 * (N_JOINTS + 1))  # last finite q (4), a "seen one" flag, and their values before
         self._previous_seq: int | None = None
         self._same_seq = 0
+        #: Every new fault occurrence since the monitor was made: a count and the latest ones (for
+        #: announcing them outside the tick; the tick only appends).
+        self.occurrences = 0
+        self.recent: deque[Fault] = deque(maxlen=RECENT_FAULTS)
         self.set_limits(limits)
+        # Load the compiled kernels now: the first enabled command would otherwise load one inside
+        # a tick (4 ms measured: the first tick of a torque mode missed its deadlines).
+        command_status(np.zeros(N_JOINTS), np.ones(N_JOINTS))
+        for readonly in (True, False):  # numba compiles per array type: a HAL's read-only arrays and plain ones
+            zeros = np.zeros(N_JOINTS)
+            zeros.flags.writeable = not readonly
+            signals_in_bounds(zeros, zeros, zeros, zeros, np.zeros_like(self._previous), self._lower, self._upper)
 
     # --- configuration --------------------------------------------------------------------
 
@@ -217,6 +231,8 @@ class SafetyMonitor:
                 new.append(fault)
                 log.error("fault", **fault.as_dict())
                 self._latched[key] = fault
+                self.occurrences += 1
+                self.recent.append(fault)
             else:
                 self._latched.setdefault(key, fault)
         if transient:

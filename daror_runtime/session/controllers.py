@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.control.sea_torque import SeaTorqueController, SeaTorqueDesign
 from daror_runtime.models.base import CompensationModel
-from hal.interface import Command, Sample
+from hal.interface import Command, DriveState, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 if TYPE_CHECKING:
@@ -46,8 +46,31 @@ class _FixedReference:
         return self.q_rad, self._zero
 
 
+class _HeldTorque:
+    """The feed-forward of a held pose: the torque that held the arm there when the hold began (Nm).
+
+    Behind an enabled drive it is the spring torque of the entry sample, so the hold takes over
+    exactly what was carrying the arm (bumpless, and no static error however wrong a model is at
+    that pose); behind a disabled drive (torque was off: nothing was held) it is the model's.
+    """
+
+    def __init__(self, model: CompensationModel | None, spring_nm_per_rad: float) -> None:
+        self.model = model
+        self.spring_nm_per_rad = spring_nm_per_rad
+        self.value = np.zeros(N_JOINTS)
+
+    def take_over(self, sample: Sample) -> None:
+        spring = self.spring_nm_per_rad * (np.asarray(sample.theta_rad, dtype=float) - np.asarray(sample.q_rad))
+        fallback = self.model.torque(sample.q_rad) if self.model is not None else np.zeros(N_JOINTS)
+        enabled = np.fromiter((d == DriveState.ENABLED for d in sample.drives), dtype=bool, count=N_JOINTS)
+        self.value = np.where(enabled, spring, fallback)
+
+    def torque(self, q_rad: FloatArray) -> FloatArray:
+        return self.value
+
+
 class Hold:
-    """Hold the joint angles of the reset sample (motor position PD with gravity feed-forward)."""
+    """Hold the joint angles of the reset sample (motor position PD; feed-forward: what held the arm there)."""
 
     commands: tuple[str, ...] = ("motor_torque",)
 
@@ -55,19 +78,23 @@ class Hold:
         self, description: RobotDescription, feedforward: CompensationModel | None, bounds: LinkBounds, dt_s: float
     ) -> None:
         self._reference = _FixedReference()
-        self.pd = MotorPositionPD(description, self._reference, bounds, feedforward=feedforward, dt_s=dt_s)
+        self._held = _HeldTorque(feedforward, description.sea.spring_stiffness_nm_per_rad)
+        self.pd = MotorPositionPD(
+            description, self._reference, bounds, feedforward=cast("CompensationModel", self._held), dt_s=dt_s
+        )
 
     @property
     def target_q_rad(self) -> FloatArray:
         return self._reference.q_rad
 
     def reset(self, sample: Sample) -> None:
-        """Hold the sample's pose from now on.
+        """Hold the sample's pose from now on, with the torque that held it there.
 
         Raises:
             ControlError: the sample is not finite.
         """
         self._reference.q_rad = np.array(sample.q_rad, dtype=float)
+        self._held.take_over(sample)
         self.pd.reset(sample)
 
     def update(self, sample: Sample, dt_s: float) -> Command:
@@ -169,15 +196,18 @@ class ModeControllers:
 def build_mode_controllers(
     description: RobotDescription,
     feedforward: CompensationModel,
-    compensation_model: CompensationModel,
+    compensation_model: CompensationModel | None,
     dt_s: float,
     support_level: float,
     support_ramp_per_s: float,
+    handover_tolerance_nm: float,
 ) -> ModeControllers:
     """Every mode's controller for ``description`` at the tick period ``dt_s``.
 
     ``feedforward`` is the position modes' gravity feed-forward (the A Priori model: it exists
-    before anything is identified); ``compensation_model`` is what compensation starts with.
+    before anything is identified; a stiff position loop, not the model, holds the arm there);
+    ``compensation_model`` is what compensation starts with: None until a model is approved for
+    the pilot (compensation refuses to start without one).
 
     Raises:
         ControlDesignError: a controller design is unstable for this robot.
@@ -187,11 +217,56 @@ def build_mode_controllers(
     design = SeaTorqueDesign(period_s=dt_s)
     hold = Hold(description, feedforward, bounds, dt_s)
     identification_hold = Hold(description, feedforward, bounds, dt_s)
-    return ModeControllers(
-        minimal_impedance=MinimalImpedance(SeaTorqueController(description.sea, design)),
+    controllers = ModeControllers(
+        minimal_impedance=MinimalImpedance(SeaTorqueController(description.sea, design), support_ramp_per_s),
         hold=hold,
         identification=IdentificationMode(identification_hold),
         compensation=Compensation(
-            SeaTorqueController(description.sea, design), compensation_model, support_level, support_ramp_per_s
+            SeaTorqueController(description.sea, design),
+            compensation_model,
+            support_level,
+            support_ramp_per_s,
+            handover_tolerance_nm,
         ),
     )
+    _warm_up(controllers, feedforward, dt_s)
+    return controllers
+
+
+def _zeros(readonly: bool) -> FloatArray:
+    values = np.zeros(N_JOINTS)
+    values.flags.writeable = not readonly
+    return values
+
+
+def _warm_up(controllers: ModeControllers, model: CompensationModel, dt_s: float) -> None:
+    """Run every controller once, now, on a still sample, so no compiled kernel loads inside a tick.
+
+    The first call of a cached numba kernel loads it (milliseconds); done in a tick, it made the
+    first entry into a torque mode miss three deadlines. Each controller is reset again with the
+    real sample when a state selects it, so nothing of this run remains.
+    """
+    compensation = controllers.compensation
+    selected = compensation.model
+    compensation.model = model
+    try:
+        for readonly in (True, False):  # numba compiles per array type: a HAL's read-only arrays and plain ones
+            # Springs loaded (theta != q), so the entry handovers run their kernels too.
+            theta = _zeros(readonly) + 0.01
+            theta.flags.writeable = not readonly
+            still = Sample(
+                0, 0.0, _zeros(readonly), _zeros(readonly), theta, _zeros(readonly), (False, False),
+                (DriveState.ENABLED,) * N_JOINTS,
+            )  # fmt: skip
+            for controller in (
+                controllers.minimal_impedance,
+                controllers.hold,
+                controllers.identification,
+                compensation,
+            ):
+                controller.reset(still)
+                controller.update(still, dt_s)
+    finally:
+        compensation.model = selected
+        controllers.minimal_impedance.handover.clear()
+        compensation.handover.clear()

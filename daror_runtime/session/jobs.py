@@ -21,10 +21,14 @@ log = structlog.get_logger(__name__)
 
 
 class Jobs:
-    """A queue of jobs: ``threaded`` runs them on one worker thread, else :meth:`run_pending` runs them."""
+    """A queue of jobs: ``threaded`` runs them on one worker thread, else :meth:`run_pending` runs them.
 
-    def __init__(self, threaded: bool) -> None:
+    ``on_failure(name, exception)`` is called (in the job's thread) when a job raises.
+    """
+
+    def __init__(self, threaded: bool, on_failure: Callable[[str, BaseException], None] | None = None) -> None:
         self.threaded = threaded
+        self._on_failure = on_failure
         self._pending: deque[tuple[str, Callable[[], None]]] = deque()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="daror-job") if threaded else None
         self._futures: list[Future[None]] = []
@@ -84,5 +88,7 @@ class Jobs:
         except Exception as exc:  # kept and logged: the job's result is missing, the operator is told
             log.exception("job failed", job=name, error=str(exc))
             self.failures.append((name, exc))
+            if self._on_failure is not None:
+                self._on_failure(name, exc)
         else:
             log.info("job finished", job=name)

@@ -47,7 +47,18 @@ class SessionSettings(_Strict):
 
     dummy_arm: bool = Field(False, description="the Dummy Arm is installed (the A Priori model includes it)")
     support_level: float = Field(1.0, ge=0.0, le=1.0, description="fraction of the model torque delivered")
-    support_ramp_per_s: float = Field(0.5, gt=0.0, le=10.0, description="how fast the delivered support level moves")
+    support_ramp_per_s: float = Field(
+        0.5,
+        gt=0.0,
+        le=10.0,
+        description="how fast the delivered support level, and missing support at a mode's entry, move",
+    )
+    handover_tolerance_nm: float = Field(
+        0.5,
+        ge=0.0,
+        le=5.0,
+        description="entering compensation, support the springs miss by up to this is handed over by the pilot's motion",
+    )
     at_rest_rad_s: float = Field(0.05, gt=0.0, le=1.0, description="every joint slower than this: at rest")
     isb_margin_deg: float = Field(5.0, ge=0.0, le=30.0, description="tolerance outside the recorded ISB limits")
     rom_min_range_deg: float = Field(5.0, gt=0.0, le=90.0, description="a recorded ISB range must span at least this")

@@ -3,7 +3,9 @@
 A model is *validated* when its RMSE on a validation dataset (Eq. 4.31, over all joints) is at
 most the session's ``max_validation_rmse_nm``; the guard ``model_trained_and_validated`` reads
 exactly that. Training fits the session's model kind on the identification's training data and
-validates it on its validation data; selecting an existing model file validates it the same way.
+validates it on its validation data; selecting an existing model file validates it the same way,
+on held-out data (never the file it was trained on). Files are read and checked in the caller's
+thread, so a bad file is refused when it is named; only the validation itself is a job.
 """
 
 from __future__ import annotations
@@ -14,10 +16,11 @@ from pathlib import Path
 import structlog
 
 from daror_runtime.data.load import load_stationary
-from daror_runtime.errors import ModelFileError
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.errors import InputError, ModelFileError
 from daror_runtime.fsm.signals import SelectedModel
 from daror_runtime.models.base import CompensationModel
-from daror_runtime.models.files import load_model, save_model, training_summary
+from daror_runtime.models.files import file_sha256, load_model, save_model, training_summary
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
 from daror_runtime.models.registry import FitOptions, fit_model
 from daror_runtime.session.identification import next_free_path
@@ -33,13 +36,8 @@ class TrainedModel:
     validation: ErrorMetrics
 
 
-def validate(model: CompensationModel, validation_path: Path) -> ErrorMetrics:
-    """The model's errors on a validation dataset (a stationary dataset or a raw log).
-
-    Raises:
-        DataError: the file is missing or malformed.
-    """
-    data = load_stationary(validation_path)
+def validation_errors(model: CompensationModel, data: StationaryDataset) -> ErrorMetrics:
+    """The model's errors (Eq. 4.31-4.32) on a validation dataset."""
     return error_metrics(data.tau_nm, model.predict(data.q_rad, data.direction))
 
 
@@ -59,7 +57,7 @@ def train_model(
     """
     training = load_stationary(training_path)
     result = fit_model(kind, training, description, FitOptions(dummy_arm=dummy_arm))
-    metrics = validate(result.model, validation_path)
+    metrics = validation_errors(result.model, load_stationary(validation_path))
     path = next_free_path(directory, f"model_{kind.replace('+', '_plus')}", ".json")
     save_model(path, result.model, training_summary(training, training_path), result.report)
     selected = SelectedModel(result.model.name, kind, path, metrics.rmse_nm, max_rmse_nm)
@@ -75,26 +73,52 @@ def train_model(
     return TrainedModel(result.model, selected, metrics)
 
 
-def select_model_file(
-    path: Path, validation_path: Path, max_rmse_nm: float, description: RobotDescription
-) -> TrainedModel:
-    """Load a model file fitted for this robot's geometry and validate it on ``validation_path``.
+class NotHeldOutError(InputError):
+    """The validation data is the model's own training data: a validation on it says nothing."""
+
+
+@dataclass(frozen=True)
+class ModelCandidate:
+    """A model file and its validation data, both read and checked (in the caller's thread)."""
+
+    model: CompensationModel
+    kind: str
+    path: Path
+    validation: StationaryDataset
+    validation_path: Path
+
+
+def read_model_candidate(path: Path, validation_path: Path, description: RobotDescription) -> ModelCandidate:
+    """Read a model file fitted for this robot and its validation data; refuse what cannot be validated.
 
     Raises:
-        ModelFileError: the model file is unreadable, corrupted, or fitted for another geometry.
-        DataError: the validation file is.
+        ModelFileError: the model file is missing, unreadable, corrupted, or fitted for another geometry.
+        DataError: the validation file is missing or malformed.
+        NotHeldOutError: the validation file is the one the model was trained on.
     """
     model, document = load_model(path)
     if document.robot.geometry != description.geometry:
         raise ModelFileError(f"{path}: the model was fitted for another robot geometry than this session's")
-    metrics = validate(model, validation_path)
-    selected = SelectedModel(model.name, document.kind, path, metrics.rmse_nm, max_rmse_nm)
+    validation = load_stationary(validation_path)
+    training = document.training
+    if training is not None and training.sha256 is not None and training.sha256 == file_sha256(validation_path):
+        raise NotHeldOutError(
+            f"{validation_path}: this is the data {path} was trained on; validate it on held-out data of this pilot"
+        )
+    return ModelCandidate(model, document.kind, Path(path), validation, Path(validation_path))
+
+
+def validate_candidate(candidate: ModelCandidate, max_rmse_nm: float) -> TrainedModel:
+    """The candidate's errors on its validation data, and whether that validates it (a job: outside the tick)."""
+    metrics = validation_errors(candidate.model, candidate.validation)
+    selected = SelectedModel(candidate.model.name, candidate.kind, candidate.path, metrics.rmse_nm, max_rmse_nm)
     log.info(
-        "model selected",
-        path=str(path),
-        kind=document.kind,
-        validation=str(validation_path),
+        "model validated",
+        path=str(candidate.path),
+        kind=candidate.kind,
+        validation=str(candidate.validation_path),
         validation_rmse_nm=round(metrics.rmse_nm, 4),
         validated=selected.validated,
+        max_rmse_nm=max_rmse_nm,
     )
-    return TrainedModel(model, selected, metrics)
+    return TrainedModel(candidate.model, selected, metrics)

@@ -127,6 +127,7 @@ class SimHal(Hal):
         self._no_fault_codes = (0,) * N_JOINTS
         self._is_open = False
         self._reset_session()
+        self._load_kernel()
 
     # --- Hal contract ---------------------------------------------------------------------------
 
@@ -381,6 +382,15 @@ class SimHal(Hal):
         self._readings = np.empty((4, N_JOINTS))
         dynamics.sense(self._plant.state, self._drive_vector, self._readings)
         self._sample: Sample | None = None
+
+    def _load_kernel(self) -> None:
+        """Run the tick kernel once on copies (numba loads a compiled kernel at its first call: 13 ms,
+        which must not happen inside the loop's first tick)."""
+        plant = self._plant
+        _hal_tick(
+            plant.state.copy(), plant.params, dynamics.new_work(), self._drive_vector.copy(),
+            np.zeros(N_JOINTS), True, np.empty((4, N_JOINTS)),
+        )  # fmt: skip
 
     def _refill_noise(self) -> None:
         # Sequential blocks of one generator: the numbers do not depend on the block size.

@@ -3,17 +3,30 @@
 A session on the simulated plant needs someone to hold the arm while the robot applies no support
 (minimal impedance lets the arm fall otherwise), to move it through its range when the operator
 records it, and to relax once the robot compensates. The pilot is a joint-space impedance toward
-where the pilot wants the arm, plus the share of the arm's weight the pilot carries::
+where the pilot wants the arm, plus the share of the arm's weight the pilot carries *of what the
+robot does not carry*::
 
-    tau_pilot = carried x g(q) + K (q_target(t) - q) - D q'
+    tau_pilot = carried x (g(q) - s) + K (q_target(t) - q) - D q'
 
 ``g(q)`` is the plant's true holding torque (exoskeleton, arm and springs: the simulation's truth,
-never seen by a model). ``q_target`` moves with minimum-jerk timing between poses. Used through
-:meth:`hal.sim.backend.SimHal.set_external_torque` (it is an ``ExternalTorque``).
+never seen by a model). ``s`` is the support the pilot feels: the robot's spring torque, low-passed
+with the time a person needs to notice and adapt to a load (``adaptation_s``, 0.3 s), and counted
+per joint only between zero and the full ``g`` (support beyond the arm's weight is a push, which
+the impedance answers). A person does not keep lifting the weight a robot has taken over: when the
+robot supports the arm fully, a pilot "carrying" it carries nothing, and relaxing changes nothing.
+(The first version carried ``carried x g(q)`` whatever the robot did; under compensation it lifted
+the arm 20 degrees against its own stiffness, and "relaxing" then let that stiffness fling the
+elbow back at 2.2 rad/s: a person would not do that. docs/decisions.md D50.)
+
+``q_target`` moves with minimum-jerk timing between poses. A new motion replaces the one under
+way, from where the pilot's target is at that moment (so the target never jumps); :meth:`stop`
+keeps the target where it is. Used through :meth:`hal.sim.backend.SimHal.set_external_torque`
+(it is an ``ExternalTorque``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,6 +40,16 @@ from hal.sim.plant import DynamicPlant, joint_vector
 #: A calm adult's arm impedance around a held pose (Nm/rad, Nms/rad), joints 1-4.
 DEFAULT_STIFFNESS_NM_PER_RAD = (20.0, 20.0, 20.0, 10.0)
 DEFAULT_DAMPING_NMS_PER_RAD = (4.0, 4.0, 4.0, 1.5)
+#: How long a person takes to notice a change of support and adapt the effort to it (s).
+DEFAULT_ADAPTATION_S = 0.3
+#: The peak joint speed of the pilot's own moves when no duration is given (rad/s): a third of the
+#: slowest limit of a state where the pilot moves the arm (1.5 rad/s in rom_limits and
+#: safety_experience) and half of the 1.0 rad/s of safety_check and pilot_installation.
+DEFAULT_PEAK_SPEED_RAD_S = 0.5
+#: Minimum-jerk motion: peak speed = MIN_JERK_PEAK x distance / duration.
+MIN_JERK_PEAK = 1.875
+#: The shortest move (s) the pilot makes when the duration follows from the distance.
+MIN_MOVE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -37,15 +60,25 @@ class _Move:
     q_to: FloatArray
 
 
+def move_duration_s(q_from: FloatArray, q_to: FloatArray, peak_speed_rad_s: float) -> float:
+    """The duration (s) of a minimum-jerk move whose fastest joint peaks at ``peak_speed_rad_s``."""
+    distance = float(np.max(np.abs(np.asarray(q_to) - np.asarray(q_from))))
+    return max(MIN_MOVE_S, MIN_JERK_PEAK * distance / peak_speed_rad_s)
+
+
 class SimulatedPilot:
     """The pilot's torque ``f(t_s, q, dq)`` on the links (Nm).
 
     Args:
-        plant: the simulated plant (its true holding torque).
+        plant: the simulated plant (its true holding torque and spring torque).
         q_rad: the pose the pilot holds at first.
-        carried: share of the arm's weight the pilot carries, in [0, 1] (1: the pilot holds the
-            arm alone; 0: relaxed, the robot must carry it).
+        carried: share, in [0, 1], of the arm's weight the robot does not carry that the pilot
+            carries (1: the pilot holds the arm alone when the robot does not; 0: relaxed).
         stiffness_nm_per_rad, damping_nms_per_rad: the pilot's impedance per joint.
+        adaptation_s: time constant of the support the pilot feels (s).
+
+    Raises:
+        InputError: a share outside [0, 1], negative impedances, or a non-positive adaptation time.
     """
 
     def __init__(
@@ -55,7 +88,9 @@ class SimulatedPilot:
         carried: float = 1.0,
         stiffness_nm_per_rad: Sequence[float] = DEFAULT_STIFFNESS_NM_PER_RAD,
         damping_nms_per_rad: Sequence[float] = DEFAULT_DAMPING_NMS_PER_RAD,
+        adaptation_s: float = DEFAULT_ADAPTATION_S,
     ) -> None:
+        self._plant = plant
         self._params = plant.params
         self._work = dynamics.new_work()  # the pilot's own scratch: never the plant's
         self._zero = np.zeros(N_JOINTS)
@@ -65,6 +100,11 @@ class SimulatedPilot:
         self._d = np.asarray(damping_nms_per_rad, dtype=float)
         if self._k.shape != (N_JOINTS,) or self._d.shape != (N_JOINTS,) or np.any(self._k < 0) or np.any(self._d < 0):
             raise InputError("pilot stiffness and damping need four non-negative values each")
+        if not (math.isfinite(adaptation_s) and adaptation_s > 0.0):
+            raise InputError(f"the pilot's adaptation time must be a positive number of seconds, got {adaptation_s}")
+        self._adaptation_s = adaptation_s
+        self._felt_support = np.zeros(N_JOINTS)  # a session starts with the drives off: the pilot holds the arm
+        self._last_t_s: float | None = None
         self._moves: list[_Move] = []
         self._hold = joint_vector(q_rad, "pilot pose").copy()
         self.carried = carried
@@ -96,26 +136,52 @@ class SimulatedPilot:
         shape = s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
         return move.q_from + (move.q_to - move.q_from) * shape
 
-    def move_to(self, q_rad: FloatArray, start_s: float, duration_s: float) -> float:
-        """Move (minimum jerk) to ``q_rad`` from ``start_s`` (after the moves already planned); returns the end time."""
-        if not duration_s > 0.0:
-            raise InputError(f"a pilot's move needs a positive duration, got {duration_s}")
-        q_to = joint_vector(q_rad, "pilot pose").copy()
-        if self._moves:
-            last = self._moves[-1]
-            start_s = max(start_s, last.start_s + last.duration_s)
-            q_from = last.q_to
-        else:
-            q_from = self._hold
-        self._moves.append(_Move(start_s, duration_s, q_from, q_to))
-        return start_s + duration_s
+    def stop(self, t_s: float) -> None:
+        """Stop where the target is at ``t_s``: every planned move is dropped."""
+        self._hold = np.array(self.target(t_s), dtype=float)
+        self._moves.clear()
 
-    def sweep(self, poses_rad: Sequence[FloatArray], start_s: float, seconds_per_move: float) -> float:
-        """Visit ``poses_rad`` in order (e.g. to show the operator the range of motion); returns the end time."""
-        end = start_s
+    def hold(self, q_rad: FloatArray) -> None:
+        """Want the arm at ``q_rad`` from now on (e.g. where it is): every planned move is dropped."""
+        self._hold = joint_vector(q_rad, "pilot pose").copy()
+        self._moves.clear()
+
+    def move_to(self, q_rad: FloatArray, start_s: float, duration_s: float | None = None) -> float:
+        """Replace whatever motion is planned by one move to ``q_rad`` from ``start_s``; returns the end time.
+
+        ``duration_s`` None: as long as a peak speed of :data:`DEFAULT_PEAK_SPEED_RAD_S` needs.
+
+        Raises:
+            InputError: a duration that is not positive.
+        """
+        return self.sweep([q_rad], start_s, duration_s)
+
+    def sweep(self, poses_rad: Sequence[FloatArray], start_s: float, seconds_per_move: float | None = None) -> float:
+        """Replace whatever motion is planned by visits to ``poses_rad`` in order; returns the end time.
+
+        ``seconds_per_move`` None: each move as long as a peak speed of
+        :data:`DEFAULT_PEAK_SPEED_RAD_S` needs (at least :data:`MIN_MOVE_S`).
+
+        Raises:
+            InputError: a duration that is not positive, or a pose that is not four finite angles.
+        """
+        if seconds_per_move is not None and not (math.isfinite(seconds_per_move) and seconds_per_move > 0.0):
+            raise InputError(f"a pilot's move needs a positive duration, got {seconds_per_move}")
+        q_from = np.array(self.target(start_s), dtype=float)
+        moves = []
+        t = start_s
         for pose in poses_rad:
-            end = self.move_to(pose, end, seconds_per_move)
-        return end
+            q_to = joint_vector(pose, "pilot pose").copy()
+            duration = (
+                seconds_per_move
+                if seconds_per_move is not None
+                else move_duration_s(q_from, q_to, DEFAULT_PEAK_SPEED_RAD_S)
+            )
+            moves.append(_Move(t, duration, q_from, q_to))
+            q_from, t = q_to, t + duration
+        self._hold = np.array(self.target(start_s), dtype=float)
+        self._moves = moves
+        return t
 
     @property
     def moving(self) -> bool:
@@ -123,7 +189,16 @@ class SimulatedPilot:
 
     def __call__(self, t_s: float, q_rad: FloatArray, dq_rad_s: FloatArray) -> FloatArray:
         torque = self._k * (self.target(t_s) - q_rad) - self._d * dq_rad_s
+        dt = 0.0 if self._last_t_s is None else max(t_s - self._last_t_s, 0.0)
+        self._last_t_s = t_s
+        if dt > 0.0:  # the support the pilot feels follows the springs' torque with the adaptation lag
+            self._felt_support += (1.0 - math.exp(-dt / self._adaptation_s)) * (
+                self._plant.spring_torque_nm() - self._felt_support
+            )
         if self._carried > 0.0:  # g(q) straight from the plant's compiled kernel: q comes from the plant itself
             dynamics.bias_torque(q_rad, self._zero, self._params, self._work, self._gravity)
-            torque += self._carried * self._gravity
+            gravity = self._gravity
+            # Support counts between 0 and the full weight, per joint: beyond it the robot pushes.
+            felt = np.clip(self._felt_support, np.minimum(gravity, 0.0), np.maximum(gravity, 0.0))
+            torque += self._carried * (gravity - felt)
         return torque

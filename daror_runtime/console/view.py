@@ -1,0 +1,131 @@
+"""The console's status view and announcements, as plain text an operator reads at a glance.
+
+No markup: the view is the same text on a terminal, in a pipe and in a log. The last block, "next
+steps", lists what to do, with the commands to type after "type:" separated by " ; " (one line per
+step, so a person or a script can follow it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from daror_runtime.console.guide import Step
+from daror_runtime.session.events import Announcement
+from daror_runtime.session.status import RuntimeStatus
+
+NEXT_HEADING = "next steps:"
+TYPE_MARK = "type:"
+
+
+def stamp(t_s: float | None) -> str:
+    return f"[t={t_s:.3f} s]" if t_s is not None else "[t=-]"
+
+
+def announcement_line(item: Announcement) -> str:
+    return f"{stamp(item.t_s)} {item.kind.value}: {item.text}"
+
+
+def _row(label: str, values: Sequence[float], digits: int) -> str:
+    return f"  {label:<20}" + "".join(f"{v:>9.{digits}f}" for v in values)
+
+
+def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[str] = ()) -> str:
+    """The status view: state, what blocks the next step, faults, joints, model, support, limits, loop, next steps."""
+    lines: list[str] = []
+    if status.number is None:
+        lines.append(f"state {status.state}: {status.description}")
+    else:
+        kind = "  (e-stop test state: a fault removes torque, no FAIL)" if status.estop_test_state else ""
+        lines.append(f"state {status.number} {status.state} ({status.superstate}): {status.description}{kind}")
+    lines.append(
+        f"  mode {status.mode}, t = {status.t_s:.3f} s, session {status.session_id}"
+        if status.t_s is not None
+        else f"  mode {status.mode}, no sample yet, session {status.session_id}"
+    )
+    for name in ("advance", "revert", "reset", "acknowledge"):
+        gate = status.gates[name]
+        if not gate.possible or (name == "acknowledge" and not status.faults):
+            continue
+        if gate.ready:
+            lines.append(f"{name}: possible")
+        else:
+            lines.append(f"{name}: blocked, needs")
+            lines.extend(f"  - {g.name}: {g.description}" for g in gate.unmet)
+    if status.faults:
+        lines.append("faults (torque stays off while any is latched):")
+        lines.extend(f"  - {f['kind']}: {f['message']} (t = {f['t_s']:.3f} s)" for f in status.faults)
+    else:
+        lines.append("faults: none")
+    pressed = [b for b, on in status.estop_pressed.items() if on]
+    lines.append(f"e-stops: {'PRESSED: ' + ', '.join(pressed) if pressed else 'released'}")
+    joints = status.joints
+    if joints is not None:
+        lines.append("  joint" + " " * 15 + "".join(f"{j:>9d}" for j in range(1, 5)))
+        lines.append(_row("angle, deg", joints.q_deg, 1))
+        lines.append(_row("speed, deg/s", joints.dq_deg_s, 1))
+        lines.append(_row("spring torque, Nm", joints.spring_torque_nm, 2))
+        lines.append(_row("motor command, Nm", joints.motor_command_nm, 2))
+        lines.append(f"  drives: {', '.join(joints.drives)}")
+    model = status.model
+    if model is None:
+        lines.append("model: none approved yet (compensation cannot start)")
+    elif model.validated:
+        lines.append(
+            f"model: {model.name} ({model.kind}), validated: RMSE {model.validation_rmse_nm:.3f} Nm on held-out data "
+            f"(limit {model.max_validation_rmse_nm:g} Nm)"
+        )
+    else:
+        arm = "with the Dummy Arm" if model.includes_dummy_arm else "robot only, without the pilot's arm"
+        lines.append(f"model: {model.name} ({model.kind}, {arm}), approved by the operator, not validated")
+    if status.model_refused is not None:
+        refused = status.model_refused
+        lines.append(
+            f"  refused: {refused['name']} failed validation (RMSE {refused['validation_rmse_nm']:.3f} Nm > "
+            f"{refused['max_validation_rmse_nm']:g} Nm); it never drives the arm"
+        )
+    handover = max(abs(v) for v in status.handover_nm) if status.mode == "compensation" else 0.0
+    lines.append(
+        f"support level: {status.support_level:.2f} (delivered {status.delivered_support_level:.2f}"
+        + (f"; handing over {handover:.2f} Nm held at entry)" if handover > 0 else ")")
+    )
+    if status.isb_limits_deg is None:
+        lines.append("ISB limits: not recorded" + (" (recording)" if status.rom_recording else ""))
+    else:
+        ranges = ", ".join(
+            f"{name.replace('_', ' ')} {lo:.0f}..{hi:.0f}" for name, (lo, hi) in status.isb_limits_deg.items()
+        )
+        lines.append(f"ISB limits, deg: {ranges}")
+    run = status.identification_running
+    saved = ", ".join(f"{kind} saved" for kind in status.identification_saved) or "nothing saved"
+    if run is not None:
+        lines.append(
+            f"identification: {run['kind']} running, {run['elapsed_s']:.0f} of {run['duration_s']:.0f} s ({saved})"
+        )
+    else:
+        lines.append(f"identification: {saved}")
+    if status.last_error:
+        lines.append(f"last error: {status.last_error}")
+    loop = status.loop
+    lines.append(
+        f"loop: {loop.clock} at {loop.rate_hz:g} Hz, {loop.ticks} ticks, {loop.overruns} overruns, "
+        f"{loop.missed_deadlines} missed deadlines, worst lateness {loop.worst_lateness_ms:.2f} ms, "
+        f"tick work {loop.tick_work_mean_us:.0f} us mean, {loop.tick_work_max_us:.0f} us worst"
+        + (f", {loop.dropped_rows} recorder rows dropped" if loop.dropped_rows else "")
+    )
+    lines.extend(f"note: {note}" for note in notes)
+    lines.append(NEXT_HEADING)
+    for step in steps:
+        lines.append(f"  - {step.text}" + (f". {TYPE_MARK} {' ; '.join(step.commands)}" if step.commands else ""))
+    return "\n".join(lines)
+
+
+def suggested_commands(view: str) -> list[str]:
+    """The commands a status view suggests, in order (what a person following it would type)."""
+    commands: list[str] = []
+    after = view.split(NEXT_HEADING, 1)
+    if len(after) < 2:
+        return commands
+    for line in after[1].splitlines():
+        if f". {TYPE_MARK} " in line:
+            commands.extend(c.strip() for c in line.split(f". {TYPE_MARK} ", 1)[1].split(" ; "))
+    return commands

@@ -1,0 +1,116 @@
+"""The runtime's status as the operator sees it: one typed, immutable snapshot.
+
+:meth:`daror_runtime.runtime.Runtime.snapshot` builds a :class:`RuntimeStatus` between ticks
+(values may be one tick old); the console renders it (``status``), ``session.json`` keeps its
+:meth:`RuntimeStatus.as_dict` at the end of a session. Units in the names; joints in the order 1-4.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class GuardState:
+    name: str
+    description: str
+    holds: bool
+
+
+@dataclass(frozen=True)
+class EventGate:
+    """One operator event from the current state: whether it exists here, and its guards."""
+
+    event: str
+    possible: bool  # there is such a transition from this state
+    guards: tuple[GuardState, ...] = ()
+    why_not: str = ""  # when not possible: why (e.g. "the last state")
+
+    @property
+    def unmet(self) -> tuple[GuardState, ...]:
+        return tuple(g for g in self.guards if not g.holds)
+
+    @property
+    def ready(self) -> bool:
+        return self.possible and not self.unmet
+
+
+@dataclass(frozen=True)
+class JointReadings:
+    q_deg: tuple[float, ...]
+    dq_deg_s: tuple[float, ...]
+    spring_torque_nm: tuple[float, ...]  # measured
+    motor_command_nm: tuple[float, ...]  # written to the drives in the last tick
+    drives: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ModelStatus:
+    name: str
+    kind: str
+    path: str | None
+    validated: bool
+    approved_by: str
+    validation_rmse_nm: float | None = None
+    validation_rmse_per_joint_nm: tuple[float, ...] | None = None
+    max_validation_rmse_nm: float | None = None
+    includes_dummy_arm: bool | None = None  # the A Priori model only
+
+
+@dataclass(frozen=True)
+class LoopStatus:
+    clock: str  # "lock-step" or "real time"
+    rate_hz: float
+    ticks: int
+    overruns: int
+    missed_deadlines: int
+    worst_lateness_ms: float
+    tick_work_mean_us: float
+    tick_work_max_us: float
+    dropped_rows: int
+
+
+@dataclass(frozen=True)
+class RuntimeStatus:
+    """A snapshot of one session (read between ticks)."""
+
+    session_id: str
+    t_s: float | None
+    state: str
+    number: int | None
+    superstate: str | None
+    mode: str
+    description: str
+    estop_test_state: bool  # a fault here removes torque and is recorded, it does not fail
+    gates: dict[str, EventGate]
+    faults: list[dict[str, Any]]
+    estop_pressed: dict[str, bool]
+    estop_tested: list[str]
+    confirmed: list[str]
+    joints: JointReadings | None
+    model: ModelStatus | None
+    model_refused: dict[str, Any] | None
+    support_level: float
+    delivered_support_level: float
+    handover_nm: tuple[float, ...]  # what the entry's handover still adds to the model's support
+    isb_limits_deg: dict[str, tuple[float, float]] | None
+    rom_recording: bool
+    identification_running: dict[str, Any] | None
+    identification_saved: dict[str, str]
+    last_identification: dict[str, Any] | None
+    jobs_pending: bool
+    last_error: str | None
+    loop: LoopStatus
+    transitions: int
+    a_priori_includes_dummy_arm: bool  # the settings: what the A Priori model holds besides the robot
+    notes: list[str] = field(default_factory=list)  # things the operator should know (settings vs. the world)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (``session.json``, ``status json``)."""
+        document = dataclasses.asdict(self)
+        document["available"] = {
+            name: [g.name for g in gate.unmet] for name, gate in self.gates.items() if gate.possible
+        }
+        return document

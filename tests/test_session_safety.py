@@ -1,0 +1,417 @@
+"""Issue 9: what a tester found that could hurt a pilot, each shown closed on the simulated plant.
+
+1. A model that failed validation never drives the pilot (refused, never handed to compensation;
+   the spec's guards say so and the spec checker keeps them there).
+2. Every entry into a mode that supports the arm is bumpless: a limp pilot's pose is held within
+   1 deg for 5 s and the torque that held the arm does not dip.
+3. A pilot relaxing in operative_check (5 s or 20 s after entry) is caught, as in compensation.
+4. The pilot's sweep stays inside the state's velocity limit with margin, and a new motion or
+   ``sim pilot stop`` replaces the one under way.
+(5 and 6, the overrun watchdog and the request flood: tests/test_watchdog_and_requests.py.)
+
+Every test runs lock-step on ``exo_dummy_arm``: deterministic, and robot time, not wall time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from daror_runtime.console.world import SimWorld
+from daror_runtime.data.load import write_dataset
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH, FsmSpecError, load_fsm_spec
+from daror_runtime.fsm.supervisor import Response, Ticket
+from daror_runtime.models.files import load_model, save_model, training_summary
+from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.runtime import Runtime
+from daror_runtime.session.events import AnnouncementKind
+from daror_runtime.session.settings import SessionSettings
+from daror_runtime.session.training import NotHeldOutError
+from hal.isb import IsbLimits
+from hal.robot import FloatArray
+from hal.sim.backend import SimHal
+from hal.sim.pilot import DEFAULT_PEAK_SPEED_RAD_S
+from hal.sim.scenario import load_scenario
+from hal.sim.static_dataset import generate_stationary
+
+SCENARIO = "exo_dummy_arm"
+SPEC = load_fsm_spec()
+NAMES = [s.name for s in SPEC.states]
+
+
+# --- model files -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Models:
+    good: Path  # PLF+ fitted on the scenario's training set
+    tripled: Path  # PLF+ fitted on the same set with every torque multiplied by 3
+    training: Path
+    validation: Path
+
+
+def _dataset(points: object, scale: float = 1.0) -> StationaryDataset:
+    return StationaryDataset(points.q_rad, points.tau_nm * scale, points.direction, points.t_s)  # type: ignore[attr-defined]
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory: pytest.TempPathFactory) -> Models:
+    folder = tmp_path_factory.mktemp("models")
+    scenario = load_scenario(SCENARIO)
+    points = generate_stationary(scenario, "training")
+    files = Models(folder / "plf_plus.json", folder / "plf_plus_x3.json", folder / "train.csv", folder / "val.csv")
+    write_dataset(files.training, _dataset(points))
+    write_dataset(files.validation, _dataset(generate_stationary(scenario, "validation")))
+    for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
+        data = _dataset(points, scale)
+        result = fit_model("plf+", data, scenario.description(), FitOptions(dummy_arm=True))
+        save_model(path, result.model, training_summary(data, files.training if scale == 1.0 else None), result.report)
+    return files
+
+
+# --- a session on the simulated plant --------------------------------------------------------------
+
+
+class Session:
+    """A lock-step runtime with the world's pilot; walks to a state with each state's evidence."""
+
+    def __init__(self, directory: Path, settings: SessionSettings | None = None) -> None:
+        self.hal = SimHal(SCENARIO)
+        self.runtime = Runtime(self.hal, directory, settings=settings or SessionSettings(dummy_arm=True))
+        self.runtime.open()
+        self.world = SimWorld(self.hal)
+        self.runtime.run_ticks(1)
+
+    @property
+    def state(self) -> str:
+        return self.runtime.supervisor.state_name
+
+    def ok(self, ticket: Ticket) -> Response:
+        response = self.runtime.wait(ticket)
+        assert response.accepted, f"{response.request} refused in {response.state}: {response.reason}"
+        return response
+
+    def press(self, button: str) -> None:
+        self.world.estop(button, True)
+        self.runtime.pass_time(0.05)
+        self.world.estop(button, False)
+        self.runtime.pass_time(0.2)
+
+    def walk_to(self, name: str, a_priori: bool = True) -> None:
+        runtime = self.runtime
+        while self.state != name:
+            here = self.state
+            if here in ("safety_check",):
+                self.press("operator")
+                self.press("pilot")
+            elif here == "settings":
+                self.ok(runtime.confirm("settings"))
+            elif here == "pilot_installation":
+                self.ok(runtime.confirm("installation"))
+            elif here == "safety_experience":
+                self.press("pilot")
+                self.ok(runtime.confirm("safety_experience"))
+            elif here == "rom_limits":
+                self.ok(runtime.set_isb_limits(IsbLimits()))
+                if a_priori and not (runtime.signals.model is not None and runtime.signals.model.validated):
+                    self.ok(runtime.confirm("a_priori_model"))
+            elif here == "operative_check":
+                self.press("operator")
+            elif here == "identification":
+                assert runtime.run_until(lambda: runtime.at_rest, 5.0)
+            self.ok(runtime.advance())
+            runtime.pass_time(0.3)
+        assert not runtime.monitor.faulted, runtime.monitor.latched
+
+    def select(self, model: Path, validation: Path) -> None:
+        runtime = self.runtime
+        runtime.select_model(model, validation)
+        assert runtime.run_until(lambda: not runtime.busy, 1.0)
+
+    def relax_completely(self) -> None:
+        self.world.pilot_carries(0.0)
+        self.world.pilot_stiffness(0.0)
+
+    def close(self) -> None:
+        self.runtime.shutdown("test done")
+        self.runtime.close()
+
+
+@pytest.fixture
+def session(tmp_path: Path) -> Iterator[Session]:
+    s = Session(tmp_path / "session")
+    yield s
+    s.close()
+
+
+def watch(session: Session, seconds: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Run ``seconds``; the true poses (N, 4), spring torques (N, 4) and joint speeds (N, 4) of every tick."""
+    hal = session.hal
+    poses, springs, speeds = [], [], []
+
+    def record(_result: object) -> bool:
+        truth = hal.truth()
+        poses.append(truth.q_rad)
+        springs.append(truth.tau_spring_nm)
+        speeds.append(truth.dq_rad_s)
+        return False
+
+    session.runtime.run_ticks(round(seconds * hal.rate_hz), stop=record)
+    return np.array(poses), np.array(springs), np.array(speeds)
+
+
+# --- 1. a model that failed validation never drives the pilot -----------------------------------------
+
+
+def test_a_model_that_fails_validation_is_refused_and_never_drives_the_arm(session: Session, models: Models) -> None:
+    """The tester's case: PLF+ fitted on torques x 3, selected in rom_limits, then advance."""
+    runtime = session.runtime
+    session.walk_to("rom_limits", a_priori=False)
+    session.ok(runtime.set_isb_limits(IsbLimits()))
+    session.select(models.tripled, models.validation)
+    # refused: not the session's model, not the compensation controller's, announced with the reason
+    assert runtime.signals.model is None
+    assert runtime.modes.compensation.model is None
+    refused = runtime.progress.last_model_refused
+    assert refused is not None
+    assert refused["validated"] is False
+    assert refused["validation_rmse_nm"] > SessionSettings().max_validation_rmse_nm
+    said = [a for a in runtime.announcements.drain() if a.kind == AnnouncementKind.MODEL]
+    assert said
+    assert "failed validation" in said[-1].text
+    assert "never drives the arm" in said[-1].text
+    # the spec's guard: operative_check is not entered with no approved model
+    response = runtime.wait(runtime.advance())
+    assert not response.accepted
+    assert response.unmet == ("compensation_model_approved",)
+    # with the A Priori model confirmed by the operator it is, and the A Priori model drives it
+    session.ok(runtime.confirm("a_priori_model"))
+    assert runtime.modes.compensation.model is runtime.a_priori
+    session.ok(runtime.advance())
+    assert session.state == "operative_check"
+    session.world.pilot_carries(0.0)  # the pilot relaxes onto the support
+    poses, _, _ = watch(session, 5.0)
+    assert not runtime.monitor.faulted, runtime.monitor.latched
+    # what the robot delivers is the A Priori model's torque, not the refused model's (3 x the arm's)
+    q = poses[-1]
+    delivered = runtime.modes.compensation.last_reference_nm
+    tripled = load_model(models.tripled)[0].torque(q)
+    a_priori = runtime.a_priori.torque(q)
+    assert np.linalg.norm(delivered - a_priori) < 0.1 * np.linalg.norm(tripled - a_priori)
+
+
+def test_a_validated_model_is_used_and_approves_operative_check(session: Session, models: Models) -> None:
+    runtime = session.runtime
+    session.walk_to("rom_limits", a_priori=False)
+    session.ok(runtime.set_isb_limits(IsbLimits()))
+    session.select(models.good, models.validation)
+    assert runtime.signals.model is not None
+    assert runtime.signals.model.validated
+    assert runtime.modes.compensation.model is not None
+    assert runtime.modes.compensation.model.kind == "plf+"
+    # the A Priori model is not needed (and not installed over the validated one)
+    refused = runtime.wait(runtime.confirm("a_priori_model"))
+    assert not refused.accepted
+    assert "is in use" in refused.reason
+    session.ok(runtime.advance())
+    assert session.state == "operative_check"
+
+
+def test_a_model_validated_on_its_own_training_data_is_refused_when_named(session: Session, models: Models) -> None:
+    with pytest.raises(NotHeldOutError, match=r"this is the data .* was trained on"):
+        session.runtime.select_model(models.good, models.training)
+    assert not session.runtime.jobs.pending  # nothing was queued
+
+
+def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensation(
+    session: Session, models: Models
+) -> None:
+    """Entering training with no validated model, a model that fails never unlocks compensation."""
+    runtime = session.runtime
+    session.walk_to("identification")
+    runtime.signals.identification_saved.update(training=models.training, validation=models.validation)
+    session.ok(runtime.advance())
+    session.select(models.tripled, models.validation)
+    response = runtime.wait(runtime.advance())
+    assert not response.accepted
+    assert response.unmet == ("model_trained_and_validated",)
+    assert runtime.modes.compensation.model is runtime.a_priori  # what operative_check was approved with
+
+
+@pytest.mark.parametrize(
+    ("edit", "problem"),
+    [
+        (
+            lambda doc: doc["states"][5]["guards"]["advance"].remove("compensation_model_approved"),
+            "advancing from 6 rom_limits enters 7 operative_check, whose mode 'compensation' applies a compensation model",
+        ),
+        (
+            lambda doc: doc["states"][7]["guards"]["revert"].remove("compensation_model_approved"),
+            "reverting from 8 identification enters 7 operative_check",
+        ),
+        (
+            lambda doc: doc["states"][8]["guards"]["advance"].remove("model_trained_and_validated"),
+            "advancing from 9 training enters 10 compensation",
+        ),
+    ],
+)
+def test_the_spec_checker_refuses_a_way_into_compensation_without_an_approved_model(
+    tmp_path: Path, edit: object, problem: str
+) -> None:
+    doc = yaml.safe_load(DEFAULT_SPEC_PATH.read_text(encoding="utf-8"))
+    edit(doc)  # type: ignore[operator]
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    with pytest.raises(FsmSpecError, match=problem):
+        load_fsm_spec(path)
+
+
+# --- 2. every entry into a mode that supports the arm is bumpless -------------------------------------
+
+#: What "no dip" allows: the spring torque's resolution (k x 1e-4 rad = 0.03 Nm) and the anchor's
+#: answer to the arm settling by a fraction of a degree (5 Nm/rad x 0.5 deg = 0.04 Nm).
+DIP_NM = 0.1
+
+
+def _held_and_watched(
+    session: Session, enter: object, seconds: float = 5.0
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Hold 2 s, enter (a callable posting the request), then watch; returns (poses, springs, the torque held at entry)."""
+    session.runtime.pass_time(2.0)
+    held = session.hal.truth().tau_spring_nm
+    session.ok(enter())  # type: ignore[operator]
+    poses, springs, _ = watch(session, seconds)
+    return poses, springs, held
+
+
+def _assert_bumpless(session: Session, poses: FloatArray, springs: FloatArray, held: FloatArray) -> None:
+    assert not session.runtime.monitor.faulted, session.runtime.monitor.latched
+    moved_deg = np.degrees(np.abs(poses - poses[0]).max(axis=0))
+    assert np.all(moved_deg < 1.0), moved_deg
+    # the support never falls below what held the arm (in the direction it held it)
+    dip = np.sign(held) * (held - springs)
+    assert dip.max() < DIP_NM, dip.max(axis=0)
+
+
+def test_entering_compensation_from_training_holds_a_limp_arm(session: Session, models: Models) -> None:
+    """The tester's case: limp pilot, training (hold) -> compensation; the support restarted at 0 before."""
+    session.select(models.good, models.validation)
+    session.walk_to("training")
+    session.relax_completely()
+    poses, springs, held = _held_and_watched(session, session.runtime.advance)
+    assert session.state == "compensation"
+    _assert_bumpless(session, poses, springs, held)
+
+
+def test_reverting_into_operative_check_holds_a_limp_arm(session: Session, models: Models) -> None:
+    session.select(models.good, models.validation)
+    session.walk_to("identification")
+    session.relax_completely()
+    runtime = session.runtime
+    poses, springs, held = _held_and_watched(session, runtime.revert)
+    assert session.state == "operative_check"
+    _assert_bumpless(session, poses, springs, held)
+
+
+@pytest.mark.parametrize(("state", "event"), [("operative_check", "advance"), ("compensation", "revert")])
+def test_entering_a_position_mode_from_compensation_holds_a_limp_arm(
+    session: Session, models: Models, state: str, event: str
+) -> None:
+    session.select(models.good, models.validation)
+    session.walk_to(state)
+    runtime = session.runtime
+    if state == "operative_check":
+        session.press("operator")  # the state's e-stop test, before the pilot relaxes
+    runtime.pass_time(2.0)
+    session.relax_completely()
+    runtime.pass_time(3.0)  # the relaxed arm settles on the compensation
+    assert not runtime.monitor.faulted, runtime.monitor.latched
+    poses, springs, held = _held_and_watched(session, lambda: runtime.request(event))
+    assert runtime.supervisor.state.mode in ("identification", "hold")
+    _assert_bumpless(session, poses, springs, held)
+
+
+def test_entering_operative_check_with_the_pilot_carrying_ramps_the_support_in(session: Session) -> None:
+    """From minimal impedance the pilot carries the arm: the support comes in over 2 s, the arm stays."""
+    session.walk_to("rom_limits")
+    runtime = session.runtime
+    session.ok(runtime.set_isb_limits(IsbLimits()))
+    session.ok(runtime.confirm("a_priori_model"))
+    runtime.pass_time(2.0)
+    session.ok(runtime.advance())
+    poses, springs, _ = watch(session, 5.0)
+    assert not runtime.monitor.faulted
+    # the pilot lets go of what the robot takes over, 0.3 s behind it: a transient lift, then back
+    assert np.degrees(np.abs(poses - poses[0]).max()) < 3.0
+    assert np.degrees(np.abs(poses[-1] - poses[0]).max()) < 0.5
+    # the support rose from near zero to the arm's weight without a step: at most a ramp's worth per tick
+    steps = np.abs(np.diff(springs, axis=0)).max(axis=0)
+    assert np.all(steps < 0.05), steps
+    plant = session.hal.plant
+    assert np.allclose(springs[-1], plant.holding_torque_nm(poses[-1]), atol=1.5)  # A Priori: within its error
+
+
+# --- 3. a pilot relaxing in operative_check is caught ------------------------------------------------
+
+
+@pytest.mark.parametrize("after_s", [5.0, 20.0])
+@pytest.mark.parametrize("state", ["operative_check", "compensation"])
+def test_a_pilot_relaxing_is_caught(session: Session, models: Models, after_s: float, state: str) -> None:
+    if state == "compensation":
+        session.select(models.good, models.validation)
+    session.walk_to(state)
+    runtime = session.runtime
+    runtime.pass_time(after_s)
+    session.world.pilot_carries(0.0)  # sim pilot carry 0: the tester's line
+    poses, _, speeds = watch(session, 5.0)
+    assert not runtime.monitor.faulted, runtime.monitor.latched
+    limit = SPEC.state(state).limits.velocity_rad_s
+    assert np.abs(speeds).max() < 0.5 * limit  # far from the velocity fault the tester saw (1.545 rad/s)
+    moved = np.degrees(np.abs(poses - poses[0]).max())
+    assert moved < (6.0 if state == "operative_check" else 2.0)  # the A Priori model's error, or PLF+'s
+
+
+# --- 4. the pilot's sweep ------------------------------------------------------------------------
+
+
+def test_the_default_sweep_stays_inside_the_velocity_limit_with_margin(session: Session) -> None:
+    session.walk_to("rom_limits")
+    runtime = session.runtime
+    session.ok(runtime.rom_start())
+    end = session.world.pilot_sweep(runtime.settings.identification)
+    _, _, speeds = watch(session, end - session.hal.time_s + 1.0)
+    assert not runtime.monitor.faulted, runtime.monitor.latched
+    peak = np.abs(speeds).max()
+    assert peak < 0.6 * SPEC.state("rom_limits").limits.velocity_rad_s, peak
+    assert peak < 1.3 * DEFAULT_PEAK_SPEED_RAD_S  # the pilot's impedance lags the target a little
+    assert runtime.wait(runtime.rom_stop()).accepted  # the range was kept
+
+
+@pytest.mark.parametrize("command", ["hold", "stop", "move"])
+def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: str) -> None:
+    session.walk_to("rom_limits")
+    world = session.world
+    runtime = session.runtime
+    first_end = world.pilot_sweep(runtime.settings.identification)
+    runtime.pass_time(3.0)
+    if command == "hold":
+        world.pilot_hold_here()
+    elif command == "stop":
+        world.pilot_stop()
+    else:
+        now = session.hal.time_s
+        second_end = world.pilot_move(session.hal.truth().q_rad, 2.0)
+        assert second_end == pytest.approx(now + 2.0)  # it starts now, not queued behind the first
+        assert second_end < first_end
+    if command in ("hold", "stop"):
+        assert not world.pilot.moving
+    # past the first sweep's end: no fault anywhere, and the arm is where the new command put it
+    _, _, speeds = watch(session, first_end - session.hal.time_s + 2.0)
+    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert np.abs(speeds[-1000:]).max() < 0.05  # at rest for the last second: nothing resumed
