@@ -14,6 +14,8 @@ every step the invariants of issue 4 are checked against an independent oracle:
 * advance moves exactly one state forward, and only when every advance guard held; revert exactly
   one back; reset to the first state; refused requests change nothing and are logged with their reason;
 * a fault enters FAIL in the same tick from every state that allows it, never from 2, 5, 7;
+* a state whose mode applies a compensation model is entered only through a guard that approves
+  the model, and only while it holds (issue 9);
 * FAIL is left only by reset, only after the fault cleared and was acknowledged;
 * in FAIL, while a fault is latched and while an e-stop is pressed, the command written is torque off;
   otherwise the command never exceeds the state's torque limit.
@@ -36,6 +38,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 from daror_runtime.clocks import LockStepClock
 from daror_runtime.fsm.guards import GUARDS
 from daror_runtime.fsm.machine import Event
+from daror_runtime.fsm.modes import MODES
 from daror_runtime.fsm.signals import Checklist, EstopButton, SelectedModel, SessionSignals
 from daror_runtime.fsm.spec import StateSpec, load_fsm_spec
 from daror_runtime.fsm.supervisor import FsmSupervisor
@@ -247,6 +250,12 @@ class FsmInTheTick(RuleBasedStateMachine):
             if source == FAIL:
                 assert self.acknowledged_since_fault, "FAIL was left without an acknowledgement"
                 assert not latched_before or not self.monitor.faulted, "reset out of FAIL must clear the faults"
+        dest = SPEC.state(transition.dest) if transition.dest != FAIL else None  # type: ignore[union-attr]
+        if dest is not None and MODES[dest.mode].applies_model:
+            # a model nobody approved never drives the arm: the way in was guarded by an approval that held
+            approving = [g for g in transition.guards if GUARDS[g].approves_model]  # type: ignore[union-attr]
+            assert approving, f"{event} from {source} enters {dest.name} without a model approval guard"
+            assert self.guards_hold(approving)
         if self.state == FAIL:
             # Only a fault still latched from a test state makes the destination fail at once.
             assert latched_before, f"{event} from {source} ended in FAIL without a fault"

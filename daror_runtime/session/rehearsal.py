@@ -18,7 +18,8 @@ import numpy as np
 from rich.console import Console
 
 from daror_runtime.console.commands import ConsoleSession
-from daror_runtime.console.run import run_script
+from daror_runtime.console.grammar import check_lines
+from daror_runtime.console.run import read_script, run_script
 from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import DarorError
 from daror_runtime.fsm.machine import Outcome
@@ -88,7 +89,8 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
     try:
         world = SimWorld(hal)
         session = ConsoleSession(runtime, console, world)
-        run_script(session, session_script())
+        script = session_script()
+        run_script(session, script, check_lines(read_script(script), str(script), session.context))
         holding, unsupported = _support_figures(runtime, world)
         report = SessionReport(
             runtime.session_id,
@@ -100,6 +102,7 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
             hal.time_s,
         )
     finally:
+        runtime.shutdown("the rehearsal ended")
         runtime.close()
     if report.final_state != "compensation":
         raise DarorError(f"the session ended in {report.final_state}, not in compensation")
