@@ -119,6 +119,7 @@ def _force_guards(runtime: Runtime) -> None:
     signals.confirmed.update(Checklist)
     signals.isb_limits = signals.isb_limits or IsbLimits()
     signals.model = SelectedModel("AP", "ap", None, 0.5, 1.5)
+    runtime.modes.compensation.model = runtime.a_priori  # what the runtime installs with an approved model
 
 
 def _settle(runtime: Runtime) -> None:

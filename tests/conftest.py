@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import settings
 
+from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.logs import configure_logging, flush_logs
+from daror_runtime.models.files import save_model, training_summary
+from daror_runtime.models.registry import FitOptions, fit_model
 from hal.robot import RobotDescription, load_description
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.static_dataset import StationarySet, generate_stationary
@@ -63,3 +68,31 @@ def dataset_b(exo_dummy_arm: Scenario) -> tuple[StationaryDataset, StationaryDat
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261121)
+
+
+@dataclass(frozen=True)
+class Models:
+    """Model files of the Dummy Arm scenario for sessions that select a model (issue 9's tests)."""
+
+    good: Path  # PLF+ fitted on the scenario's training set (validates at ~0.42 Nm)
+    tripled: Path  # PLF+ fitted on the same set with every torque multiplied by 3 (fails validation)
+    training: Path
+    validation: Path
+
+
+@pytest.fixture(scope="session")
+def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) -> Models:
+    folder = tmp_path_factory.mktemp("models")
+    points = generate_stationary(exo_dummy_arm, "training")
+    files = Models(folder / "plf_plus.json", folder / "plf_plus_x3.json", folder / "train.csv", folder / "val.csv")
+
+    def dataset(set_: StationarySet, scale: float = 1.0) -> StationaryDataset:
+        return StationaryDataset(set_.q_rad, set_.tau_nm * scale, set_.direction, set_.t_s)
+
+    write_dataset(files.training, dataset(points))
+    write_dataset(files.validation, dataset(generate_stationary(exo_dummy_arm, "validation")))
+    for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
+        data = dataset(points, scale)
+        result = fit_model("plf+", data, exo_dummy_arm.description(), FitOptions(dummy_arm=True))
+        save_model(path, result.model, training_summary(data, files.training if scale == 1.0 else None), result.report)
+    return files

@@ -445,3 +445,16 @@ def test_the_rehearsal_of_the_demo_ends_in_compensation_with_the_arm_carried(tmp
     assert np.all(holding > 0.5)
     assert np.all(unsupported < 0.1 * holding), (unsupported, holding)
     assert json.loads((tmp_path / "session" / "session.json").read_text(encoding="utf-8"))["ended"]["confirmed"]
+
+
+def test_the_status_says_what_the_a_priori_model_leaves_out(lines: Lines) -> None:
+    """docs/safety.md H15: the settings say no Dummy Arm, the simulated plant carries one."""
+    printed = lines.run(
+        *TO_SETTINGS, "confirm settings", "advance", "confirm installation", "advance",
+        "sim estop pilot on", "wait 0.05", "sim estop pilot off", "wait 0.05", "confirm safety_experience", "advance",
+        "expect state rom_limits", "status",
+    )  # fmt: skip
+    assert "note: the simulated plant carries the Dummy Arm but the settings say dummy_arm: false" in printed
+    assert "the A Priori model (the design values of the DAROR-01 only, without the pilot's arm)" in printed
+    assert "type: confirm a_priori_model" in printed
+    assert "compensation_model_approved: the compensation model is approved for this pilot" in printed

@@ -33,7 +33,8 @@ from daror_runtime.console.view import NEXT_HEADING, suggested_commands
 from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import Runtime
 from hal.sim.backend import SimHal
-from tests.test_session_safety import NAMES, Models, Session, models  # noqa: F401 - the fixture
+from tests.conftest import Models
+from tests.test_session_safety import NAMES, Session
 
 ROOT = Path(__file__).resolve().parents[1]
 DAROR = Path(sys.executable).with_name("daror")

@@ -18,7 +18,6 @@ import json
 import subprocess
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,12 +25,9 @@ import pytest
 import yaml
 
 from daror_runtime.console.world import SimWorld
-from daror_runtime.data.load import write_dataset
-from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH, FsmSpecError, load_fsm_spec
 from daror_runtime.fsm.supervisor import Response, Ticket
-from daror_runtime.models.files import load_model, save_model, training_summary
-from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.models.files import load_model
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.events import AnnouncementKind
 from daror_runtime.session.settings import SessionSettings
@@ -40,42 +36,14 @@ from hal.isb import IsbLimits
 from hal.robot import FloatArray
 from hal.sim.backend import SimHal
 from hal.sim.pilot import DEFAULT_PEAK_SPEED_RAD_S
-from hal.sim.scenario import load_scenario
-from hal.sim.static_dataset import generate_stationary
+from tests.conftest import Models
 
 SCENARIO = "exo_dummy_arm"
 SPEC = load_fsm_spec()
 NAMES = [s.name for s in SPEC.states]
 
 
-# --- model files -----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Models:
-    good: Path  # PLF+ fitted on the scenario's training set
-    tripled: Path  # PLF+ fitted on the same set with every torque multiplied by 3
-    training: Path
-    validation: Path
-
-
-def _dataset(points: object, scale: float = 1.0) -> StationaryDataset:
-    return StationaryDataset(points.q_rad, points.tau_nm * scale, points.direction, points.t_s)  # type: ignore[attr-defined]
-
-
-@pytest.fixture(scope="module")
-def models(tmp_path_factory: pytest.TempPathFactory) -> Models:
-    folder = tmp_path_factory.mktemp("models")
-    scenario = load_scenario(SCENARIO)
-    points = generate_stationary(scenario, "training")
-    files = Models(folder / "plf_plus.json", folder / "plf_plus_x3.json", folder / "train.csv", folder / "val.csv")
-    write_dataset(files.training, _dataset(points))
-    write_dataset(files.validation, _dataset(generate_stationary(scenario, "validation")))
-    for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
-        data = _dataset(points, scale)
-        result = fit_model("plf+", data, scenario.description(), FitOptions(dummy_arm=True))
-        save_model(path, result.model, training_summary(data, files.training if scale == 1.0 else None), result.report)
-    return files
+# --- model files: the `models` fixture (tests/conftest.py) ---------------------------------------
 
 
 # --- a session on the simulated plant --------------------------------------------------------------
