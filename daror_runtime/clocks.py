@@ -81,12 +81,7 @@ class Clock(ABC):
         if not period_s > 0:
             raise ConfigurationError(f"tick period must be positive, got {period_s} s")
         self.period_s = period_s
-        self.ticks = 0
-        self.overruns = 0
-        self.missed_deadlines = 0
-        self.skipped_deadlines = 0
-        self.worst_lateness_s = 0.0
-        self._consecutive = 0
+        self._reset_totals()
 
     @abstractmethod
     def start(self) -> None:

@@ -797,7 +797,11 @@ class Runtime:
         return self.snapshot().as_dict()
 
     def snapshot(self) -> RuntimeStatus:
-        """What the operator sees, read between ticks (values may be one tick old)."""
+        """What the operator sees, read from any thread (values may be one tick old).
+
+        Collections the tick changes are copied first in one C-level call (atomic under the GIL),
+        so a snapshot never iterates one the loop is changing.
+        """
         supervisor = self.supervisor
         state = supervisor.state
         signals = self.signals
@@ -831,8 +835,8 @@ class Runtime:
                 b.value: bool(sample is not None and len(sample.estop) > i and sample.estop[i])
                 for i, b in enumerate(ESTOP_BUTTONS)
             },
-            estop_tested=sorted(b.value for b in signals.estop_tested),
-            confirmed=sorted(c.value for c in signals.confirmed),
+            estop_tested=sorted(b.value for b in set(signals.estop_tested)),  # copied at C level: the tick may add
+            confirmed=sorted(c.value for c in set(signals.confirmed)),
             joints=None if sample is None else self._joint_readings(sample),
             model=self._model_status(),
             model_refused=self.progress.last_model_refused,
@@ -846,7 +850,7 @@ class Runtime:
             identification_running=None
             if run is None or sample is None
             else {"kind": run.kind, "elapsed_s": sample.t_s - run.t0_s, "duration_s": run.duration_s},
-            identification_saved={k: str(v) for k, v in signals.identification_saved.items()},
+            identification_saved={k: str(v) for k, v in dict(signals.identification_saved).items()},
             last_identification=self.progress.last_identification,
             jobs_pending=self.jobs.pending,
             last_error=self.progress.last_error,

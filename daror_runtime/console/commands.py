@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from rich.console import Console
 from rich.markup import escape
 
-from daror_runtime.console.grammar import CommandError, ParseContext, Parsed, help_text, parse_line
+from daror_runtime.console.grammar import CommandError, ParseContext, Parsed, help_text, parse_line, split
 from daror_runtime.console.guide import next_steps
 from daror_runtime.console.view import announcement_line, render_status, stamp
 from daror_runtime.console.world import SimWorld
@@ -76,6 +76,7 @@ class ConsoleSession:
         self.timeout_s = request_timeout_s
         self.context = parse_context(runtime.spec, runtime.description, world is not None)
         self.tally = _Tally()
+        self._line = ""  # the line being run (echoed by world acts)
         self._run: dict[str, Callable[[tuple], None]] = {  # type: ignore[type-arg]
             "advance": lambda a: self._answer(runtime.advance()),
             "revert": lambda a: self._answer(runtime.revert()),
@@ -121,6 +122,7 @@ class ConsoleSession:
 
     def run(self, parsed: Parsed) -> None:
         """Run a checked line (see :meth:`execute`)."""
+        self._line = parsed.line
         try:
             self._run[parsed.command](parsed.args)
         finally:
@@ -251,8 +253,7 @@ class ConsoleSession:
             world.clear_faults()
         else:
             self._pilot(world, args[1:])
-        words = " ".join("" if a is None else str(a) for a in args).replace("True", "on").replace("False", "off")
-        self.say(f"{stamp(self._t())} world: {words.strip()}")
+        self.say(f"{stamp(self._t())} world: {' '.join(split(self._line)[1:])}")
 
     def _pilot(self, world: SimWorld, args: tuple) -> None:  # type: ignore[type-arg]
         what = args[0]

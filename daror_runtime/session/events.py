@@ -9,7 +9,6 @@ the tick may announce.
 
 from __future__ import annotations
 
-import threading
 from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
@@ -34,25 +33,28 @@ class Announcement:
 class Announcements:
     """A bounded feed of announcements, written by any thread, drained by the console.
 
+    Lock-free, so the tick never waits for the console: a deque's ``append`` and ``popleft`` are
+    atomic in CPython.
+
     Args:
         capacity: announcements kept while nobody drains them (the oldest are dropped first).
     """
 
     def __init__(self, capacity: int = 1000) -> None:
         self._items: deque[Announcement] = deque(maxlen=capacity)
-        self._lock = threading.Lock()
-        self.dropped = 0
+        self.dropped = 0  # counted without a lock: a statistic, may miss a drop under a race
 
     def announce(self, kind: AnnouncementKind, text: str, t_s: float | None = None) -> None:
-        """Add one; never blocks for long (a lock held only around an append)."""
-        with self._lock:
-            if len(self._items) == self._items.maxlen:
-                self.dropped += 1
-            self._items.append(Announcement(t_s, kind, text))
+        """Add one; never blocks."""
+        if len(self._items) == self._items.maxlen:
+            self.dropped += 1
+        self._items.append(Announcement(t_s, kind, text))
 
     def drain(self) -> list[Announcement]:
         """Everything announced since the last drain, oldest first."""
-        with self._lock:
-            items = list(self._items)
-            self._items.clear()
-        return items
+        items = []
+        while True:
+            try:
+                items.append(self._items.popleft())
+            except IndexError:
+                return items
