@@ -115,11 +115,12 @@ def bench_real_time_1khz(quick: bool) -> list[BenchFigure]:
 
 
 _MEMORY_SCRIPT = """
-import json, resource, sys
+import json, sys
 sys.path.insert(0, {bench!r})
 from bench_loop import _protocol_once
+from daror_runtime.bench import high_water_mark_mb
 factor, tick_us, ticks = _protocol_once()
-print(json.dumps({{"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "ticks": ticks}}))
+print(json.dumps({{"peak_mb": high_water_mark_mb(), "ticks": ticks}}))
 """
 
 

@@ -3,9 +3,17 @@
 * PLF+ fit on 25,000 stationary samples: thesis 4.5 s (Matlab); target below 50 ms.
 * PLF+ torque for one q: target below 20 us (it runs inside the 1 kHz tick).
 * PLF+ torque for 25,000 q at once: target below 20 ms.
+* PLF+ fit while the other core is busy, with OpenBLAS's default threads and with one (what the
+  ``daror`` command sets, issue 10): each in a fresh process, since the thread count is read when
+  the library loads.
 """
 
 from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
 
 from daror_runtime.bench import BenchFigure, time_calls, time_torque_one_q
 from daror_runtime.data.schema import StationaryDataset
@@ -31,6 +39,55 @@ def bench_plf_plus_fit_25000(quick: bool) -> BenchFigure:
     return BenchFigure(
         "PLF+ fit, 25,000 samples", median, p90, "ms", 5 if quick else 30, 50.0, "4.5 s (Matlab, Table V)"
     )
+
+
+_FIT_SCRIPT = """
+import json, sys, time
+import numpy as np
+sys.path.insert(0, {bench!r})
+from bench_models import _dataset_25000
+from daror_runtime.models.linear import fit_plf_plus
+from hal.robot import load_description
+data, description = _dataset_25000(), load_description()
+fit_plf_plus(data, description)
+times = []
+for _ in range({repeats}):
+    start = time.perf_counter()
+    fit_plf_plus(data, description)
+    times.append((time.perf_counter() - start) * 1e3)
+print(json.dumps([float(np.median(times)), float(np.percentile(times, 90))]))
+"""
+
+
+def _fit_in_a_child(threads: str | None, repeats: int) -> tuple[float, float]:
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+    }
+    if threads is not None:
+        env["OPENBLAS_NUM_THREADS"] = threads
+    script = _FIT_SCRIPT.format(bench=os.path.dirname(__file__), repeats=repeats)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, env=env)
+    median, p90 = json.loads(run.stdout.strip().splitlines()[-1])
+    return median, p90
+
+
+def bench_plf_plus_fit_under_load(quick: bool) -> list[BenchFigure]:
+    repeats = 5 if quick else 20
+    figures = []
+    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # the other core, busy
+    try:
+        for label, threads in (("OpenBLAS default threads", None), ("one BLAS thread (the daror command)", "1")):
+            median, p90 = _fit_in_a_child(threads, repeats)
+            figures.append(
+                BenchFigure(f"PLF+ fit, 25,000 samples, other core busy, {label}", median, p90, "ms", repeats)
+            )
+    finally:
+        burner.kill()
+        burner.wait()
+    for label, threads in (("OpenBLAS default threads", None), ("one BLAS thread", "1")):
+        median, p90 = _fit_in_a_child(threads, repeats)
+        figures.append(BenchFigure(f"PLF+ fit, 25,000 samples, quiet, {label}", median, p90, "ms", repeats))
+    return figures
 
 
 def bench_plf_fit_25000(quick: bool) -> BenchFigure:
@@ -63,6 +120,7 @@ def bench_cvf_test(quick: bool) -> BenchFigure:
 
 
 BENCHMARKS = [
+    bench_plf_plus_fit_under_load,
     bench_plf_plus_fit_25000,
     bench_plf_fit_25000,
     bench_plf_plus_torque_one_q,

@@ -141,7 +141,8 @@ def bench_recorder_peak_memory_900k(quick: bool) -> BenchFigure:
         1,
         None,
         None,
-        f"block pool {pool:.2f} MiB (64 blocks x 1000 rows); the file is {N_ROWS_15_MIN * N_COLUMNS * 8 / 2**20:.0f} MiB",
+        f"block pool {pool:.2f} MiB (64 blocks x 1000 rows); the file is {N_ROWS_15_MIN * N_COLUMNS * 8 / 2**20:.0f} MiB; "
+        f"{recorder.dropped_rows} of {recorder.rows_accepted + recorder.dropped_rows} rows dropped",
     )
 
 

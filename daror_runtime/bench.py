@@ -80,6 +80,19 @@ def time_calls(fn: Callable[[], object], repeats: int, per_call: int = 1, scale:
     return float(np.median(samples)), float(np.percentile(samples, 90))
 
 
+def high_water_mark_mb() -> float:
+    """This process's own peak resident memory, MB (``VmHWM``).
+
+    Not ``ru_maxrss``: a child started by ``fork`` and ``exec`` reports the parent's peak there when
+    the parent's was higher, so a small child read large (the old protocol figure was the parent's).
+    """
+    with open("/proc/self/status", encoding="ascii") as handle:
+        for line in handle:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    raise DarorError("no VmHWM in /proc/self/status: peak memory cannot be read on this system")
+
+
 def machine() -> dict[str, Any]:
     """What the figures were measured on."""
     cpu = platform.processor() or platform.machine()
@@ -141,6 +154,9 @@ def run_benchmarks(
         met = "-" if f.met is None else ("yes" if f.met else "NO")
         table.add_row(f.name, f"{f.median:.3g} {f.unit}", f"{f.p90:.3g} {f.unit}", target, met, f.thesis or "-")
     console.print(table)
+    for f in figures:  # what a figure needs beside it (dropped rows, runs, counts)
+        if f.note:
+            console.print(f"  {f.name.strip()}: {f.note}", soft_wrap=True)
     if json_path is not None:
         document = {"machine": info, "quick": quick, "figures": [asdict(f) | {"met": f.met} for f in figures]}
         write_text_atomic(json_path, json.dumps(document, indent=2) + "\n")

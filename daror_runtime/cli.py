@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -72,10 +73,17 @@ def _progress(console: Console, label: str, counter: str) -> Any:
     )
 
 
-def _refuse_overwriting(out: Path | str, *inputs: Path | str | None) -> None:
-    for source in inputs:
-        if source is not None and Path(out).resolve() == Path(source).resolve():
-            raise UsageError(f"{out}: refusing to overwrite an input file; choose another output path")
+def _output_file(out: Path | str, *inputs: Path | str | None) -> Path:
+    """Check an output file before any work (nothing is created); see :mod:`daror_runtime.util.outputs`."""
+    from daror_runtime.util.outputs import check_output_file
+
+    return check_output_file(out, *inputs)
+
+
+def _output_dir(out: Path | str, *inputs: Path | str | None) -> Path:
+    from daror_runtime.util.outputs import check_output_dir
+
+    return check_output_dir(out, *inputs)
 
 
 # --- simulate ---------------------------------------------------------------------------
@@ -88,6 +96,9 @@ def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
     from hal.sim.scenario import load_scenario
     from hal.sim.static_dataset import STREAM_RAW_LOG, generate_stationary, scenario_stops, stream
 
+    _output_file(args.out)
+    if args.with_raw:
+        _output_file(raw_log_path(args.out))
     scenario = load_scenario(args.scenario)
     points = generate_stationary(
         scenario, args.trajectory, args.waypoints, args.sub_steps, args.samples_per_stop, args.noise_free
@@ -126,12 +137,13 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.identification.waypoints import load_waypoints
     from daror_runtime.models.files import load_model
     from daror_runtime.models.linear import APModel
+    from daror_runtime.util.outputs import output_lock
     from hal.isb import IsbLimits, load_isb_limits
     from hal.sim.backend import SimHal
     from hal.sim.scenario import load_scenario
 
-    out = Path(args.out)
-    raw_path = raw_log_path(out)
+    out = _output_file(args.out)
+    raw_path = _output_file(raw_log_path(out))
     scenario = load_scenario(args.scenario)
     waypoints = load_waypoints(args.waypoints)
     isb = load_isb_limits(args.isb_limits) if args.isb_limits is not None else None
@@ -143,30 +155,32 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
     else:
         feedforward = load_model(args.feedforward)[0]
     trajectory = build_trajectory(waypoints, args.trajectory, limits=isb or IsbLimits(), description=hal.description)
-    recording = out.with_name(f".{out.name}.rec")
-    recording.unlink(missing_ok=True)
     log.info("identify requested", scenario=scenario.name, trajectory=args.trajectory, out=str(out))
-    hal.open()
-    with _progress(
-        console,
-        f"[bold]{args.trajectory}[/bold] on {scenario.name}",
-        "{task.completed:.0f}/{task.total:.0f} s robot time",
-    ) as bar:
-        task = bar.add_task("identify", total=trajectory.duration_s)
-        result = run_protocol(
-            hal,
-            trajectory,
-            recording,
-            isb_limits=isb,
-            settings=ProtocolSettings(),
-            progress=lambda done, total: bar.update(task, completed=done, total=total),
-            feedforward=feedforward,
-        )
-    hal.close()
-    console.print(f"writing {out} and the raw log {raw_path} ...")
-    write_dataset(out, result.stationary)
-    write_dataset(raw_path, result.raw)
-    recording.unlink(missing_ok=True)
+    # One writer per output: a second run naming the same --out is refused while this one runs. The
+    # recording has a name of its own, so no run ever deletes another's (or a crashed run's) recording.
+    with output_lock(out):
+        recording = _unique_recording(out)
+        hal.open()
+        with _progress(
+            console,
+            f"[bold]{args.trajectory}[/bold] on {scenario.name}",
+            "{task.completed:.0f}/{task.total:.0f} s robot time",
+        ) as bar:
+            task = bar.add_task("identify", total=trajectory.duration_s)
+            result = run_protocol(
+                hal,
+                trajectory,
+                recording,
+                isb_limits=isb,
+                settings=ProtocolSettings(),
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                feedforward=feedforward,
+            )
+        hal.close()
+        console.print(f"writing {out} and the raw log {raw_path} ...")
+        write_dataset(out, result.stationary)
+        write_dataset(raw_path, result.raw)
+        recording.unlink(missing_ok=True)
     rms = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_rms_rad)
     worst = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_max_rad)
     console.print(f"{out}: {len(result.stationary)} stationary points from {result.stops} stops")
@@ -177,6 +191,24 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
         f"({result.real_time_factor:.0f}x real time, lock-step)"
     )
     return 0
+
+
+def _unique_recording(out: Path) -> Path:
+    """A recording file for this run only (``.OUT.PID-XXXX.rec``); earlier runs' recordings are kept and named."""
+    import os
+    import tempfile
+
+    earlier = sorted(out.parent.glob(f".{out.name}.*.rec"))
+    if earlier:
+        log.warning(
+            "recordings of earlier runs that did not finish are kept",
+            recordings=[str(p) for p in earlier],
+            out=str(out),
+        )
+    fd, name = tempfile.mkstemp(prefix=f".{out.name}.{os.getpid()}-", suffix=".rec", dir=out.parent)
+    os.close(fd)
+    Path(name).unlink()  # the recorder creates it; the name is this run's
+    return Path(name)
 
 
 # --- fit / evaluate / cvf ---------------------------------------------------------------
@@ -192,7 +224,7 @@ def cmd_fit(args: argparse.Namespace, console: Console) -> int:
     kind_entry(kind)
     if args.train is None and kind not in NO_DATA_KINDS:
         raise UsageError(f"model kind {kind} learns from data; give --train FILE")
-    _refuse_overwriting(args.out, args.train)
+    _output_file(args.out, args.train)
     description = load_description(args.robot)
     dataset = load_stationary(args.train) if args.train is not None else None
     options = FitOptions(name=args.name, dummy_arm=args.dummy_arm, elbow_stiffness=args.elbow_stiffness, seed=args.seed)
@@ -236,7 +268,7 @@ def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.models.compare import evaluate_models, evaluation_document, evaluation_table
 
     if args.json is not None:
-        _refuse_overwriting(args.json, args.data, *args.models)
+        _output_file(args.json, args.data, *args.models)
     models = _load_models(args.models)
     data = load_stationary(args.data)
     evaluations = evaluate_models(models, data)
@@ -252,7 +284,7 @@ def cmd_cvf(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.models.cvf import THESIS_STEPS_RAD
 
     if args.json is not None:
-        _refuse_overwriting(args.json, *args.models)
+        _output_file(args.json, *args.models)
     models = _load_models(args.models)
     steps = THESIS_STEPS_RAD[: args.refinements + 1]
     evaluations = cvf_models(models, args.start, steps)
@@ -270,16 +302,20 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     from rich.table import Table
 
     from daror_runtime.residual.pipeline import parse_families, run_residual
+    from daror_runtime.util.outputs import output_lock
     from hal.robot import load_description
 
     families = parse_families(args.effects)
-    for name in ("summary.json", "model.json"):
-        _refuse_overwriting(args.out / name, args.train, args.validate)
+    _output_dir(args.out, args.train, args.validate)
+    if args.out.is_dir():
+        for name in ("summary.json", "model.json"):
+            _output_file(args.out / name, args.train, args.validate)
     description = load_description(args.robot)
     log.info("residual requested", train=str(args.train), validate=str(args.validate), base=args.base)
-    run = run_residual(
-        args.train, args.validate, args.out, description, args.base.lower(), families, dummy_arm=args.dummy_arm
-    )
+    with output_lock(args.out):
+        run = run_residual(
+            args.train, args.validate, args.out, description, args.base.lower(), families, dummy_arm=args.dummy_arm
+        )
     before, after = run.closure.before, run.closure.after
     table = Table(title=f"Validation errors, {args.base.upper()} before and after ({len(run.inputs.validate)} points)")
     for column in ("", "before (Nm)", "after (Nm)"):
@@ -319,19 +355,20 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
     from daror_runtime.data.load import load_stationary
     from daror_runtime.studies.data_efficiency import check_kind, parse_sizes, run_data_efficiency
     from daror_runtime.studies.data_efficiency_report import (
-        check_out_dir,
         output_paths,
         summary_table,
         write_outputs,
     )
+    from daror_runtime.util.outputs import output_lock
     from hal.robot import load_description
 
     # Every cheap check before loading data or fitting: a refusal costs nothing and writes nothing.
     kind = check_kind(args.kind)
     sizes = parse_sizes(args.sizes) if args.sizes is not None else None
-    check_out_dir(args.out)
+    _output_dir(args.out, args.train, args.validate)
     for path in output_paths(args.out):
-        _refuse_overwriting(path, args.train, args.validate)
+        if Path(args.out).is_dir():
+            _output_file(path, args.train, args.validate)
     description = load_description()
     train = load_stationary(args.train)
     validate = load_stationary(args.validate)
@@ -348,7 +385,8 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
             seed=args.seed,
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )
-    paths = write_outputs(result, args.out)
+    with output_lock(args.out):
+        paths = write_outputs(result, args.out)
     console.print(summary_table(result))
     console.print(f"  full-data fit ({result.train_points} points): validation RMSE {result.full_data_rmse:.4g} Nm")
     if result.enough_points is None:
@@ -369,14 +407,19 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
 
 def cmd_demo(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.demo import run_demo
+    from daror_runtime.util.outputs import output_lock
 
-    run_demo(Path(args.out), console)
+    out = _output_dir(args.out)
+    with output_lock(out):
+        run_demo(out, console)
     return 0
 
 
 def cmd_bench(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.bench import run_benchmarks
 
+    if args.json is not None:
+        _output_file(args.json)
     return run_benchmarks(console, json_path=args.json, quick=args.quick, only=args.only)
 
 
@@ -384,22 +427,12 @@ def cmd_bench(args: argparse.Namespace, console: Console) -> int:
 
 
 def cmd_console(args: argparse.Namespace, console: Console) -> int:
-    from daror_runtime.clocks import RealTimeClock
     from daror_runtime.console.commands import parse_context
     from daror_runtime.console.grammar import check_lines
-    from daror_runtime.console.run import (
-        hal_has_world,
-        history_path,
-        make_session,
-        read_script,
-        run_interactive,
-        run_piped,
-        run_script,
-        stdin_is_terminal,
-    )
+    from daror_runtime.console.run import hal_has_world, read_script, stdin_is_terminal
     from daror_runtime.fsm.spec import load_fsm_spec
-    from daror_runtime.runtime import Runtime
     from daror_runtime.session.settings import load_session_settings
+    from daror_runtime.util.outputs import output_lock
     from hal.interface import open_hal
 
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
@@ -417,8 +450,30 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
         )
     typed = checked is None and stdin_is_terminal()
     realtime = args.realtime or typed
+    if args.out is None:  # the default: a new folder under ./sessions (created)
+        _output_dir("sessions").mkdir(exist_ok=True)
+    out = _output_dir(args.out if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S"))
+    with output_lock(out):  # one session per folder
+        return _console_session(args, console, hal, out, spec, settings, checked, typed, realtime)
+
+
+def _console_session(
+    args: argparse.Namespace,
+    console: Console,
+    hal: Any,
+    out: Path,
+    spec: Any,
+    settings: Any,
+    checked: Any,
+    typed: bool,
+    realtime: bool,
+) -> int:
+    """The session itself, in ``out`` (checked and locked by :func:`cmd_console`)."""
+    from daror_runtime.clocks import RealTimeClock
+    from daror_runtime.console.run import history_path, make_session, run_interactive, run_piped, run_script
+    from daror_runtime.runtime import Runtime
+
     clock = RealTimeClock(1.0 / hal.rate_hz) if realtime else None
-    out = Path(args.out) if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S")
     runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock)
     out.mkdir(parents=True, exist_ok=True)
     configure_logging(
@@ -507,7 +562,7 @@ def _emit(text: str, out: Path | None, console: Console) -> int:
     if out is None:
         sys.stdout.write(text)
     else:
-        write_text_atomic(out, text)
+        write_text_atomic(_output_file(out), text)
         console.print(f"wrote {out}")
     return 0
 
@@ -685,7 +740,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Thread-count variables of the BLAS libraries numpy and scipy may load.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def limit_blas_threads() -> None:
+    """One BLAS thread for the command-line tools, unless the caller set a count.
+
+    On a 2-core machine OpenBLAS's default of one thread per core fights any other load: a PLF+ fit
+    of 25,000 samples took 224 ms (median; 29 ms quiet, with an outlier of 3.1 s) against 57 ms with
+    one thread while the other core was busy (docs/performance.md). The variables are read when the
+    libraries load, so this runs before any command imports numpy (the commands import lazily).
+    """
+    for name in BLAS_THREAD_VARIABLES:
+        os.environ.setdefault(name, "1")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    limit_blas_threads()
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.log_level or "warning", args.log_json)

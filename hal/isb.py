@@ -58,7 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from hal.errors import DescriptionError, InputError, ShapeError
 from hal.robot import N_JOINTS, FloatArray, Kinematics, RobotDescription, load_description, rot_x, rot_y, rot_z
 from hal.robot import AngleRange as RobotAngleRange
-from hal.yamlfile import load_yaml_model
+from hal.yamlfile import Number, load_yaml_model
 
 __all__ = [
     "ISB_NAMES",
@@ -120,8 +120,8 @@ class _Strict(BaseModel):
 class AngleRange(RobotAngleRange):
     """An ISB angle interval in degrees, within -180..180, exposed in radians."""
 
-    lower_deg: float = Field(ge=-180.0, le=180.0)
-    upper_deg: float = Field(ge=-180.0, le=180.0)
+    lower_deg: Number = Field(ge=-180.0, le=180.0)
+    upper_deg: Number = Field(ge=-180.0, le=180.0)
 
 
 class IsbLimits(_Strict):
@@ -138,7 +138,7 @@ class IsbLimits(_Strict):
     horizontal_rotation: AngleRange = AngleRange(lower_deg=-20.0, upper_deg=165.0)
     axial_rotation: AngleRange = AngleRange(lower_deg=-75.0, upper_deg=75.0)
     elbow: AngleRange = AngleRange(lower_deg=5.0, upper_deg=120.0)
-    horizontal_free_below_deg: float = Field(20.0, ge=0.0, le=90.0)
+    horizontal_free_below_deg: Number = Field(20.0, ge=0.0, le=90.0)
 
     @property
     def ranges(self) -> tuple[AngleRange, AngleRange, AngleRange, AngleRange]:

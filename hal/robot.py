@@ -21,13 +21,13 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hal.errors import ShapeError
-from hal.yamlfile import load_yaml_model
+from hal.yamlfile import Number, load_yaml_model
 
 N_JOINTS = 4
 
 FloatArray = NDArray[np.float64]
-Vec3 = Annotated[tuple[float, float, float], Field(description="x, y, z in metres")]
-PositiveFloat = Annotated[float, Field(gt=0)]
+Vec3 = Annotated[tuple[Number, Number, Number], Field(description="x, y, z in metres")]
+PositiveFloat = Annotated[Number, Field(gt=0)]
 
 
 class _Strict(BaseModel):
@@ -37,16 +37,16 @@ class _Strict(BaseModel):
 class BaseRotation(_Strict):
     """Orientation of stator 1 in the world frame, Eq. 2.1-2.9."""
 
-    about_x_deg: float = Field(-30.0, description="R_a = Rx(.): AoR of R1 tilted backwards (Eq. 2.1)")
-    about_z_deg: float = Field(-10.0, description="R_b = Rz(.): tilted towards the head (Eq. 2.2)")
-    own_z_deg: float = Field(-45.0, description="final rotation about the stator's own z (Eq. 2.9)")
+    about_x_deg: Number = Field(-30.0, description="R_a = Rx(.): AoR of R1 tilted backwards (Eq. 2.1)")
+    about_z_deg: Number = Field(-10.0, description="R_b = Rz(.): tilted towards the head (Eq. 2.2)")
+    own_z_deg: Number = Field(-45.0, description="final rotation about the stator's own z (Eq. 2.9)")
 
 
 class Geometry(_Strict):
     """The constant transforms of the kinematic chain."""
 
     base_rotation: BaseRotation = BaseRotation()
-    inter_axis_deg: float = Field(60.0, description="Ry angle from rotor 1 to stator 2 and rotor 2 to stator 3")
+    inter_axis_deg: Number = Field(60.0, description="Ry angle from rotor 1 to stator 2 and rotor 2 to stator 3")
     elbow_offset_m: Vec3 = Field((0.275, 0.0, 0.0), description="delta: rotor 3 to stator 4 (Eq. 2.15)")
 
 
@@ -59,7 +59,7 @@ class LinkInertial(_Strict):
 
     mass_kg: PositiveFloat
     com_m: Vec3
-    inertia_kgm2: Annotated[tuple[float, float, float], Field(description="Ixx, Iyy, Izz about the CoM")] | None = None
+    inertia_kgm2: Annotated[tuple[Number, Number, Number], Field(description="Ixx, Iyy, Izz about the CoM")] | None = None
 
 
 class SeaConstants(_Strict):
@@ -74,7 +74,7 @@ class SeaConstants(_Strict):
     gearbox_inertia_kgm2: PositiveFloat = Field(
         0.25, description="motor and gearbox inertia seen at the gearbox output"
     )
-    gearbox_viscous_nms_per_rad: Annotated[float, Field(ge=0)] = 1.0
+    gearbox_viscous_nms_per_rad: Annotated[Number, Field(ge=0)] = 1.0
     max_motor_torque_nm: PositiveFloat = Field(40.0, description="motor torque saturation at the gearbox output")
     max_spring_deflection_rad: PositiveFloat = Field(0.12, description="mechanical end stop of the spring")
 
@@ -87,8 +87,8 @@ class SeaConstants(_Strict):
 class AngleRange(_Strict):
     """A closed angle interval in degrees (human-edited), exposed in radians."""
 
-    lower_deg: float
-    upper_deg: float
+    lower_deg: Number
+    upper_deg: Number
 
     @model_validator(mode="after")
     def _ordered(self) -> AngleRange:
@@ -140,8 +140,8 @@ class DummyArm(_Strict):
 class ElbowStiffnessPrior(_Strict):
     """First-order elbow stiffness of the A Priori model, Eq. 4.7 (from S. Filius)."""
 
-    mu0_nm: float = 1.3
-    mu1_nm_per_rad: float = 1.14
+    mu0_nm: Number = 1.3
+    mu1_nm_per_rad: Number = 1.14
 
 
 class RobotDescription(_Strict):

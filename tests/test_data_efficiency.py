@@ -347,7 +347,7 @@ def test_cli_refuses_an_out_path_that_is_a_file(
     out.write_text("not a directory\n", encoding="utf-8")
     argv = ["study", "data-efficiency", "--train", str(train), "--validate", str(validation), "--out", str(out)]
     assert main(argv) == 2
-    assert "exists and is not a directory" in capsys.readouterr().err
+    assert f"{out}: is a file; expected a folder" in capsys.readouterr().err
     assert out.read_text(encoding="utf-8") == "not a directory\n"
 
 

@@ -22,12 +22,14 @@ from daror_runtime.fsm.guards import GUARDS
 from daror_runtime.fsm.modes import MODES
 from daror_runtime.fsm.spec import (
     DEFAULT_SPEC_PATH,
+    INVARIANTS,
     SCHEMA_PATH,
     FsmSpec,
     FsmSpecError,
     load_fsm_spec,
     spec_json_schema_text,
 )
+from hal.robot import load_description
 
 SHIPPED_TEXT = DEFAULT_SPEC_PATH.read_text(encoding="utf-8")
 SHIPPED_DATA = yaml.safe_load(SHIPPED_TEXT)
@@ -66,6 +68,11 @@ def edit(text: str, where: Where, old: str, new: str) -> str:
     return text[:start] + block.replace(old, new) + text[end:]
 
 
+def _block(text: str, where: Where) -> str:
+    start, end = _span(text, where)
+    return text[start:end]
+
+
 def line(text: str, needle: str, where: Where = None) -> int:
     """1-based line of the one occurrence of ``needle`` inside ``where`` of ``text``."""
     start, end = _span(text, where)
@@ -91,6 +98,10 @@ class Expect(NamedTuple):
     line: int
     field: str
     fragment: str  # part of the message
+    invariant: str | None = None  # the safety invariant the message must name
+
+
+DEVICE = load_description()
 
 
 Case = Callable[[str], tuple[str, list[Expect]]]
@@ -116,7 +127,12 @@ def assert_problems(path: Path, expected: list[Expect]) -> str:
         prefix = f"{path}: line {want.line}, field {want.field}: "
         hits = [x for x in lines if x.startswith(prefix)]
         assert hits, f"no problem starts with {prefix!r}:\n{message}"
-        assert any(want.fragment in x for x in hits), f"{want.fragment!r} not in {hits}"
+        matching = [x for x in hits if want.fragment in x]
+        assert matching, f"{want.fragment!r} not in {hits}"
+        if want.invariant is not None:
+            assert want.invariant in INVARIANTS, want.invariant
+            tag = f"[safety invariant: {want.invariant}]"
+            assert any(x.endswith(tag) for x in matching), f"{tag!r} not named in {matching}"
     return message
 
 
@@ -228,6 +244,7 @@ def _test_state_torque_off(text: str) -> tuple[str, list[Expect]]:
             line(bad, "fail_on_fault: false", i),
             f"states.{i}.fail_on_fault",
             "its mode 'torque_off' applies no torque for the e-stop to remove",
+            "test states are pilot-driven",
         )
     ]
 
@@ -241,6 +258,7 @@ def _test_state_identification(text: str) -> tuple[str, list[Expect]]:
             line(bad, "fail_on_fault: false", i),
             f"states.{i}.fail_on_fault",
             "its mode 'identification' moves the robot on its own",
+            "test states are pilot-driven",
         )
     ]
 
@@ -254,6 +272,7 @@ def _test_state_no_estop(text: str) -> tuple[str, list[Expect]]:
             line(bad, "advance:", i),
             f"states.{i}.guards.advance",
             "so it must be an e-stop test: its advance guards need one of",
+            "test states test an e-stop",
         )
     ]
 
@@ -264,7 +283,10 @@ def _estop_guard_in_fail_state(text: str) -> tuple[str, list[Expect]]:
     bad = edit(text, i, "advance: [installation_confirmed,", "advance: [installation_confirmed, estop_tested,")
     return bad, [
         Expect(
-            line(bad, "fail_on_fault: true", i), f"states.{i}.fail_on_fault", "guard 'estop_tested' could never hold"
+            line(bad, "fail_on_fault: true", i),
+            f"states.{i}.fail_on_fault",
+            "guard 'estop_tested' could never hold",
+            "test states test an e-stop",
         )
     ]
 
@@ -273,12 +295,26 @@ def _estop_guard_in_fail_state(text: str) -> tuple[str, list[Expect]]:
 def _test_state_made_failing(text: str) -> tuple[str, list[Expect]]:
     i = IDX["safety_check"]
     bad = edit(text, i, "fail_on_fault: false", "fail_on_fault: true")
+    # safety_check is no e-stop test any more: the first one is safety_experience, after two states with torque
+    first_test = IDX["safety_experience"]
+    before = [k for k in range(first_test) if SHIPPED_DATA["states"][k]["mode"] != "torque_off"]
+    assert before == [i, IDX["pilot_installation"]]
     return bad, [
         Expect(
             line(bad, "fail_on_fault: true", i),
             f"states.{i}.fail_on_fault",
             "guard 'estop_operator_tested' could never hold",
-        )
+            "test states test an e-stop",
+        ),
+        *(
+            Expect(
+                line(bad, "mode:", k),
+                f"states.{k}.mode",
+                f"comes before the first e-stop test state, {first_test + 1} safety_experience",
+                "e-stops tested before torque",
+            )
+            for k in before
+        ),
     ]
 
 
@@ -286,7 +322,12 @@ def _test_state_made_failing(text: str) -> tuple[str, list[Expect]]:
 def _fail_reset_no_ack(text: str) -> tuple[str, list[Expect]]:
     bad = edit(text, "fail", "reset: [faults_cleared, fault_acknowledged]", "reset: [faults_cleared]")
     return bad, [
-        Expect(line(bad, "reset:", "fail"), "fail.guards.reset", "cleared and acknowledged: add fault_acknowledged")
+        Expect(
+            line(bad, "reset:", "fail"),
+            "fail.guards.reset",
+            "cleared and acknowledged: add fault_acknowledged",
+            "FAIL left only when cleared and acknowledged",
+        )
     ]
 
 
@@ -304,6 +345,7 @@ def _fail_mode_torque(text: str) -> tuple[str, list[Expect]]:
             line(bad, "mode:", "fail"),
             "fail.mode",
             "the FAIL state must remove torque; mode 'minimal_impedance' applies torque",
+            "FAIL removes torque",
         )
     ]
 
@@ -394,6 +436,7 @@ def _torque_off_with_limit(text: str) -> tuple[str, list[Expect]]:
             line(bad, "torque_nm: 1.5"),
             f"states.{i}.limits.torque_nm",
             "mode 'torque_off' applies no torque; its torque limit must be 0, not 1.5",
+            "torque limit fits the mode",
         )
     ]
 
@@ -407,6 +450,7 @@ def _torque_mode_zero(text: str) -> tuple[str, list[Expect]]:
             line(bad, "torque_nm:", i),
             f"states.{i}.limits.torque_nm",
             "mode 'minimal_impedance' applies torque but the torque limit is 0",
+            "torque limit fits the mode",
         )
     ]
 
@@ -435,6 +479,7 @@ def _isb_too_early(text: str) -> tuple[str, list[Expect]]:
             line(bad, "enforce_isb:", i),
             f"states.{i}.enforce_isb",
             "enforces the ISB limits but no earlier state's advance requires isb_limits_recorded",
+            "ISB limits recorded before enforced",
         )
     ]
 
@@ -448,6 +493,7 @@ def _identification_no_isb(text: str) -> tuple[str, list[Expect]]:
             line(bad, "enforce_isb: false"),
             f"states.{i}.enforce_isb",
             "must run inside the pilot's ISB limits (enforce_isb: true)",
+            "position control inside the ISB limits",
         )
     ]
 
@@ -501,6 +547,231 @@ def _several_types(text: str) -> tuple[str, list[Expect]]:
     ]
 
 
+# --- the safety invariants of the spec itself (docs/fsm.md, "Safety invariants of the spec") ---------
+
+
+@case("torque limit above the drive's maximum")
+def _torque_above_drive(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["compensation"]
+    over = DEVICE.sea.max_motor_torque_nm + 10.0
+    bad = edit(text, i, "torque_nm: 30.0", f"torque_nm: {over}")
+    return bad, [
+        Expect(
+            line(bad, f"torque_nm: {over}"),
+            f"states.{i}.limits.torque_nm",
+            f"torque limit {over:g} Nm exceeds the drives' maximum motor torque of the DAROR-01, "
+            f"{DEVICE.sea.max_motor_torque_nm:g} Nm",
+            "torque within the drive",
+        )
+    ]
+
+
+@case("velocity limit above every joint's device limit")
+def _velocity_above_device(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["compensation"]
+    fastest = max(DEVICE.limits.max_velocity_rad_s)
+    bad = edit(text, i, "velocity_rad_s: 2.0", f"velocity_rad_s: {fastest + 0.5}")
+    return bad, [
+        Expect(
+            line(bad, f"velocity_rad_s: {fastest + 0.5}"),
+            f"states.{i}.limits.velocity_rad_s",
+            f"exceeds every joint's speed limit of the DAROR-01 (at most {fastest:g} rad/s",
+            "speed within the device",
+        )
+    ]
+
+
+@case("first state applies torque")
+def _first_state_torque(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, 0, "mode: torque_off", "mode: minimal_impedance")
+    bad = edit(bad, 0, "torque_nm: 0.0", "torque_nm: 5.0")  # a consistent limit: only the order is wrong
+    at = line(bad, "mode: minimal_impedance", 0)
+    return bad, [
+        Expect(
+            at,
+            "states.0.mode",
+            "is the first state (entered at start-up and by every reset)",
+            "first state torque-free",
+        ),
+        Expect(
+            at,
+            "states.0.mode",
+            "comes before the first e-stop test state, 2 safety_check",
+            "e-stops tested before torque",
+        ),
+    ]
+
+
+@case("no e-stop test state at all")
+def _no_test_state(text: str) -> tuple[str, list[Expect]]:
+    """Every test state made an ordinary state (and its e-stop guards removed): torque is never preceded by a test."""
+    bad = text
+    for name in ("safety_check", "safety_experience", "operative_check"):
+        k = IDX[name]
+        bad = edit(bad, k, "fail_on_fault: false", "fail_on_fault: true")
+        for guard in ("estop_operator_tested, ", "estop_pilot_tested, ", "estop_tested, "):
+            if guard in _block(bad, k):
+                bad = edit(bad, k, guard, "")
+    torque = [k for k, s in enumerate(SHIPPED_DATA["states"]) if s["mode"] != "torque_off"]
+    return bad, [
+        Expect(line(bad, "mode:", k), f"states.{k}.mode", "no state tests the e-stops", "e-stops tested before torque")
+        for k in torque
+    ]
+
+
+@case("test state advances with an e-stop pressed")
+def _test_state_not_released(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["safety_experience"]
+    bad = edit(text, i, "safety_experience_confirmed, estop_released,", "safety_experience_confirmed,")
+    return bad, [
+        Expect(
+            line(bad, "advance:", i), f"states.{i}.guards.advance", "need estop_released", "test states end released"
+        )
+    ]
+
+
+@case("hold without enforce_isb")
+def _hold_no_isb(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["training"]
+    bad = edit(text, i, "enforce_isb: true", "enforce_isb: false")
+    return bad, [
+        Expect(
+            line(bad, "enforce_isb: false"),
+            f"states.{i}.enforce_isb",
+            "mode 'hold' moves the robot on its own (position control) and must stay inside the pilot's ISB limits",
+            "position control inside the ISB limits",
+        )
+    ]
+
+
+@case("torque outside the ISB limits after they were recorded")
+def _isb_dropped(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["compensation"]
+    bad = edit(text, i, "enforce_isb: true", "enforce_isb: false")
+    return bad, [
+        Expect(
+            line(bad, "enforce_isb: false"),
+            f"states.{i}.enforce_isb",
+            "applies torque after the pilot's ISB limits were recorded but does not enforce them",
+            "ISB limits stay enforced",
+        )
+    ]
+
+
+@case("advance into compensation without a model approval")
+def _unapproved_advance(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["rom_limits"]
+    bad = edit(text, i, "advance: [isb_limits_recorded, compensation_model_approved,", "advance: [isb_limits_recorded,")
+    return bad, [
+        Expect(
+            line(bad, "advance:", i),
+            f"states.{i}.guards.advance",
+            "advancing from 6 rom_limits enters 7 operative_check, whose mode 'compensation' applies a compensation model",
+            "only approved models compensate",
+        )
+    ]
+
+
+@case("revert into compensation without a model approval")
+def _unapproved_revert(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["identification"]
+    bad = edit(text, i, "revert: [robot_at_rest, compensation_model_approved]", "revert: [robot_at_rest]")
+    return bad, [
+        Expect(
+            line(bad, "revert:", i),
+            f"states.{i}.guards.revert",
+            "reverting from 8 identification enters 7 operative_check",
+            "only approved models compensate",
+        )
+    ]
+
+
+@case("advance into the last state without a validated model")
+def _unvalidated_compensation(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["training"]
+    bad = edit(text, i, "advance: [model_trained_and_validated, no_active_faults]", "advance: [no_active_faults]")
+    return bad, [
+        Expect(
+            line(bad, "advance:", i),
+            f"states.{i}.guards.advance",
+            "advancing from 9 training enters 10 compensation",
+            "only approved models compensate",
+        )
+    ]
+
+
+# --- YAML and types: what a lax reader would have accepted ------------------------------------------
+
+
+@case("a key written twice")
+def _duplicate_key(text: str) -> tuple[str, list[Expect]]:
+    """The defect that raised a state's torque limit from 10 to 30 Nm: the second ``limits:`` won silently."""
+    i = IDX["pilot_installation"]
+    first = "    limits: {torque_nm: 10.0, velocity_rad_s: 1.0}\n"
+    bad = edit(text, i, first, first + "    limits: {torque_nm: 30.0, velocity_rad_s: 1.0}\n")
+    return bad, [
+        Expect(
+            line(bad, "limits: {torque_nm: 30.0", i),
+            f"states.{i}.limits",
+            f"key 'limits' is written twice (first on line {line(bad, 'limits: {torque_nm: 10.0', i)})",
+        )
+    ]
+
+
+@case("torque_nm true")
+def _torque_true(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["pilot_installation"]
+    bad = edit(text, i, "torque_nm: 10.0", "torque_nm: true")
+    return bad, [
+        Expect(
+            line(bad, "torque_nm: true"),
+            f"states.{i}.limits.torque_nm",
+            "Input should be a valid number; got true (a yes/no value)",
+        )
+    ]
+
+
+@case("torque_nm as quoted text")
+def _torque_text(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["pilot_installation"]
+    bad = edit(text, i, "torque_nm: 10.0", 'torque_nm: "10"')
+    return bad, [
+        Expect(line(bad, 'torque_nm: "10"'), f"states.{i}.limits.torque_nm", "valid number; got the text '10'")
+    ]
+
+
+@case("velocity limit not a number (.nan)")
+def _velocity_nan(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["startup"]
+    bad = edit(text, i, "velocity_rad_s: 2.0", "velocity_rad_s: .nan")
+    return bad, [Expect(line(bad, "velocity_rad_s: .nan"), f"states.{i}.limits.velocity_rad_s", "finite number")]
+
+
+@case("state number true")
+def _number_true(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, 0, "number: 1\n", "number: true\n")
+    return bad, [Expect(line(bad, "number: true"), "states.0.number", "valid integer; got true (a yes/no value)")]
+
+
+@case("version true")
+def _version_true(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, None, "\nversion: 1\n", "\nversion: true\n")
+    return bad, [Expect(line(bad, "version: true"), "version", "Input should be a whole number; got true")]
+
+
+@case("version 1.0")
+def _version_float(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, None, "\nversion: 1\n", "\nversion: 1.0\n")
+    return bad, [Expect(line(bad, "version: 1.0"), "version", "Input should be a whole number; got 1.0")]
+
+
+@case("fail_on_fault 0")
+def _fail_on_fault_zero(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["settings"]
+    bad = edit(text, i, "fail_on_fault: true", "fail_on_fault: 0")
+    return bad, [Expect(line(bad, "fail_on_fault: 0"), f"states.{i}.fail_on_fault", "valid boolean; got 0")]
+
+
 @pytest.mark.parametrize("name", list(CASES))
 def test_malformed_spec_is_refused_with_file_line_and_field(name: str, tmp_path: Path) -> None:
     bad, expected = CASES[name](SHIPPED_TEXT)
@@ -512,6 +783,82 @@ def test_malformed_spec_is_refused_with_file_line_and_field(name: str, tmp_path:
 
 def test_enough_malformed_specs() -> None:
     assert len(CASES) >= 14
+
+
+def _invariant_cases() -> dict[str, list[str]]:
+    """Invariant name -> the cases whose expected problems name it."""
+    covered: dict[str, list[str]] = {}
+    for name, make in CASES.items():
+        for want in make(SHIPPED_TEXT)[1]:
+            if want.invariant is not None:
+                covered.setdefault(want.invariant, []).append(name)
+    return covered
+
+
+INVARIANT_CASES = sorted({name for names in _invariant_cases().values() for name in names})
+
+
+def test_every_safety_invariant_has_a_malformed_spec() -> None:
+    assert set(_invariant_cases()) == set(INVARIANTS)
+
+
+def test_every_safety_invariant_is_in_the_docs_table() -> None:
+    """docs/fsm.md, "Safety invariants of the spec": one row per invariant, in the order they are declared."""
+    text = (DEFAULT_SPEC_PATH.parent / "docs" / "fsm.md").read_text(encoding="utf-8")
+    start = text.index("### Safety invariants of the spec")
+    section = text[start : text.index("\n## ", start)]
+    rows = [r for r in section.splitlines() if r.startswith("| **")]
+    named = [r.split("**")[1] for r in rows]
+    assert named == list(INVARIANTS)
+
+
+@pytest.mark.parametrize("name", INVARIANT_CASES)
+def test_cli_check_names_the_violated_invariant(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad, expected = CASES[name](SHIPPED_TEXT)
+    path = tmp_path / "bad_spec.yaml"
+    path.write_text(bad, encoding="utf-8")
+    capsys.readouterr()
+    assert run("fsm", "check", path) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert "Traceback" not in err
+    lines = err.rstrip("\n").split("\n")
+    assert lines[0].startswith(f"daror fsm check: error: {path}: line ")
+    assert len(lines) == len(expected)
+    for want in expected:
+        prefix = f"{path}: line {want.line}, field {want.field}: "
+        assert any(prefix in x and want.fragment in x for x in lines), (prefix, err)
+        if want.invariant is not None:
+            assert f"[safety invariant: {want.invariant}]" in err
+
+
+def test_the_drive_maximum_itself_is_allowed(tmp_path: Path) -> None:
+    i = IDX["compensation"]
+    top = DEVICE.sea.max_motor_torque_nm
+    path = tmp_path / "spec.yaml"
+    path.write_text(edit(SHIPPED_TEXT, i, "torque_nm: 30.0", f"torque_nm: {top}"), encoding="utf-8")
+    assert load_fsm_spec(path).states[i].limits.torque_nm == top
+
+
+def test_an_int_where_a_float_is_meant_is_fine(tmp_path: Path) -> None:
+    i = IDX["pilot_installation"]
+    path = tmp_path / "spec.yaml"
+    path.write_text(edit(SHIPPED_TEXT, i, "torque_nm: 10.0", "torque_nm: 10"), encoding="utf-8")
+    assert load_fsm_spec(path) == load_fsm_spec()
+
+
+def test_limits_are_checked_against_the_given_robot(tmp_path: Path) -> None:
+    """A robot with weaker drives (20 Nm): the shipped spec's 30 Nm states are refused, each named."""
+    weak = DEVICE.model_copy(update={"sea": DEVICE.sea.model_copy(update={"max_motor_torque_nm": 20.0})})
+    with pytest.raises(FsmSpecError) as info:
+        load_fsm_spec(DEFAULT_SPEC_PATH, description=weak)
+    over = [k for k, s in enumerate(SHIPPED_DATA["states"]) if s["limits"]["torque_nm"] > 20.0]
+    assert over
+    lines = str(info.value).splitlines()
+    assert len(lines) == len(over)
+    for k, row in zip(over, lines, strict=True):
+        assert f"field states.{k}.limits.torque_nm: " in row
+        assert row.endswith("[safety invariant: torque within the drive]")
 
 
 # --- files that are not a spec at all --------------------------------------------------------
@@ -554,7 +901,10 @@ def test_empty_file(tmp_path: Path, text: str) -> None:
 def test_list_instead_of_mapping(tmp_path: Path) -> None:
     path = tmp_path / "list.yaml"
     path.write_text("- version: 1\n- states: []\n", encoding="utf-8")
-    assert _yaml_error(path) == f"{path}: line 1: expected a mapping with version, superstates, states and fail"
+    assert (
+        _yaml_error(path)
+        == f"{path}: line 1: expected a mapping with version, superstates, states and fail; found a list"
+    )
 
 
 def test_list_after_the_header_names_its_line(tmp_path: Path) -> None:
@@ -719,6 +1069,7 @@ def test_cli_diagram_stdout(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_cli_diagram_out_and_bad_spec(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     target = tmp_path / "docs" / "fsm.mmd"
+    target.parent.mkdir()  # the command writes into an existing folder only
     assert run("fsm", "diagram", "--out", target) == 0
     assert f"wrote {target}" in capsys.readouterr().out
     _check_mermaid(target.read_text(encoding="utf-8"))
@@ -727,6 +1078,7 @@ def test_cli_diagram_out_and_bad_spec(tmp_path: Path, capsys: pytest.CaptureFixt
     bad, _ = CASES["unknown mode"](SHIPPED_TEXT)
     spec = write(tmp_path, "bad.yaml", bad)
     fresh = tmp_path / "out" / "fsm.mmd"
+    fresh.parent.mkdir()
     assert run("fsm", "diagram", spec, "--out", fresh) == 2
     out, err = capsys.readouterr()
     assert out == ""

@@ -22,6 +22,7 @@ from typing import Any
 from daror_runtime.errors import InputError, UsageError
 from daror_runtime.fsm.signals import Checklist
 from daror_runtime.models.registry import KINDS
+from hal.files import DATA_MAX_BYTES, MODEL_MAX_BYTES, YAML_MAX_BYTES, regular_file
 from hal.isb import load_isb_limits
 from hal.robot import RobotDescription
 
@@ -121,11 +122,11 @@ def _one_of(what: str, text: str, choices: Iterable[str]) -> str:
     return text
 
 
-def _readable_file(what: str, text: str) -> Path:
-    path = Path(text)
-    if not path.is_file():
-        raise CommandError(f"{what}: {text}: no such file")
-    return path
+def _readable_file(what: str, text: str, max_bytes: int = DATA_MAX_BYTES) -> Path:
+    try:
+        return regular_file(text, CommandError, max_bytes, "file")
+    except CommandError as exc:
+        raise CommandError(f"{what}: {exc}") from None
 
 
 def _no_args(usage: str) -> Callable[[list[str], ParseContext], tuple[Any, ...]]:
@@ -151,7 +152,7 @@ def _rom(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     if args in (["start"], ["stop"]):
         return (args[0],)
     if len(args) == 2 and args[0] == "load":
-        path = _readable_file("rom load FILE", args[1])
+        path = _readable_file("rom load FILE", args[1], YAML_MAX_BYTES)
         try:
             limits = load_isb_limits(path)
         except InputError as exc:
@@ -174,7 +175,7 @@ def _train(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 
 def _model(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     _arity("model FILE [VALIDATION_FILE]", args, (1, 2))
-    path = _readable_file("model FILE", args[0])
+    path = _readable_file("model FILE", args[0], MODEL_MAX_BYTES)
     from daror_runtime.models.files import load_model  # the model kinds import lazily
 
     try:

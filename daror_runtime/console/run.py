@@ -30,6 +30,7 @@ from daror_runtime.console.grammar import Parsed, completion_words
 from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import DarorError, InputError, UsageError
 from daror_runtime.runtime import Runtime
+from hal.files import YAML_MAX_BYTES, read_text_bounded
 from hal.interface import Hal
 
 
@@ -48,12 +49,9 @@ def read_script(path: Path | str) -> list[tuple[int, str]]:
     """The non-empty, non-comment lines of a script with their line numbers.
 
     Raises:
-        ScriptError: the file cannot be read.
+        ScriptError: not a readable regular text file of at most 1 MiB (a directory, a FIFO, ...).
     """
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScriptError(f"{path}: cannot read the console script ({exc})") from None
+    text = read_text_bounded(path, ScriptError, YAML_MAX_BYTES, "console script")
     lines = []
     for number, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()

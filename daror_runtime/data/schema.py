@@ -1,6 +1,7 @@
 """Dataset contracts (DESIGN.md section 5). SI units: rad, rad/s, Nm, s. Joints numbered 1-4.
 
-* Raw log: ``t, q1..q4, dq1..dq4, tau1..tau4`` (+ optional ``theta1..4``, ``tau_cmd1..4``).
+* Raw log: ``t, q1..q4, dq1..dq4, tau1..tau4`` (+ optional ``theta1..4``, ``tau_cmd1..4``); without
+  ``dq`` when the data show a log (the velocity is then derived from ``t`` and ``q``).
 * Stationary dataset: ``q1..q4, tau1..tau4`` (+ optional ``dir1..dir4``, ``t``).
 """
 
@@ -27,8 +28,35 @@ TAU_CMD_COLUMNS = joint_columns("tau_cmd")
 
 STATIONARY_REQUIRED = Q_COLUMNS + TAU_COLUMNS
 RAW_REQUIRED = ("t", *Q_COLUMNS, *DQ_COLUMNS, *TAU_COLUMNS)
+#: A raw log whose velocity is derived from ``t`` and ``q`` (docs/data.md, "Raw log without dq").
+RAW_WITHOUT_VELOCITY_REQUIRED = ("t", *Q_COLUMNS, *TAU_COLUMNS)
 #: Columns whose values are joint angles in radians (checked for "looks like degrees").
 ANGLE_COLUMNS = Q_COLUMNS + THETA_COLUMNS
+#: Columns a table keeps side by side in one (rows, k) array, so a dataset takes them without a copy.
+STORAGE_GROUPS: tuple[tuple[str, ...], ...] = (
+    ("t",),
+    Q_COLUMNS,
+    DQ_COLUMNS,
+    TAU_COLUMNS,
+    DIR_COLUMNS,
+    THETA_COLUMNS,
+    TAU_CMD_COLUMNS,
+)
+
+# Plausible ranges: a value beyond is refused with its file, line and column (docs/data.md says why
+# each bound is where it is). They are far outside anything the DAROR-01 can produce, so they only
+# catch wrong units, wrong columns and corrupted numbers, never a real reading.
+
+#: |q|, |theta| (rad): no joint of the DAROR-01 turns a full circle, so more is degrees.
+MAX_ANGLE_RAD = 2 * np.pi
+#: |dq| (rad/s): the joints' own limits are a few rad/s; a human arm peaks near 20 rad/s.
+MAX_VELOCITY_RAD_S = 50.0
+#: |tau|, |tau_cmd| (Nm): the drives give at most 40 Nm, the springs' end stop is near 35 Nm.
+MAX_TORQUE_NM = 500.0
+#: |t| (s): 116 days; a session's robot clock never runs that long (more is a Unix time or ms/us).
+MAX_TIME_S = 1e7
+#: A raw log is sampled at the loop rate: its median time step lies in this range (s): 10 Hz-100 kHz.
+RAW_STEP_S = (1e-5, 0.1)
 
 
 @dataclass(frozen=True)
@@ -81,6 +109,8 @@ class RawLog:
     theta_rad: FloatArray | None = None
     tau_cmd_nm: FloatArray | None = None
     source: str = field(default="<memory>", compare=False)
+    #: True when the file had no ``dq`` columns and ``dq_rad_s`` was derived from ``t`` and ``q``.
+    velocity_derived: bool = field(default=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])

@@ -16,21 +16,27 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic_core import PydanticCustomError
 
 from daror_runtime.errors import InputError
 from daror_runtime.fsm.guards import FAIL_RESET_GUARDS, GUARDS
 from daror_runtime.fsm.modes import MODES
-from hal.yamlfile import format_validation_error, line_of, read_yaml
+from hal.robot import RobotDescription, load_description
+from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
 
 __all__ = [
     "DEFAULT_SPEC_PATH",
+    "INVARIANTS",
     "FsmSpec",
     "FsmSpecError",
+    "Invariant",
     "StateSpec",
     "check_spec",
     "load_fsm_spec",
@@ -66,8 +72,8 @@ class SuperstateSpec(_Strict):
 class StateLimits(_Strict):
     """What the safety filter and monitor enforce in the state (on top of the device's own limits)."""
 
-    torque_nm: float = Field(ge=0.0, le=1000.0, description="largest motor torque command, Nm (0: no torque)")
-    velocity_rad_s: float = Field(
+    torque_nm: Number = Field(ge=0.0, le=1000.0, description="largest motor torque command, Nm (0: no torque)")
+    velocity_rad_s: Number = Field(
         gt=0.0, le=100.0, description="largest joint speed, rad/s (the device's own limits apply too)"
     )
 
@@ -79,14 +85,14 @@ class Guards(_Strict):
 
 
 class StateSpec(_Strict):
-    number: int = Field(ge=1, description="position in advance order, 1..N without gaps")
+    number: Integer = Field(ge=1, description="position in advance order, 1..N without gaps")
     name: StateName
     superstate: StateName
     description: str = ""
     mode: ModeName
     limits: StateLimits
-    fail_on_fault: bool = Field(description="a fault enters FAIL (false only in the e-stop test states)")
-    enforce_isb: bool = Field(False, description="the pilot's recorded ISB limits are enforced in this state")
+    fail_on_fault: Flag = Field(description="a fault enters FAIL (false only in the e-stop test states)")
+    enforce_isb: Flag = Field(False, description="the pilot's recorded ISB limits are enforced in this state")
     guards: Guards = Field(default_factory=Guards)
 
     @property
@@ -109,10 +115,17 @@ class FailSpec(_Strict):
         return self.name
 
 
+def _whole_number(value: object) -> object:
+    """Refuse a bool or a float where a whole number is meant (``Literal[1]`` alone takes ``true`` and ``1.0``)."""
+    if isinstance(value, bool | float):
+        raise PydanticCustomError("int_type", "Input should be a whole number")
+    return value
+
+
 class FsmSpec(_Strict):
     """The whole spec (``fsm_spec.yaml``)."""
 
-    version: Literal[1]
+    version: Annotated[Literal[1], BeforeValidator(_whole_number)]
     superstates: list[SuperstateSpec] = Field(min_length=1)
     states: list[StateSpec] = Field(min_length=1)
     fail: FailSpec
@@ -143,8 +156,110 @@ class FsmSpec(_Strict):
 Location = tuple[int | str, ...]
 
 
+@dataclass(frozen=True)
+class Invariant:
+    """A safety invariant of the spec itself: what must hold, and why (docs/fsm.md has the table)."""
+
+    name: str
+    rule: str
+    why: str
+
+
+#: Every safety invariant :func:`check_spec` enforces; a violation's message ends ``[safety invariant: NAME]``.
+INVARIANTS: dict[str, Invariant] = {
+    i.name: i
+    for i in (
+        Invariant(
+            "torque limit fits the mode",
+            "a state's torque limit is 0 exactly when its mode applies no torque",
+            "a limit above 0 in a torque-free state misstates what the state allows; a torque mode at 0 Nm cannot do its job",
+        ),
+        Invariant(
+            "torque within the drive",
+            "no state's torque limit exceeds the drive's maximum motor torque (robot description sea.max_motor_torque_nm)",
+            "a limit the drives can never reach is no limit: the spec would promise a cap the safety filter never applies",
+        ),
+        Invariant(
+            "speed within the device",
+            "no state's velocity limit exceeds the fastest joint speed the device allows (limits.max_velocity_rad_s)",
+            "a limit above every joint's device limit never acts: the device's limit is what holds, not the spec's",
+        ),
+        Invariant(
+            "first state torque-free",
+            "the first state (entered at start-up and by every reset) applies no torque",
+            "after a reset nothing about the session is known (faults, e-stops, the pilot); the drives stay off",
+        ),
+        Invariant(
+            "e-stops tested before torque",
+            "no state before the first e-stop test state applies torque",
+            "torque is applied only once the e-stops were shown to remove it",
+        ),
+        Invariant(
+            "test states are pilot-driven",
+            "an e-stop test state (fail_on_fault: false) uses a mode that applies torque and is pilot-driven",
+            "there must be torque for the e-stop to remove, and no motion the robot starts on its own while a fault "
+            "does not enter FAIL",
+        ),
+        Invariant(
+            "test states test an e-stop",
+            "an e-stop test state's advance requires an e-stop test guard; a state that enters FAIL on a fault lists none",
+            "a state that does not fail on faults is only safe as a test; in a failing state the press fails instead of "
+            "being recorded, so the guard could never hold",
+        ),
+        Invariant(
+            "test states end released",
+            "an e-stop test state's advance requires estop_released",
+            "the next state must not start with a button still pressed (torque off, and released the moment it is let go)",
+        ),
+        Invariant(
+            "FAIL removes torque",
+            "FAIL's mode applies no torque",
+            "FAIL is where every fault ends",
+        ),
+        Invariant(
+            "FAIL left only when cleared and acknowledged",
+            "FAIL's reset requires faults_cleared and fault_acknowledged",
+            "the robot restarts only once the fault's condition is gone and the operator has seen it",
+        ),
+        Invariant(
+            "position control inside the ISB limits",
+            "a mode that moves the robot on its own (identification, hold) runs only with enforce_isb: true",
+            "position control can drive the pilot's arm; the pilot's recorded range of motion must bound it",
+        ),
+        Invariant(
+            "ISB limits recorded before enforced",
+            "a state enforces the ISB limits only after a state whose advance requires isb_limits_recorded",
+            "enforcing limits nobody recorded enforces the placeholder defaults, not the pilot's range",
+        ),
+        Invariant(
+            "ISB limits stay enforced",
+            "after the advance that requires isb_limits_recorded, every state that applies torque enforces the ISB limits",
+            "once the pilot's range is known, no torque may move the arm outside it",
+        ),
+        Invariant(
+            "only approved models compensate",
+            "every way into a state whose mode applies a compensation model is guarded by compensation_model_approved "
+            "or model_trained_and_validated, and the first state applies no model",
+            "a model nobody approved for this pilot never drives the arm",
+        ),
+    )
+}
+
+
+def _violates(name: str, message: str) -> str:
+    """``message`` naming the invariant it breaks."""
+    if name not in INVARIANTS:  # a programming error: every message names a declared invariant
+        raise KeyError(name)
+    return f"{message} [safety invariant: {name}]"
+
+
+@cache
+def _packaged_description() -> RobotDescription:
+    return load_description()
+
+
 def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
-    """Everything wrong with the meaning of ``spec``: (location of the field, message)."""
+    """Everything wrong with the structure of ``spec`` and its invariants: (location of the field, message)."""
     superstates = [s.name for s in spec.superstates]
     for k, name in enumerate(superstates):
         if name in superstates[:k]:
@@ -230,45 +345,93 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
             if mode.applies_torque and state.limits.torque_nm == 0.0:
                 yield (
                     ("states", i, "limits", "torque_nm"),
-                    f"state {state.label}: mode {mode.name!r} applies torque but the torque limit is 0",
+                    _violates(
+                        "torque limit fits the mode",
+                        f"state {state.label}: mode {mode.name!r} applies torque but the torque limit is 0",
+                    ),
                 )
             if not mode.applies_torque and state.limits.torque_nm != 0.0:
                 yield (
                     ("states", i, "limits", "torque_nm"),
-                    f"state {state.label}: mode {mode.name!r} applies no torque; its torque limit must be 0, not {state.limits.torque_nm:g}",
+                    _violates(
+                        "torque limit fits the mode",
+                        f"state {state.label}: mode {mode.name!r} applies no torque; its torque limit must be 0, not "
+                        f"{state.limits.torque_nm:g}",
+                    ),
                 )
             if not state.fail_on_fault and not (mode.applies_torque and mode.pilot_driven):
                 yield (
                     ("states", i, "fail_on_fault"),
-                    f"state {state.label} does not enter FAIL on a fault (an e-stop test state) but its mode {mode.name!r} "
-                    + (
-                        "applies no torque for the e-stop to remove"
-                        if not mode.applies_torque
-                        else "moves the robot on its own"
-                    )
-                    + "; a test state needs a pilot-driven mode that applies torque",
+                    _violates(
+                        "test states are pilot-driven",
+                        f"state {state.label} does not enter FAIL on a fault (an e-stop test state) but its mode "
+                        f"{mode.name!r} "
+                        + (
+                            "applies no torque for the e-stop to remove"
+                            if not mode.applies_torque
+                            else "moves the robot on its own"
+                        )
+                        + "; a test state needs a pilot-driven mode that applies torque",
+                    ),
                 )
-            if state.mode == "identification" and not state.enforce_isb:
+            if mode.applies_torque and not mode.pilot_driven and not state.enforce_isb:
+                what = (
+                    "the identification protocol must run"
+                    if state.mode == "identification"
+                    else f"mode {mode.name!r} moves the robot on its own (position control) and must stay"
+                )
                 yield (
                     ("states", i, "enforce_isb"),
-                    f"state {state.label}: the identification protocol must run inside the pilot's ISB limits (enforce_isb: true)",
+                    _violates(
+                        "position control inside the ISB limits",
+                        f"state {state.label}: {what} inside the pilot's ISB limits (enforce_isb: true)",
+                    ),
+                )
+            elif mode.applies_torque and isb_recorded_before and not state.enforce_isb:
+                yield (
+                    ("states", i, "enforce_isb"),
+                    _violates(
+                        "ISB limits stay enforced",
+                        f"state {state.label} applies torque after the pilot's ISB limits were recorded but does not "
+                        "enforce them (enforce_isb: true)",
+                    ),
                 )
         if not state.fail_on_fault and not estop_guards:
             yield (
                 ("states", i, "guards", "advance"),
-                f"state {state.label} does not enter FAIL on a fault, so it must be an e-stop test: its advance guards need one of "
-                + ", ".join(g.name for g in GUARDS.values() if g.estop_test),
+                _violates(
+                    "test states test an e-stop",
+                    f"state {state.label} does not enter FAIL on a fault, so it must be an e-stop test: its advance "
+                    "guards need one of " + ", ".join(g.name for g in GUARDS.values() if g.estop_test),
+                ),
+            )
+        if not state.fail_on_fault and i != last and "estop_released" not in state.guards.advance:
+            yield (
+                ("states", i, "guards", "advance"),
+                _violates(
+                    "test states end released",
+                    f"state {state.label} is an e-stop test state: its advance guards need estop_released, so the "
+                    "next state does not start with a button pressed",
+                ),
             )
         if state.fail_on_fault and estop_guards:
             yield (
                 ("states", i, "fail_on_fault"),
-                f"state {state.label} enters FAIL on a fault, so an e-stop press fails instead of being recorded: its advance "
-                f"guard {estop_guards[0]!r} could never hold (set fail_on_fault: false to make it a test state)",
+                _violates(
+                    "test states test an e-stop",
+                    f"state {state.label} enters FAIL on a fault, so an e-stop press fails instead of being recorded: "
+                    f"its advance guard {estop_guards[0]!r} could never hold (set fail_on_fault: false to make it a "
+                    "test state)",
+                ),
             )
         if state.enforce_isb and not isb_recorded_before:
             yield (
                 ("states", i, "enforce_isb"),
-                f"state {state.label} enforces the ISB limits but no earlier state's advance requires isb_limits_recorded",
+                _violates(
+                    "ISB limits recorded before enforced",
+                    f"state {state.label} enforces the ISB limits but no earlier state's advance requires "
+                    "isb_limits_recorded",
+                ),
             )
         if "isb_limits_recorded" in state.guards.advance:
             isb_recorded_before = True
@@ -277,7 +440,13 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
     if fail_mode is None:
         yield ("fail", "mode"), f"unknown mode {spec.fail.mode!r}; expected one of {', '.join(MODES)}"
     elif fail_mode.applies_torque:
-        yield ("fail", "mode"), f"the FAIL state must remove torque; mode {fail_mode.name!r} applies torque"
+        yield (
+            ("fail", "mode"),
+            _violates(
+                "FAIL removes torque",
+                f"the FAIL state must remove torque; mode {fail_mode.name!r} applies torque",
+            ),
+        )
     for j, name in enumerate(spec.fail.guards.reset):
         if name not in GUARDS:
             yield ("fail", "guards", "reset", j), f"unknown guard {name!r}; expected one of {', '.join(GUARDS)}"
@@ -285,7 +454,72 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
     if missing:
         yield (
             ("fail", "guards", "reset"),
-            f"FAIL must be left only after the fault is cleared and acknowledged: add {', '.join(missing)}",
+            _violates(
+                "FAIL left only when cleared and acknowledged",
+                f"FAIL must be left only after the fault is cleared and acknowledged: add {', '.join(missing)}",
+            ),
+        )
+
+
+def _device_problems(spec: FsmSpec, description: RobotDescription) -> Iterator[tuple[Location, str]]:
+    """The state limits against the device's own (the robot description)."""
+    max_torque = description.sea.max_motor_torque_nm
+    max_speed = max(description.limits.max_velocity_rad_s)
+    for i, state in enumerate(spec.states):
+        if state.limits.torque_nm > max_torque:
+            yield (
+                ("states", i, "limits", "torque_nm"),
+                _violates(
+                    "torque within the drive",
+                    f"state {state.label}: torque limit {state.limits.torque_nm:g} Nm exceeds the drives' maximum motor "
+                    f"torque of the {description.name}, {max_torque:g} Nm (robot description sea.max_motor_torque_nm); "
+                    f"expected at most {max_torque:g}",
+                ),
+            )
+        if state.limits.velocity_rad_s > max_speed:
+            yield (
+                ("states", i, "limits", "velocity_rad_s"),
+                _violates(
+                    "speed within the device",
+                    f"state {state.label}: velocity limit {state.limits.velocity_rad_s:g} rad/s exceeds every joint's "
+                    f"speed limit of the {description.name} (at most {max_speed:g} rad/s, robot description "
+                    "limits.max_velocity_rad_s), so it would never act; expected at most "
+                    f"{max_speed:g}",
+                ),
+            )
+
+
+def _order_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """No torque in the first state, and none before the e-stops are shown to work."""
+    first = spec.states[0]
+    first_mode = MODES.get(first.mode)
+    if first_mode is not None and first_mode.applies_torque:
+        yield (
+            ("states", 0, "mode"),
+            _violates(
+                "first state torque-free",
+                f"state {first.label} is the first state (entered at start-up and by every reset) but its mode "
+                f"{first_mode.name!r} applies torque; expected a mode that applies none (torque_off)",
+            ),
+        )
+    first_test = next((i for i, s in enumerate(spec.states) if not s.fail_on_fault), None)
+    before = spec.states if first_test is None else spec.states[:first_test]
+    for i, state in enumerate(before):
+        mode = MODES.get(state.mode)
+        if mode is None or not mode.applies_torque:
+            continue
+        where = (
+            "no state tests the e-stops"
+            if first_test is None
+            else f"it comes before the first e-stop test state, {spec.states[first_test].label}"
+        )
+        yield (
+            ("states", i, "mode"),
+            _violates(
+                "e-stops tested before torque",
+                f"state {state.label}: mode {mode.name!r} applies torque but {where}; torque is applied only once "
+                "the e-stops were shown to remove it",
+            ),
         )
 
 
@@ -303,34 +537,53 @@ def _model_approval_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
         if i == 0:
             yield (
                 ("states", i, "mode"),
-                f"state {state.label} is the first state (entered by every reset) but its mode {mode.name!r} applies a "
-                "compensation model, which nobody has approved when a session starts",
+                _violates(
+                    "only approved models compensate",
+                    f"state {state.label} is the first state (entered by every reset) but its mode {mode.name!r} "
+                    "applies a compensation model, which nobody has approved when a session starts",
+                ),
             )
             continue
         previous = spec.states[i - 1]
         if not _approves_model(previous.guards.advance):
             yield (
                 ("states", i - 1, "guards", "advance"),
-                f"advancing from {previous.label} enters {state.label}, whose mode {mode.name!r} applies a compensation "
-                f"model: the advance guards need one that approves the model ({approving})",
+                _violates(
+                    "only approved models compensate",
+                    f"advancing from {previous.label} enters {state.label}, whose mode {mode.name!r} applies a "
+                    f"compensation model: the advance guards need one that approves the model ({approving})",
+                ),
             )
         following = spec.states[i + 1] if i + 1 < len(spec.states) else None
         if following is not None and not _approves_model(following.guards.revert):
             yield (
                 ("states", i + 1, "guards", "revert"),
-                f"reverting from {following.label} enters {state.label}, whose mode {mode.name!r} applies a compensation "
-                f"model: the revert guards need one that approves the model ({approving})",
+                _violates(
+                    "only approved models compensate",
+                    f"reverting from {following.label} enters {state.label}, whose mode {mode.name!r} applies a "
+                    f"compensation model: the revert guards need one that approves the model ({approving})",
+                ),
             )
 
 
-def check_spec(spec: FsmSpec, source: str = "fsm spec", root: yaml.Node | None = None) -> None:
-    """Check the meaning of a parsed spec.
+def check_spec(
+    spec: FsmSpec,
+    source: str = "fsm spec",
+    root: yaml.Node | None = None,
+    description: RobotDescription | None = None,
+) -> None:
+    """Check the meaning of a parsed spec, its safety invariants (:data:`INVARIANTS`) included.
+
+    ``description``: the robot whose drive and joint limits the state limits must respect
+    (default: the packaged DAROR-01, ``hal/daror01.yaml``).
 
     Raises:
         FsmSpecError: one line per problem: ``source: line L, field a.b.c: message``.
     """
+    device = description if description is not None else _packaged_description()
     lines = []
-    for location, message in _problems(spec):
+    problems = [*_problems(spec), *_device_problems(spec, device), *_order_problems(spec)]
+    for location, message in problems:
         line = line_of(root, location)
         where = f"line {line}, " if line is not None else ""
         field = ".".join(str(p) for p in location)
@@ -339,23 +592,22 @@ def check_spec(spec: FsmSpec, source: str = "fsm spec", root: yaml.Node | None =
         raise FsmSpecError("\n".join(lines))
 
 
-def load_fsm_spec(path: Path | str | None = None) -> FsmSpec:
+def load_fsm_spec(path: Path | str | None = None, description: RobotDescription | None = None) -> FsmSpec:
     """Read, validate and check ``path`` (default: :data:`DEFAULT_SPEC_PATH`).
 
+    ``description``: the robot the state limits are checked against (default: the packaged DAROR-01).
+
     Raises:
-        FsmSpecError: the file is missing, not YAML, does not match the schema or fails a check;
-            the message names the file, the line and the field of every problem.
+        FsmSpecError: the file is missing, not a regular file, not YAML, does not match the schema or
+            fails a check; the message names the file, the line and the field of every problem.
     """
     path = Path(path) if path is not None else DEFAULT_SPEC_PATH
-    data, root = read_yaml(path, FsmSpecError)
-    if not isinstance(data, dict):
-        line = root.start_mark.line + 1 if root is not None else 1
-        raise FsmSpecError(f"{path}: line {line}: expected a mapping with version, superstates, states and fail")
+    data, root = read_yaml(path, FsmSpecError, expected="a mapping with version, superstates, states and fail")
     try:
         spec = FsmSpec.model_validate(data)
     except ValidationError as exc:
         raise FsmSpecError(format_validation_error(str(path), exc, root, separator="\n")) from None
-    check_spec(spec, str(path), root)
+    check_spec(spec, str(path), root, description)
     return spec
 
 

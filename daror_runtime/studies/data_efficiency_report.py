@@ -18,9 +18,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from rich.table import Table
 
-from daror_runtime.errors import UsageError
 from daror_runtime.studies.data_efficiency import DataEfficiencyResult
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
+from daror_runtime.util.outputs import check_output_dir
 
 JSON_NAME = "data_efficiency.json"
 PNG_NAME = "data_efficiency.png"
@@ -176,11 +176,9 @@ def check_out_dir(out_dir: Path | str) -> None:
     """Refuse an output path that cannot become the study's directory, before any work is done.
 
     Raises:
-        UsageError: ``out_dir`` exists and is not a directory.
+        OutputPathError: ``out_dir`` is a file, or its parent is missing or not writable.
     """
-    folder = Path(out_dir)
-    if folder.exists() and not folder.is_dir():
-        raise UsageError(f"{folder}: exists and is not a directory; --out must be a directory")
+    check_output_dir(out_dir)
 
 
 def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Path, Path, Path]:
@@ -190,7 +188,7 @@ def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Pa
         The paths written: JSON, PNG, Markdown.
 
     Raises:
-        UsageError: ``out_dir`` exists and is not a directory.
+        OutputPathError: ``out_dir`` is a file, or its parent is missing or not writable.
     """
     folder = Path(out_dir)
     check_out_dir(folder)

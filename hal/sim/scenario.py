@@ -25,15 +25,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from hal.errors import DescriptionError
 from hal.robot import N_JOINTS, FloatArray, Kinematics, LinkInertial, RobotDescription, load_description, rot_x, rot_z
 from hal.sim.statics import PointMass, PullSpring, StaticPlant
-from hal.yamlfile import format_validation_error, line_of, read_yaml
+from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
 
-NonNegative = Annotated[float, Field(ge=0)]
-PerJoint = Annotated[list[float], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNegative = Annotated[Number, Field(ge=0)]
+PerJoint = Annotated[list[Number], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
+Finite = Annotated[Number, Field(allow_inf_nan=False)]
 #: Per-joint values that must be finite (the undeclared effects: NaN would poison a whole run).
 FinitePerJoint = Annotated[list[Finite], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 PositivePerJoint = Annotated[
-    list[Annotated[float, Field(gt=0, allow_inf_nan=False)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)
+    list[Annotated[Number, Field(gt=0, allow_inf_nan=False)]], Field(min_length=N_JOINTS, max_length=N_JOINTS)
 ]
 
 
@@ -44,8 +44,8 @@ class _Strict(BaseModel):
 class ElbowSpringTruth(_Strict):
     """One pull-only spring of the Dummy Arm across the elbow (joint 4)."""
 
-    stiffness_nm_per_rad: Annotated[float, Field(gt=0)]
-    slack_angle_deg: float
+    stiffness_nm_per_rad: Annotated[Number, Field(gt=0)]
+    slack_angle_deg: Number
     resists: Literal["flexion", "extension"]
 
 
@@ -63,13 +63,13 @@ class DriveTrainTruth(_Strict):
     gearbox_inertia_kgm2: PerJoint = Field(description="motor + gearbox inertia at the gearbox output")
     gearbox_viscous_nms_per_rad: PerJoint
     gearbox_coulomb_nm: PerJoint
-    coulomb_smoothing_rad_s: Annotated[float, Field(gt=0)] = Field(
+    coulomb_smoothing_rad_s: Annotated[Number, Field(gt=0)] = Field(
         0.01, description="Coulomb friction is tau_c tanh(v / this): smooth, so the integrator stays stable"
     )
     link_viscous_nms_per_rad: PerJoint = Field(description="joint bearing friction on the link side")
     spring_damping_nms_per_rad: PerJoint = Field(description="internal damping of the torsion spring")
     max_motor_torque_nm: PerJoint
-    command_delay_ticks: Annotated[int, Field(ge=0, le=10)] = Field(1, description="ticks before a command acts")
+    command_delay_ticks: Annotated[Integer, Field(ge=0, le=10)] = Field(1, description="ticks before a command acts")
 
 
 class EndStopTruth(_Strict):
@@ -80,7 +80,7 @@ class EndStopTruth(_Strict):
     """
 
     margin_deg: NonNegative = Field(2.0, description="how far beyond the device's joint limits the stops sit")
-    stiffness_nm_per_rad: Annotated[float, Field(gt=0)] = 2000.0
+    stiffness_nm_per_rad: Annotated[Number, Field(gt=0)] = 2000.0
     damping_nms_per_rad: NonNegative = 20.0
 
 
@@ -90,16 +90,16 @@ class SensorTruth(_Strict):
     encoder_noise_rad: NonNegative = Field(
         0.5e-4, description="std of white noise on each encoder reading, before quantisation"
     )
-    quantise: bool = Field(True, description="round encoder readings to the encoder resolution")
+    quantise: Flag = Field(True, description="round encoder readings to the encoder resolution")
     direction_error_nm: PerJoint = Field(
         [0.0] * N_JOINTS,
         description="direction-dependent torque error per joint (Sec. 2.2.2): "
         "measured = true + error x sign of the joint's last motion",
     )
-    velocity_filter_hz: Annotated[float, Field(gt=0)] = Field(
+    velocity_filter_hz: Annotated[Number, Field(gt=0)] = Field(
         50.0, description="the drives' velocity estimate: first-order low-pass of the encoder difference"
     )
-    direction_play_rad: Annotated[float, Field(gt=0)] = Field(
+    direction_play_rad: Annotated[Number, Field(gt=0)] = Field(
         5e-3,
         description="joint travel after which the direction-dependent error has fully reversed: a hysteresis "
         "(play operator), so the vibration of a held joint does not flip it but a move does",
@@ -123,8 +123,8 @@ class JointSpringTruth(_Strict):
     the joint is on. No model's family declares it on joints 1-3.
     """
 
-    joint: Annotated[int, Field(ge=1, le=N_JOINTS, description="joint 1-4")]
-    stiffness_nm_per_rad: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    joint: Annotated[Integer, Field(ge=1, le=N_JOINTS, description="joint 1-4")]
+    stiffness_nm_per_rad: Annotated[Number, Field(gt=0, allow_inf_nan=False)]
     rest_angle_deg: Finite = Field(description="joint angle at which the spring is relaxed, degrees")
 
 
@@ -156,8 +156,8 @@ class Scenario(_Strict):
     name: str
     summary: str = ""
     robot: str | None = Field(None, description="robot description file; default the packaged DAROR-01")
-    seed: int = 0
-    gravity_mps2: Annotated[float, Field(gt=0)] = 9.81
+    seed: Integer = 0
+    gravity_mps2: Annotated[Number, Field(gt=0)] = 9.81
     links: Annotated[list[LinkInertial], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
     dummy_arm: DummyArmTruth | None = None
     sensors: SensorTruth = SensorTruth()
@@ -169,7 +169,7 @@ class Scenario(_Strict):
     )
     # --- undeclared effects (docs/simulation.md, "Undeclared effects"); all absent by default ---
     mounting_tilt_deg: Annotated[
-        list[Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]], Field(min_length=2, max_length=2)
+        list[Annotated[Number, Field(ge=-90, le=90, allow_inf_nan=False)]], Field(min_length=2, max_length=2)
     ] = Field(
         [0.0, 0.0],
         description="[about_x, about_z] degrees: the base is mounted rotated by Rx(about_x) Rz(about_z) "
