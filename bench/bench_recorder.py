@@ -2,7 +2,10 @@
 
 * ``push()`` of one 30-column row: it runs inside the 1 kHz tick; target below 5 us.
 * Sustained throughput: 900,000 rows of 30 columns (15 minutes at 1 kHz) pushed as fast as the
-  CPU allows, from ``start()`` to the end of ``close()`` (which fsyncs), in rows per second.
+  writer takes them, from ``start()`` to the end of ``close()`` (which fsyncs), in rows per
+  second. A push the full block pool refuses is tried again after a short sleep (the benchmark
+  is the producer, not a tick), so every row is written and the figure is the writer's rate,
+  not the rate of rows thrown away; the note says how many pushes were refused.
 * ``push()`` in a loop paced at 1 kHz (sleep to each deadline, like the real-time clock): after
   each sleep the caches are cold, so a push costs more than back to back; the figure's note gives
   a bare numpy row copy measured the same way, the floor any recorder has.
@@ -86,12 +89,14 @@ def bench_recorder_push_paced_1khz(quick: bool) -> BenchFigure:
     )
 
 
-def _record(path: Path, rows: np.ndarray, n_rows: int) -> Recorder:
+def _record(path: Path, rows: np.ndarray, n_rows: int, wait_when_full: bool = False) -> Recorder:
+    """``n_rows`` pushed back to back; with ``wait_when_full`` a refused row is pushed again until taken."""
     recorder = Recorder(path, COLUMNS)
     recorder.start()
     n_distinct = rows.shape[0]
     for i in range(n_rows):
-        recorder.push(rows[i % n_distinct])
+        while not recorder.push(rows[i % n_distinct]) and wait_when_full:
+            time.sleep(50e-6)
     recorder.close()
     return recorder
 
@@ -99,14 +104,16 @@ def _record(path: Path, rows: np.ndarray, n_rows: int) -> Recorder:
 def bench_recorder_throughput_900k(quick: bool) -> BenchFigure:
     repeats = 1 if quick else 5
     rows = _rows(10_000)
-    rates, dropped = [], 0
+    rates, refused = [], 0
     with tempfile.TemporaryDirectory() as directory:
         for k in range(repeats):
             path = Path(directory) / f"run{k}.rec"
             start = time.perf_counter()
-            recorder = _record(path, rows, N_ROWS_15_MIN)
+            recorder = _record(path, rows, N_ROWS_15_MIN, wait_when_full=True)
             rates.append(recorder.rows_written / (time.perf_counter() - start))
-            dropped += recorder.dropped_rows
+            if recorder.rows_written != N_ROWS_15_MIN:
+                raise RuntimeError(f"the recorder wrote {recorder.rows_written} of {N_ROWS_15_MIN} rows")
+            refused += recorder.dropped_rows
             path.unlink()  # 216 MB each
     return BenchFigure(
         "recorder throughput, 900,000 x 30 rows",
@@ -116,7 +123,8 @@ def bench_recorder_throughput_900k(quick: bool) -> BenchFigure:
         repeats,
         None,
         None,
-        f"start to close incl. fsync; p90 column is the 10th percentile; {dropped} rows dropped in all",
+        f"start to close incl. fsync, every row written; p90 column is the 10th percentile; "
+        f"{refused} pushes refused while the pool was full (tried again)",
     )
 
 
@@ -127,7 +135,7 @@ def bench_recorder_peak_memory_900k(quick: bool) -> BenchFigure:
         try:
             baseline = tracemalloc.get_traced_memory()[0]
             tracemalloc.reset_peak()
-            recorder = _record(Path(directory) / "memory.rec", rows, N_ROWS_15_MIN)
+            recorder = _record(Path(directory) / "memory.rec", rows, N_ROWS_15_MIN, wait_when_full=True)
             peak = tracemalloc.get_traced_memory()[1] - baseline
         finally:
             tracemalloc.stop()
@@ -142,7 +150,8 @@ def bench_recorder_peak_memory_900k(quick: bool) -> BenchFigure:
         None,
         None,
         f"block pool {pool:.2f} MiB (64 blocks x 1000 rows); the file is {N_ROWS_15_MIN * N_COLUMNS * 8 / 2**20:.0f} MiB; "
-        f"{recorder.dropped_rows} of {recorder.rows_accepted + recorder.dropped_rows} rows dropped",
+        f"{recorder.rows_written:,} rows written; {recorder.dropped_rows} pushes refused while the pool was full "
+        "(tried again)",
     )
 
 

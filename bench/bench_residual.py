@@ -7,11 +7,30 @@
 * The augmented model's torque for one q (it runs inside the 1 kHz tick): target below 20 us,
   the budget of PLF+.
 * The data-efficiency study (Fig. 5.4) on dataset B, 100 draws per size: no target.
+* Issue 10: the whole ``daror residual`` command on ~10^5 and ~10^6 training points (the
+  ``residual_gravity_tilt`` scenario from the static generator, CSV files as a lab would hand them
+  over), process start to exit in a fresh interpreter: wall time and the child's own peak memory
+  (``VmHWM`` read by the child at the end; ``ru_maxrss`` of a parent counts an inherited peak).
+  Targets at 10^6: below 120 s and below 2,000 MB.
+
+Run directly, the script measures one source tree (e.g. the code before a change, extracted with
+``git archive``): ``python bench/bench_residual.py --root /tmp/daror_before --points 100000``.
+``--memory-limit-mb`` caps the child's address space, so a run that would need more memory than
+the machine has fails with a MemoryError instead of waking the OOM killer.
 """
 
 from __future__ import annotations
 
+import argparse
+import atexit
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 from daror_runtime.bench import BenchFigure, time_calls, time_torque_one_q
@@ -102,9 +121,153 @@ def bench_data_efficiency_study(quick: bool) -> BenchFigure:
     )
 
 
+# --- issue 10: the whole command at 10^5 and 10^6 points ----------------------------------------
+
+#: Training set sizes: (waypoints, samples per stop) of the static generator, 10 stops per leg.
+#: 800 x 6 gives 105,474 points; 4,000 x 12 gives 1,055,748. Validation: one tenth or so.
+BIG_SETS = {100_000: (800, 6), 1_000_000: (4000, 12)}
+BIG_SCENARIO = "residual_gravity_tilt"
+
+_COMMAND_SCRIPT = """
+import json, sys
+from daror_runtime.cli import main
+code = main(sys.argv[2:])
+with open("/proc/self/status") as status:
+    peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:")) / 1024
+with open(sys.argv[1], "w") as out:
+    json.dump({"code": code, "peak_mb": peak}, out)
+"""
+
+_folder: list[Path] = []
+
+
+def _big_folder() -> Path:
+    if not _folder:
+        _folder.append(Path(tempfile.mkdtemp(prefix="daror-bench-residual-")))
+        atexit.register(shutil.rmtree, _folder[0], True)
+    return _folder[0]
+
+
+def big_files(points: int, scenario_name: str = BIG_SCENARIO) -> tuple[Path, Path, int]:
+    """Training and validation CSV files of about ``points`` training points (written once per run)."""
+    waypoints, samples = BIG_SETS[points]
+    train = _big_folder() / f"train_{scenario_name}_{points}.csv"
+    validate = _big_folder() / f"validate_{scenario_name}_{points}.csv"
+    scenario = load_scenario(scenario_name)
+    measured = generate_stationary(scenario, "training", n_waypoints=waypoints, sub_steps=10, samples_per_stop=samples)
+    n_train = len(measured.q_rad)
+    if not train.exists():
+        write_dataset(train, StationaryDataset(measured.q_rad, measured.tau_nm, measured.direction, measured.t_s))
+        held = generate_stationary(scenario, "validation", n_waypoints=waypoints, samples_per_stop=samples)
+        write_dataset(validate, StationaryDataset(held.q_rad, held.tau_nm, held.direction, held.t_s))
+    return train, validate, n_train
+
+
+def _vm_hwm_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as status:
+            return next((int(line.split()[1]) / 1024 for line in status if line.startswith("VmHWM:")), 0.0)
+    except OSError:
+        return 0.0
+
+
+def residual_command_in_child(
+    train: Path, validate: Path, root: Path | None = None, memory_limit_mb: float | None = None
+) -> dict[str, object]:
+    """``daror residual`` in a fresh interpreter: wall time start to exit (s), VmHWM (MB), what it found."""
+    out = _big_folder() / f"report_{train.stem}"
+    result = _big_folder() / "command.json"
+    result.unlink(missing_ok=True)
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if root is not None:
+        env["PYTHONPATH"] = str(root)
+
+    def limit() -> None:  # pragma: no cover - runs in the child
+        if memory_limit_mb is not None:
+            size = int(memory_limit_mb * 1024 * 1024)
+            resource.setrlimit(resource.RLIMIT_AS, (size, size))
+
+    argv = ["residual", "--train", str(train), "--validate", str(validate), "--out", str(out)]
+    log = _big_folder() / "command.stderr"
+    start = time.perf_counter()
+    with open(log, "w", encoding="utf-8") as errors:
+        child = subprocess.Popen(
+            [sys.executable, "-c", _COMMAND_SCRIPT, str(result), *argv],
+            stdout=subprocess.DEVNULL,
+            stderr=errors,
+            env=env,
+            cwd=_big_folder(),  # not the source tree: '' comes first on sys.path
+            preexec_fn=limit,
+        )
+        polled = 0.0  # the child's VmHWM as last seen: the figure of a run that dies before reporting it
+        while child.poll() is None:
+            polled = max(polled, _vm_hwm_mb(child.pid))
+            time.sleep(0.2)
+    wall = time.perf_counter() - start
+    stderr = log.read_text(encoding="utf-8", errors="replace")
+    if child.returncode != 0 or not result.exists():
+        last = stderr.strip().splitlines()[-1:] or ["(no output)"]
+        return {"wall_s": wall, "peak_mb": polled or None, "failed": last[0][-300:]}
+    peak = json.loads(result.read_text())["peak_mb"]
+    summary = json.loads((out / "summary.json").read_text())
+    found = ", ".join(e["name"] for e in summary["effects"]) or "nothing"
+    return {"wall_s": wall, "peak_mb": peak, "found": found, "rmse_after": summary["rmse_after"]}
+
+
+def _big_figures(
+    points: int, root: Path | None = None, memory_limit_mb: float | None = None, scenario: str = BIG_SCENARIO
+) -> list[BenchFigure]:
+    train, validate, n_train = big_files(points, scenario)
+    run = residual_command_in_child(train, validate, root, memory_limit_mb)
+    big = points >= 1_000_000
+    note = f"{n_train:,} training points, {scenario}, CSV; " + (
+        f"failed (VmHWM last seen): {run['failed']}" if run.get("failed") else f"found {run['found']}"
+    )
+    wall, peak = float(run["wall_s"]), run["peak_mb"]  # type: ignore[arg-type]
+    return [
+        BenchFigure(
+            f"daror residual, {n_train:,} points: start to exit", wall, wall, "s", 1, 120.0 if big else None, None, note
+        ),
+        BenchFigure(
+            "  its peak memory (VmHWM)",
+            float("nan") if peak is None else float(peak),  # type: ignore[arg-type]
+            float("nan") if peak is None else float(peak),  # type: ignore[arg-type]
+            "MB",
+            1,
+            2000.0 if big else None,
+        ),
+    ]
+
+
+def bench_residual_command_big(quick: bool) -> list[BenchFigure]:
+    """``daror residual`` on ~10^5 and ~10^6 training points (10^5 only with ``quick``)."""
+    figures = _big_figures(100_000)
+    if not quick:
+        figures += _big_figures(1_000_000)
+    return figures
+
+
 BENCHMARKS = [
     bench_residual_diagnosis,
     bench_residual_job,
     bench_augmented_torque_one_q,
     bench_data_efficiency_study,
+    bench_residual_command_big,
 ]
+
+
+def _main() -> None:
+    parser = argparse.ArgumentParser(description="daror residual on big files, in a child process")
+    parser.add_argument("--root", type=Path, help="source tree to measure (PYTHONPATH of the child)")
+    parser.add_argument("--points", type=int, choices=sorted(BIG_SETS), action="append", help="training set size")
+    parser.add_argument("--memory-limit-mb", type=float, help="address-space limit of the child")
+    parser.add_argument("--scenario", default=BIG_SCENARIO, help="scenario of the static generator")
+    args = parser.parse_args()
+    for points in args.points or sorted(BIG_SETS):
+        for f in _big_figures(points, args.root, args.memory_limit_mb, args.scenario):
+            print(f"{f.name}: {f.median:.4g} {f.unit}  {f.note}", flush=True)
+
+
+if __name__ == "__main__":
+    _main()

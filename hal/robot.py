@@ -28,6 +28,7 @@ N_JOINTS = 4
 FloatArray = NDArray[np.float64]
 Vec3 = Annotated[tuple[Number, Number, Number], Field(description="x, y, z in metres")]
 PositiveFloat = Annotated[Number, Field(gt=0)]
+Inertia = Annotated[tuple[Number, Number, Number], Field(description="Ixx, Iyy, Izz about the CoM")]
 
 
 class _Strict(BaseModel):
@@ -59,7 +60,7 @@ class LinkInertial(_Strict):
 
     mass_kg: PositiveFloat
     com_m: Vec3
-    inertia_kgm2: Annotated[tuple[Number, Number, Number], Field(description="Ixx, Iyy, Izz about the CoM")] | None = None
+    inertia_kgm2: Inertia | None = None
 
 
 class SeaConstants(_Strict):

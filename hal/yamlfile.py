@@ -16,8 +16,11 @@ Reading is defensive, because a file a person hands in may be mistaken or hostil
   and they are how a few hundred bytes expand to gigabytes ("billion laughs");
 * explicit tags (``!!python/object:...``, ``!!binary``, ``!custom``) and merge keys (``<<``) are
   refused; the rest is read with PyYAML's safe constructor, so no YAML ever creates an object;
-* nesting deeper than :data:`MAX_DEPTH` levels is refused while the document is composed, before
-  PyYAML's recursive composer could exhaust the stack;
+* nesting deeper than :data:`MAX_DEPTH` levels, or more than :data:`MAX_NODES` values, is refused
+  while the document is composed, before PyYAML's recursive composer could exhaust the stack or the
+  file could cost seconds (larger files are parsed by libyaml, when PyYAML has it);
+* control characters, a value Python cannot convert (an int of 5,000 digits, 2024-13-45) and
+  several documents in one file are refused, each as "not valid YAML" with the line;
 * the top level must be a mapping.
 
 The types :data:`Number`, :data:`Integer` and :data:`Flag` make the numbers and yes/no values of

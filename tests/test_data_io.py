@@ -20,9 +20,9 @@ from hypothesis.extra import numpy as hnp
 
 from daror_runtime.data import tables
 from daror_runtime.data.load import load_dataset, load_stationary, raw_log_path, write_dataset
-from daror_runtime.data.schema import RawLog, StationaryDataset
+from daror_runtime.data.schema import MAX_TIME_S, MAX_TORQUE_NM, MAX_VELOCITY_RAD_S, RawLog, StationaryDataset
 from daror_runtime.data.tables import read_table, write_table
-from daror_runtime.errors import DataError, InputError
+from daror_runtime.errors import DarorError, DataError, InputError
 
 FORMATS = (".csv", ".npz", ".mat")
 STATIONARY_HEADER = "q1,q2,q3,q4,tau1,tau2,tau3,tau4"
@@ -153,7 +153,10 @@ def test_csv_layout_is_header_then_rows_in_file_order(tmp_path: Path) -> None:
 
 
 _angles = st.floats(-3.0, 3.0, allow_nan=False, allow_infinity=False)
-_finite = st.floats(allow_nan=False, allow_infinity=False)
+# every float (subnormals, -0.0, 17 digits) within each column kind's plausible range (schema.py)
+_torques = st.floats(-MAX_TORQUE_NM, MAX_TORQUE_NM, allow_nan=False, allow_infinity=False)
+_velocities = st.floats(-MAX_VELOCITY_RAD_S, MAX_VELOCITY_RAD_S, allow_nan=False, allow_infinity=False)
+_times = st.floats(-MAX_TIME_S, MAX_TIME_S, allow_nan=False, allow_infinity=False)
 _sign = st.sampled_from([-1.0, 0.0, 1.0])
 
 
@@ -161,9 +164,9 @@ _sign = st.sampled_from([-1.0, 0.0, 1.0])
 def stationary_sets(draw: st.DrawFn) -> StationaryDataset:
     n = draw(st.integers(1, 12))
     q = draw(hnp.arrays(np.float64, (n, 4), elements=_angles))
-    tau = draw(hnp.arrays(np.float64, (n, 4), elements=_finite))
+    tau = draw(hnp.arrays(np.float64, (n, 4), elements=_torques))
     direction = draw(st.none() | hnp.arrays(np.float64, (n, 4), elements=_sign))
-    t = draw(st.none() | hnp.arrays(np.float64, (n,), elements=_finite))
+    t = draw(st.none() | hnp.arrays(np.float64, (n,), elements=_times))
     return StationaryDataset(q, tau, direction, t)
 
 
@@ -171,13 +174,14 @@ def stationary_sets(draw: st.DrawFn) -> StationaryDataset:
 def raw_logs(draw: st.DrawFn) -> RawLog:
     n = draw(st.integers(1, 12))
     start = draw(st.floats(-1e6, 1e6, allow_nan=False))
-    steps = draw(hnp.arrays(np.float64, (n,), elements=st.floats(1e-3, 10.0)))
-    t = start + np.concatenate([[0.0], np.cumsum(steps[1:])])  # strictly increasing, as a raw log must be
+    # strictly increasing at a loop's rate (median step 1e-5..0.1 s), as a raw log must be
+    steps = draw(hnp.arrays(np.float64, (n,), elements=st.floats(1e-3, 0.1)))
+    t = start + np.concatenate([[0.0], np.cumsum(steps[1:])])
     q = draw(hnp.arrays(np.float64, (n, 4), elements=_angles))
-    dq = draw(hnp.arrays(np.float64, (n, 4), elements=_finite))
-    tau = draw(hnp.arrays(np.float64, (n, 4), elements=_finite))
+    dq = draw(hnp.arrays(np.float64, (n, 4), elements=_velocities))
+    tau = draw(hnp.arrays(np.float64, (n, 4), elements=_torques))
     theta = draw(st.none() | hnp.arrays(np.float64, (n, 4), elements=_angles))
-    tau_cmd = draw(st.none() | hnp.arrays(np.float64, (n, 4), elements=_finite))
+    tau_cmd = draw(st.none() | hnp.arrays(np.float64, (n, 4), elements=_torques))
     return RawLog(t, q, dq, tau, theta, tau_cmd)
 
 
@@ -229,7 +233,7 @@ def test_failed_write_leaves_no_file_and_no_temporary(
     module, name = _WRITERS[suffix]
     monkeypatch.setattr(module, name, _fail_midway(name))
     target = tmp_path / f"new{suffix}"
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(DarorError, match="No space left"):  # util/atomic.py: the OSError, as one message
         write_table(target, stationary_sample().to_columns())
     assert not target.exists()
     assert list(tmp_path.iterdir()) == []
@@ -243,7 +247,7 @@ def test_failed_write_keeps_the_previous_file(tmp_path: Path, monkeypatch: pytes
     before = target.read_bytes()
     module, name = _WRITERS[suffix]
     monkeypatch.setattr(module, name, _fail_midway(name))
-    with pytest.raises(OSError, match="No space left"):
+    with pytest.raises(DarorError, match="No space left"):  # util/atomic.py: the OSError, as one message
         write_dataset(target, stationary_sample(n=30, seed=2))
     monkeypatch.undo()
     assert target.read_bytes() == before

@@ -85,6 +85,17 @@ def test_the_written_model_is_an_ordinary_model_file(run: Path, files: tuple[Pat
     assert evaluated["rmse"] == pytest.approx(summary["rmse_after"], rel=1e-9)
 
 
+def test_the_a_priori_base_is_augmented(files: tuple[Path, Path], tmp_path: Path) -> None:
+    # AP has no fitted parameters: before issue 10 its first round failed on an empty design.
+    out = tmp_path / "ap"
+    args = ["--train", str(files[0]), "--validate", str(files[1]), "--base", "ap", "--dummy-arm"]
+    assert main(["residual", *args, "--effects", "direction_offset,torque_gain", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["base_model"] == "ap"
+    assert ("direction_offset", [2]) in [(e["name"], e["joints"]) for e in summary["effects"]]
+    assert summary["rmse_after"] < summary["rmse_before"]
+
+
 def test_data_from_another_source_works(tmp_path: Path) -> None:
     # The example files do not come from hal.sim: own column order, extra columns, no t, a .mat file.
     out = tmp_path / "external"

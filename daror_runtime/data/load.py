@@ -1,8 +1,11 @@
 """Read and write datasets, checking every contract of DESIGN.md section 5 on the way in.
 
 Every command that takes data accepts a stationary dataset or a raw log; a raw log (it has ``t``
-and ``dq1..dq4``) is reduced to stationary points first. A file that does not match is refused
-with a message naming the file, the line or column, and what was expected.
+and ``dq1..dq4``, or ``t`` and joints that move between samples: docs/data.md) is reduced to
+stationary points first. A file that does not match is refused with a message naming the file,
+the line or row and the column, and what was expected; every column kind has a plausible range
+(``daror_runtime.data.schema``), so a wrong unit or a corrupted number is refused where it stands
+instead of overflowing in a fit.
 """
 
 from __future__ import annotations
@@ -11,13 +14,19 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import structlog
 
 from daror_runtime.data.schema import (
-    ANGLE_COLUMNS,
     DIR_COLUMNS,
     DQ_COLUMNS,
+    MAX_ANGLE_RAD,
+    MAX_TIME_S,
+    MAX_TORQUE_NM,
+    MAX_VELOCITY_RAD_S,
     Q_COLUMNS,
     RAW_REQUIRED,
+    RAW_STEP_S,
+    RAW_WITHOUT_VELOCITY_REQUIRED,
     STATIONARY_REQUIRED,
     TAU_CMD_COLUMNS,
     TAU_COLUMNS,
@@ -26,24 +35,41 @@ from daror_runtime.data.schema import (
     StationaryDataset,
 )
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
-from daror_runtime.data.tables import Table, read_table, write_table
+from daror_runtime.data.tables import Table, read_table, shown_names, write_table
 from daror_runtime.errors import DataError
 
+log = structlog.get_logger(__name__)
+
 #: A joint angle beyond this is not radians: no joint of the DAROR-01 turns a full circle.
-MAX_PLAUSIBLE_ANGLE_RAD = 2 * np.pi
+MAX_PLAUSIBLE_ANGLE_RAD = MAX_ANGLE_RAD
+
+# Telling a raw log without dq columns from a stationary dataset with t (docs/data.md).
+#: A log is sampled at the loop rate: a median time step below this (s) is 10 Hz or faster.
+LOG_STEP_S = 0.1
+#: Within a stretch of regular sampling the joints of a log move more than this (rad); the repeated
+#: readings of one stop in a stationary dataset stay within the encoders' noise (1e-4 rad).
+LOG_MOVE_RAD = 0.05
+#: Consecutive samples of a log differ by less than this (rad): 2 rad/s at 100 Hz.
+LOG_SMALL_STEP_RAD = 0.02
+#: A stretch of a log holds at least this many samples (fewer could not be filtered and reduced).
+LOG_MIN_SAMPLES = 20
 
 
 def is_raw_log(table: Table) -> bool:
-    """A table is a raw log when it has ``t`` and every ``dq`` column."""
+    """A table is a raw log by its columns when it has ``t`` and every ``dq`` column."""
     return "t" in table.columns and all(c in table.columns for c in DQ_COLUMNS)
 
 
 def _require(table: Table, required: tuple[str, ...], kind: str) -> None:
     missing = [c for c in required if c not in table.columns]
     if missing:
+        found = list(table.columns)
+        by_case = {name.casefold(): name for name in found}
+        spelled = [f"{by_case[m.casefold()]} for {m}" for m in missing if m.casefold() in by_case]
+        hint = f"; column names are case-sensitive (found {', '.join(spelled[:4])})" if spelled else ""
         raise DataError(
             f"{table.path}: missing column(s) {', '.join(missing)}; a {kind} needs {', '.join(required)} "
-            f"(found {', '.join(table.columns) or 'none'})"
+            f"(found {shown_names(found, 20) or 'none'}){hint}"
         )
 
 
@@ -64,7 +90,11 @@ Locator = Callable[[int, str], str]
 
 
 def check_finite(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> None:
-    """Refuse a NaN or infinity, naming its place."""
+    """Refuse a NaN or infinity, naming its place.
+
+    Raises:
+        DataError: the first (by row) value that is not finite.
+    """
     if np.isfinite(matrix).all():  # the common case without a boolean matrix per check
         return
     row, col = np.argwhere(~np.isfinite(matrix))[0]
@@ -73,19 +103,63 @@ def check_finite(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> 
     raise DataError(f"{where(int(row), names[col])}: {word}; expected a finite number")
 
 
-def check_radians(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> None:
-    """Refuse angles beyond 2 pi (degrees handed in as radians)."""
-    if np.abs(matrix).max(initial=0.0) <= MAX_PLAUSIBLE_ANGLE_RAD:
+def check_range(
+    matrix: np.ndarray, names: tuple[str, ...], where: Locator, limit: float, describe: Callable[[float], str]
+) -> None:
+    """Refuse a value beyond ``-limit..limit``; ``describe(value)`` says what it is and what was expected.
+
+    Raises:
+        DataError: the first (by row) value out of range, with its place.
+    """
+    if matrix.size == 0 or (matrix.max() <= limit and matrix.min() >= -limit):  # no temporary array
         return
-    row, col = np.argwhere(np.abs(matrix) > MAX_PLAUSIBLE_ANGLE_RAD)[0]
-    raise DataError(
-        f"{where(int(row), names[col])}: angle {matrix[row, col]:g} is beyond 2 pi; "
-        "angles must be in radians (this looks like degrees)"
+    beyond = np.argwhere(np.abs(matrix) > limit)
+    if beyond.size == 0:  # a NaN made max() NaN: check_finite's to name, not this
+        return
+    row, col = beyond[0]
+    raise DataError(f"{where(int(row), names[col])}: {describe(float(matrix[row, col]))}")
+
+
+def _angle_message(value: float) -> str:
+    if abs(value) <= 1000.0:
+        return f"angle {value:g} is beyond 2 pi; angles must be in radians (this looks like degrees)"
+    return f"angle {value:g} is beyond 2 pi; expected an angle in radians, -2 pi..2 pi"
+
+
+def _velocity_message(value: float) -> str:
+    unit = " (in deg/s?)" if abs(value) <= MAX_VELOCITY_RAD_S * 180 / np.pi else ""
+    return (
+        f"velocity {value:g} rad/s is beyond the plausible range -{MAX_VELOCITY_RAD_S:g}..{MAX_VELOCITY_RAD_S:g} "
+        f"rad/s; expected a joint velocity in rad/s{unit}"
+    )
+
+
+def _torque_message(value: float) -> str:
+    return (
+        f"torque {value:g} Nm is beyond the plausible range -{MAX_TORQUE_NM:g}..{MAX_TORQUE_NM:g} Nm; expected a "
+        "joint torque in Nm (the DAROR-01's drives give at most 40 Nm)"
+    )
+
+
+def _time_message(value: float) -> str:
+    if 1e8 <= abs(value) < 1e10:
+        hint = " (this looks like a Unix time)"
+    elif 1e11 <= abs(value) < 1e13:
+        hint = " (this looks like a Unix time in milliseconds)"
+    else:
+        hint = ""
+    return (
+        f"time {value:g} s is beyond the plausible range -{MAX_TIME_S:g}..{MAX_TIME_S:g} s (116 days); expected "
+        f"the robot's time in seconds{hint}"
     )
 
 
 def check_increasing(t: np.ndarray, where: Locator) -> None:
-    """Refuse time that stands still or goes back."""
+    """Refuse time that stands still or goes back.
+
+    Raises:
+        DataError: the first sample whose time does not come after the one before.
+    """
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         row = int(back[0]) + 1
@@ -94,87 +168,244 @@ def check_increasing(t: np.ndarray, where: Locator) -> None:
         )
 
 
+def check_sample_steps(t: np.ndarray, source: str) -> None:
+    """Refuse a raw log whose median time step is not that of a loop (10 Hz to 100 kHz, in seconds).
+
+    Raises:
+        DataError: the steps look like milliseconds or microseconds, or are too long or too short.
+    """
+    if t.shape[0] < 2:
+        return
+    step = float(np.median(np.diff(t)))
+    low, high = RAW_STEP_S
+    if low * (1 - 1e-6) <= step <= high * (1 + 1e-6):  # 1.1 - 1.0 is 0.10000000000000009
+        return
+    if 0.5 <= step <= 100.0:
+        problem = f"column t looks like milliseconds (steps of {step:g}); expected seconds"
+    elif 100.0 < step <= 1e5:
+        problem = f"column t looks like microseconds (steps of {step:g}); expected seconds"
+    elif step > high:
+        problem = (
+            f"column t has steps of {step:g} s ({1 / step:.3g} Hz); a raw log is sampled at the loop rate: "
+            f"expected steps of at most {high:g} s"
+        )
+    else:
+        problem = f"column t has steps of {step:g} s ({1 / step:.3g} Hz); expected steps of at least {low:g} s (is t in seconds?)"
+    raise DataError(f"{source}: {problem}")
+
+
+def check_time(t: np.ndarray, where: Locator, raw_log: bool, source: str) -> None:
+    """Every check of a ``t`` column: finite and plausible; for a raw log also increasing at a loop's rate.
+
+    Raises:
+        DataError: see :func:`check_finite`, :func:`check_increasing`, :func:`check_sample_steps`.
+    """
+    column = t[:, None]
+    check_finite(column, ("t",), where)
+    if raw_log:
+        check_increasing(t, where)
+        check_sample_steps(t, source)
+    check_range(column, ("t",), where, MAX_TIME_S, _time_message)
+
+
 def check_raw_log(raw: RawLog, where: Locator) -> None:
     """Every raw-log contract check (DESIGN.md section 5) on arrays already assembled.
 
     Raises:
-        DataError: a non-finite value, an angle beyond 2 pi, or time not increasing.
+        DataError: a non-finite value, time not increasing or not at a loop's rate, or a value
+            beyond its column's plausible range (an angle beyond 2 pi, ...).
     """
-    check_finite(raw.t_s[:, None], ("t",), where)
-    check_increasing(raw.t_s, where)
-    groups = [(raw.q_rad, Q_COLUMNS, True), (raw.dq_rad_s, DQ_COLUMNS, False), (raw.tau_nm, TAU_COLUMNS, False)]
+    check_time(raw.t_s, where, raw_log=True, source=raw.source)
+    groups = [(raw.q_rad, Q_COLUMNS), (raw.dq_rad_s, DQ_COLUMNS), (raw.tau_nm, TAU_COLUMNS)]
     if raw.theta_rad is not None:
-        groups.append((raw.theta_rad, THETA_COLUMNS, True))
+        groups.append((raw.theta_rad, THETA_COLUMNS))
     if raw.tau_cmd_nm is not None:
-        groups.append((raw.tau_cmd_nm, TAU_CMD_COLUMNS, False))
-    for matrix, names, angles in groups:
-        check_finite(matrix, names, where)
-        if angles:
-            check_radians(matrix, names, where)
+        groups.append((raw.tau_cmd_nm, TAU_CMD_COLUMNS))
+    for matrix, names in groups:
+        _check_group(matrix, names, where)
 
 
-def _matrix(table: Table, names: tuple[str, ...]) -> np.ndarray:
-    matrix = np.column_stack([table.columns[c] for c in names])
-    check_finite(matrix, names, table.where)
-    return matrix
+_LIMITS: dict[str, tuple[float, Callable[[float], str]]] = {
+    "q": (MAX_ANGLE_RAD, _angle_message),
+    "theta": (MAX_ANGLE_RAD, _angle_message),
+    "dq": (MAX_VELOCITY_RAD_S, _velocity_message),
+    "tau": (MAX_TORQUE_NM, _torque_message),
+    "tau_cmd": (MAX_TORQUE_NM, _torque_message),
+}
 
 
-def _check_radians(table: Table, names: tuple[str, ...], matrix: np.ndarray) -> None:
-    if names[0] in ANGLE_COLUMNS:
-        check_radians(matrix, names, table.where)
+def _check_group(matrix: np.ndarray, names: tuple[str, ...], where: Locator) -> None:
+    check_finite(matrix, names, where)
+    limit, describe = _LIMITS[names[0].rstrip("0123456789")]
+    check_range(matrix, names, where, limit, describe)
 
 
-def _angles(table: Table, names: tuple[str, ...]) -> np.ndarray:
-    matrix = _matrix(table, names)
-    _check_radians(table, names, matrix)
+def _group(table: Table, names: tuple[str, ...]) -> np.ndarray:
+    """A joint group's ``(rows, 4)`` values, finite and within the group's plausible range."""
+    matrix = table.matrix(names)
+    _check_group(matrix, names, table.where)
     return matrix
 
 
 def _directions(table: Table) -> np.ndarray | None:
     if _optional_group(table, DIR_COLUMNS) is None:
         return None
-    matrix = _matrix(table, DIR_COLUMNS)
-    bad = ~np.isin(matrix, (-1.0, 0.0, 1.0))
-    if bad.any():
-        row, col = np.argwhere(bad)[0]
+    matrix = table.matrix(DIR_COLUMNS)
+    check_finite(matrix, DIR_COLUMNS, table.where)
+    if not ((matrix == 0.0) | (matrix == 1.0) | (matrix == -1.0)).all():
+        row, col = np.argwhere((matrix != 0.0) & (matrix != 1.0) & (matrix != -1.0))[0]
         raise DataError(f"{table.where(int(row), DIR_COLUMNS[col])}: {matrix[row, col]:g}; expected -1, 0 or +1")
     return matrix
 
 
-def _time(table: Table, strictly_increasing: bool) -> np.ndarray | None:
+def _time(table: Table, raw_log: bool) -> np.ndarray | None:
     if "t" not in table.columns:
         return None
-    t = _matrix(table, ("t",))[:, 0]
-    if strictly_increasing:
-        check_increasing(t, table.where)
+    t = table.matrix(("t",))[:, 0]
+    check_time(t, table.where, raw_log, str(table.path))
     return t
 
 
+def derive_velocity(t: np.ndarray, q: np.ndarray, where: Locator) -> np.ndarray:
+    """Joint velocity (rad/s, ``(N, 4)``) from time (s, strictly increasing) and angles (rad).
+
+    Central differences inside, one-sided at the ends (``np.gradient``); the reduction's low-pass
+    filter then removes the encoders' quantisation noise as it does from a logged velocity.
+
+    Raises:
+        DataError: a joint moves faster than the plausible velocity between two samples (a jump in
+            the encoder reading, or a wrong time column), named by the later sample.
+    """
+    dt = np.diff(t)
+    for j, name in enumerate(Q_COLUMNS):
+        step = np.diff(q[:, j])
+        fast = np.flatnonzero(np.abs(step) > MAX_VELOCITY_RAD_S * dt)
+        if fast.size:
+            i = int(fast[0])
+            raise DataError(
+                f"{where(i + 1, name)}: the joint moves {step[i]:g} rad in {dt[i]:g} s ({step[i] / dt[i]:g} rad/s) "
+                f"since the previous sample; expected at most {MAX_VELOCITY_RAD_S:g} rad/s (this log has no dq "
+                "columns: its velocity is derived from t and q)"
+            )
+    return np.gradient(q, t, axis=0)
+
+
 def stationary_from_table(table: Table) -> StationaryDataset:
-    """Validate a table as a stationary dataset."""
+    """Validate a table as a stationary dataset.
+
+    Raises:
+        DataError: a missing column, a partial joint group, or a value that is not finite or
+            beyond its column's plausible range (file, line or row, column and the range named).
+    """
     _require(table, STATIONARY_REQUIRED, "stationary dataset")
     return StationaryDataset(
-        q_rad=_angles(table, Q_COLUMNS),
-        tau_nm=_matrix(table, TAU_COLUMNS),
+        q_rad=_group(table, Q_COLUMNS),
+        tau_nm=_group(table, TAU_COLUMNS),
         direction=_directions(table),
-        t_s=_time(table, strictly_increasing=False),
+        t_s=_time(table, raw_log=False),
         source=str(table.path),
     )
 
 
 def raw_from_table(table: Table) -> RawLog:
-    """Validate a table as a raw log."""
-    _require(table, RAW_REQUIRED, "raw log")
+    """Validate a table as a raw log; without ``dq`` columns the velocity is derived from ``t`` and ``q``.
+
+    Raises:
+        DataError: a missing column, a partial joint group, time that is not increasing or not at
+            a loop's rate (e.g. milliseconds), or a value that is not finite or beyond its
+            column's plausible range.
+    """
+    derived = not any(c in table.columns for c in DQ_COLUMNS)
+    _require(table, RAW_WITHOUT_VELOCITY_REQUIRED if derived else RAW_REQUIRED, "raw log")
     theta = _optional_group(table, THETA_COLUMNS)
     tau_cmd = _optional_group(table, TAU_CMD_COLUMNS)
+    t = table.matrix(("t",))[:, 0]
+    check_time(t, table.where, raw_log=True, source=str(table.path))
+    q = _group(table, Q_COLUMNS)
+    if derived:
+        dq = derive_velocity(t, q, table.where)
+        log.info("raw log without dq columns: velocity derived from t and q", path=str(table.path), samples=len(t))
+    else:
+        dq = _group(table, DQ_COLUMNS)
     return RawLog(
-        t_s=_time(table, strictly_increasing=True),
-        q_rad=_angles(table, Q_COLUMNS),
-        dq_rad_s=_matrix(table, DQ_COLUMNS),
-        tau_nm=_matrix(table, TAU_COLUMNS),
-        theta_rad=None if theta is None else _angles(table, theta),
-        tau_cmd_nm=None if tau_cmd is None else _matrix(table, tau_cmd),
+        t_s=t,
+        q_rad=q,
+        dq_rad_s=dq,
+        tau_nm=_group(table, TAU_COLUMNS),
+        theta_rad=None if theta is None else _group(table, theta),
+        tau_cmd_nm=None if tau_cmd is None else _group(table, tau_cmd),
         source=str(table.path),
+        velocity_derived=derived,
+    )
+
+
+def _largest_stretch_travel(q: np.ndarray, joined: np.ndarray) -> float:
+    """The largest range (rad) of any joint over a stretch of rows joined by ``joined`` steps.
+
+    ``joined[i]`` joins rows ``i`` and ``i + 1``; a stretch is a maximal run of joined rows, and
+    counts only with at least :data:`LOG_MIN_SAMPLES` rows.
+    """
+    if not joined.any():
+        return 0.0
+    in_stretch = np.zeros(q.shape[0], dtype=bool)
+    in_stretch[:-1] |= joined
+    in_stretch[1:] |= joined
+    starts = in_stretch & ~np.concatenate([[False], joined])
+    rows = np.flatnonzero(in_stretch)
+    boundaries = np.flatnonzero(starts[rows])
+    long_enough = np.diff(np.append(boundaries, rows.size)) >= LOG_MIN_SAMPLES
+    if not long_enough.any():
+        return 0.0
+    travel = 0.0
+    for j in range(q.shape[1]):
+        values = q[rows, j]
+        spread = np.maximum.reduceat(values, boundaries) - np.minimum.reduceat(values, boundaries)
+        travel = max(travel, float(spread[long_enough].max()))
+    return travel
+
+
+def _is_log_without_velocity(table: Table) -> bool:
+    """A table with ``t`` but no ``dq`` columns is a raw log when the data show one (docs/data.md).
+
+    A log: sampled at 10 Hz or faster (median time step below :data:`LOG_STEP_S`) while the joints
+    move more than :data:`LOG_MOVE_RAD` within a stretch of at least :data:`LOG_MIN_SAMPLES`
+    regularly sampled rows (steps of at most twice the median). A stationary dataset's repeated
+    readings of one stop do not move, and its stops are seconds apart. ``dir`` columns belong to
+    stationary datasets only.
+
+    Raises:
+        DataError: slower steps, but the joints move in small steps between rows over a stretch, as a
+            log whose time is not in seconds would (e.g. milliseconds): neither kind can be assumed.
+    """
+    columns = table.columns
+    if any(c not in columns for c in STATIONARY_REQUIRED) or any(c in columns for c in DIR_COLUMNS):
+        return False
+    t = table.matrix(("t",))[:, 0]
+    q = table.matrix(Q_COLUMNS)
+    if t.shape[0] < 3 or not (np.isfinite(t).all() and np.isfinite(q).all()):
+        return False  # too short to be a log; or a bad value the dataset's own checks will name
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    if positive.size < 2:
+        return False
+    median = float(np.median(positive))
+    regular = (dt > 0) & (dt <= 2 * median)
+    if median < LOG_STEP_S:
+        return _largest_stretch_travel(q, regular) > LOG_MOVE_RAD
+    step = np.zeros(dt.shape[0])
+    for j in range(q.shape[1]):
+        np.maximum(step, np.abs(np.diff(q[:, j])), out=step)
+    if _largest_stretch_travel(q, regular & (step <= LOG_SMALL_STEP_RAD)) <= LOG_MOVE_RAD:
+        return False
+    if 0.5 <= median <= 100.0:
+        raise DataError(
+            f"{table.path}: column t looks like milliseconds (steps of {median:g}); expected seconds (the rows "
+            "look like a log: the joints move in small steps from row to row)"
+        )
+    raise DataError(
+        f"{table.path}: column t has steps of {median:g} s, but the joints move in small steps from row to row "
+        "like a log's; expected a log sampled at 10 Hz or faster (t in seconds), or a stationary dataset with "
+        "dir1..dir4"
     )
 
 
@@ -190,13 +421,16 @@ def load_dataset(path: Path | str) -> StationaryDataset | RawLog:
 def dataset_from_table(table: Table) -> StationaryDataset | RawLog:
     """Validate a table as whichever of the two dataset kinds it is.
 
+    A table with ``t`` and all four ``dq`` is a raw log; with ``t`` and no ``dq`` it is a raw log
+    when its data show one (:func:`_is_log_without_velocity`), never fitted sample by sample.
+
     Raises:
-        DataError: the table does not match either contract.
+        DataError: the table does not match either contract, or cannot be told apart.
     """
-    if "t" in table.columns:
-        # t with only some dq columns is a raw log that lost a column, not a stationary dataset
-        # whose every (moving) sample would count as a stationary point: refuse it.
-        _optional_group(table, DQ_COLUMNS)
+    # t with only some dq columns is a raw log that lost a column, not a stationary dataset whose
+    # every (moving) sample would count as a stationary point: _optional_group refuses it.
+    if "t" in table.columns and _optional_group(table, DQ_COLUMNS) is None and _is_log_without_velocity(table):
+        return raw_from_table(table)
     return raw_from_table(table) if is_raw_log(table) else stationary_from_table(table)
 
 

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.signal
 
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.errors import DataError
@@ -62,6 +61,8 @@ def filtered_velocity(raw: RawLog, settings: ReductionSettings) -> np.ndarray:
         DataError: the sample rate cannot be determined or the cut-off is above Nyquist, or the
             log is too short for the filter.
     """
+    import scipy.signal  # here: 75 MB and most of a second to import, and only raw logs need it
+
     dt = np.diff(raw.t_s)
     if dt.size == 0:
         raise DataError(f"{raw.source}: a raw log needs at least two samples to reduce to stationary points")

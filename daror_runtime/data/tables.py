@@ -47,9 +47,9 @@ from hal.robot import FloatArray
 SUPPORTED_SUFFIXES = (".csv", ".npz", ".mat")
 
 #: Bytes read at a time (CSV); a block is cut at its last line end.
-CHUNK_BYTES = 8 << 20
+CHUNK_BYTES = 4 << 20
 #: A CSV line longer than this is refused (a 200,000-column header is about 1.4 MB).
-MAX_LINE_BYTES = 64 << 20
+MAX_LINE_BYTES = 16 << 20
 #: What the file is when it starts with these bytes (a CSV that is not text).
 _MAGIC = (
     (b"PK\x03\x04", "a zip archive (an .npz, or a spreadsheet .xlsx/.ods saved under a .csv name)"),
@@ -64,32 +64,53 @@ _MAGIC = (
     (b"\xfe\xff", "UTF-16 text (big endian, with a byte order mark)"),
 )
 _UTF8_BOM = b"\xef\xbb\xbf"
+_NO_RUNS = np.empty(0, dtype=np.int64)
 #: Cells a spreadsheet or a logger writes for "no value".
 _MISSING = frozenset({"", "na", "n/a", "#n/a", "null", "none", "nil", "-", "?", "#num!", "#div/0!", "#value!", "#ref!"})
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
+#: Names of dataset columns (to recognise a header separated by spaces).
+_DATA_COLUMN = re.compile(r"^(t|q\d|dq\d|tau\d|dir\d|theta\d|tau_cmd\d)$")
 
 
 @dataclass(frozen=True)
 class Table:
-    """Columns read from ``path``; ``row_lines[i]`` is where row ``i`` stands in the file.
+    """Columns read from ``path``; :attr:`row_lines` tells where each row stands in the file.
 
-    ``blocks`` holds groups of columns stored side by side (``("q1", ..., "q4")`` -> a
-    C-contiguous ``(rows, 4)`` array); the group's entries in ``columns`` are views of it.
+    Where rows stand is kept as runs of consecutive lines (``run_starts[k]`` is the first row of
+    run ``k``, ``run_lines[k]`` its line), not one number per row: a file without blank lines is
+    one run per block read. ``blocks`` holds groups of columns stored side by side
+    (``("q1", ..., "q4")`` -> a C-contiguous ``(rows, 4)`` array); the group's entries in
+    ``columns`` are views of it.
     """
 
     path: Path
     columns: dict[str, FloatArray]
-    row_lines: np.ndarray
+    n_rows: int
+    run_starts: np.ndarray
+    run_lines: np.ndarray
     row_word: str  # "line" for CSV (1-based text line), "row" for npz/mat (1-based)
     blocks: dict[tuple[str, ...], FloatArray] = field(default_factory=dict)
 
     @property
-    def n_rows(self) -> int:
-        return int(self.row_lines.shape[0])
+    def row_lines(self) -> np.ndarray:
+        """The line (CSV) or row (npz/mat) of every row, 1-based."""
+        ends = np.append(self.run_starts[1:], self.n_rows)
+        return np.concatenate(
+            [
+                np.arange(line, line + end - start)
+                for start, end, line in zip(self.run_starts, ends, self.run_lines, strict=True)
+            ]
+            or [np.empty(0, dtype=np.int64)]
+        )
+
+    def line_of(self, row: int) -> int:
+        """The line (CSV) or row (npz/mat) of row ``row`` (0-based), 1-based."""
+        k = int(np.searchsorted(self.run_starts, row, side="right")) - 1
+        return int(self.run_lines[k]) + row - int(self.run_starts[k])
 
     def where(self, row: int, column: str | None = None) -> str:
         """``"data.csv: line 17, column tau2"``, for error messages."""
-        place = f"{self.path}: {self.row_word} {int(self.row_lines[row])}"
+        place = f"{self.path}: {self.row_word} {self.line_of(row)}"
         return place if column is None else f"{place}, column {column}"
 
     def matrix(self, names: tuple[str, ...]) -> FloatArray:
@@ -118,7 +139,8 @@ def _shown(text: str, limit: int = 40) -> str:
     return repr(text if len(text) <= limit else text[: limit - 3] + "...")
 
 
-def _names_shown(names: list[str], limit: int = 10) -> str:
+def shown_names(names: list[str], limit: int = 10) -> str:
+    """``names`` joined for a message, the first ``limit`` of them and how many there are."""
     shown = ", ".join(names[:limit])
     return shown if len(names) <= limit else f"{shown}, ... ({len(names):,} in all)"
 
@@ -273,6 +295,7 @@ def _decimal_to_bits(w: np.uint64, q: int, negative: bool) -> np.uint64:  # prag
 def _parse_lines(
     buf: np.ndarray,
     pos: int,
+    stop: int,
     n_columns: int,
     out: np.ndarray,
     out_bits: np.ndarray,
@@ -280,15 +303,15 @@ def _parse_lines(
     row: int,
     line: int,
 ) -> tuple[int, int, int, bool]:  # pragma: no cover (compiled)
-    """Parse lines of plain decimal numbers from ``buf[pos:]`` into ``out[row:]``.
+    """Parse lines of plain decimal numbers from ``buf[pos:stop]`` into ``out[row:]``.
 
     A line is ``n_columns`` numbers (``[+-]digits[.digits][e[+-]digits]``, at most 19 significant
     digits, spaces or tabs around them) separated by commas, ending in LF, CRLF or the end of
-    ``buf``. ``out_bits`` is ``out`` viewed as uint64. Returns ``(row, pos, line, done)``: with
+    ``stop``. ``out_bits`` is ``out`` viewed as uint64. Returns ``(row, pos, line, done)``: with
     ``done`` False, the line at ``pos`` (file line ``line``) is not such a line and is left to the
     careful parser; nothing of it counts.
     """
-    n = buf.size
+    n = stop
     while pos < n:
         p = pos
         for c in range(n_columns):
@@ -363,17 +386,6 @@ def _parse_lines(
     return row, pos, line, True
 
 
-def parse_decimal(text: str) -> float | None:
-    """``text`` read by the fast path alone, or None where it would leave it to the careful parser.
-
-    For tests: a number the fast path reads must equal ``float(text)`` bit for bit.
-    """
-    data = text.encode("ascii", errors="replace")
-    out = np.zeros((1, 1))
-    row, _, _, _ = _parse_lines(np.frombuffer(data, np.uint8), 0, 1, out, out.view(np.uint64), np.zeros(1, np.int64), 0, 1)
-    return float(out[0, 0]) if row == 1 else None
-
-
 # --- CSV: reading ----------------------------------------------------------------------------
 
 
@@ -383,65 +395,84 @@ def _blank(raw: bytes) -> bool:
 
 
 class _CsvReader:
-    """One pass over the lines of a CSV file: the header, then the rows into preallocated columns."""
+    """Two passes over a CSV file: count the lines, then read the header and the rows into
+    preallocated columns. One buffer of whole lines is reused (no copy of a block, no growth of
+    the heap): the fast parser reads it in place."""
 
     def __init__(self, path: Path, handle: IO[bytes]) -> None:
         self.path = path
         self.handle = handle
         self.size = os.fstat(handle.fileno()).st_size  # read no further: the file may grow
+        self.buffer = bytearray(min(CHUNK_BYTES, max(self.size, 1)))
         self.names: list[str] = []
         self.n_rows = 0
         self.capacity = 0
         self.groups: list[tuple[tuple[str, ...], np.ndarray, np.ndarray]] = []  # names, column indices, storage
         self.rest_index = np.empty(0, dtype=np.intp)
         self.rest = np.empty((0, 0))
-        self.row_lines = np.empty(0, dtype=np.int64)
+        self.run_starts: list[np.ndarray] = []
+        self.run_lines: list[np.ndarray] = []
+        self.scratch = np.empty((0, 0))
+        self.scratch_lines = np.empty(0, dtype=np.int64)
 
     # -- file access
 
-    def _read(self, limit: int) -> bytes:
+    def _read_into(self, start: int, limit: int) -> int:
+        """Read up to ``limit`` bytes into the buffer at ``start``; the number read."""
+        view = memoryview(self.buffer)[start : start + limit]
         try:
-            return self.handle.read(limit)
+            return self.handle.readinto(view) or 0
         except OSError as exc:
             raise DataError(f"{self.path}: cannot read the data file ({exc.strerror})") from None
+        finally:
+            view.release()  # the buffer may grow only without views
 
     def _count_newlines(self) -> int:
+        """Line ends in the file (the first pass), after refusing a file that is not text at all."""
         count, left = 0, self.size
         while left > 0:
-            data = self._read(min(CHUNK_BYTES, left))
-            if not data:
+            got = self._read_into(0, min(len(self.buffer), left))
+            if got == 0:
                 break
-            count += data.count(b"\n")
-            left -= len(data)
+            if left == self.size:
+                self._sniff(bytes(self.buffer[: min(got, 4096)]))
+            count += self.buffer.count(b"\n", 0, got)
+            left -= got
         self.handle.seek(0)
         return count
 
-    def _blocks(self) -> Iterator[tuple[int, bytes]]:
-        """``(number of the first line, bytes of whole lines)`` up to ``self.size`` bytes."""
-        line, pending, left = 1, b"", self.size
-        while left > 0:
-            data = self._read(min(CHUNK_BYTES, left))
-            if not data:
-                break
-            left -= len(data)
-            data = pending + data if pending else data
-            cut = data.rfind(b"\n") + 1
-            if cut == 0 and left > 0:
-                if len(data) > MAX_LINE_BYTES:
-                    raise DataError(
-                        f"{self.path}: line {line} is longer than {MAX_LINE_BYTES >> 20} MB; expected lines of "
-                        "comma-separated values"
-                    )
-                pending = data
-                continue
-            if left <= 0:
-                cut = len(data)
-            pending = data[cut:]
-            block = data[:cut]
-            yield line, block
-            line += block.count(b"\n")
-        if pending:
-            yield line, pending
+    def _blocks(self) -> Iterator[tuple[int, int]]:
+        """``(number of the first line, end)``: ``self.buffer[:end]`` holds whole lines (the last one
+        may lack its line end at the end of the file). Valid until the next iteration."""
+        buffer = self.buffer
+        line, filled, left = 1, 0, self.size
+        while True:
+            if left > 0:
+                if filled == len(buffer):  # one line fills the buffer
+                    if len(buffer) >= MAX_LINE_BYTES:
+                        raise DataError(
+                            f"{self.path}: line {line} is longer than {MAX_LINE_BYTES >> 20} MB; expected lines "
+                            "of comma-separated values"
+                        )
+                    buffer.extend(bytes(min(len(buffer), MAX_LINE_BYTES - len(buffer))))
+                got = self._read_into(filled, min(len(buffer) - filled, left))
+                filled += got
+                left = left - got if got else 0  # a file that shrank ends here
+            at_end = left <= 0
+            cut = filled if at_end else buffer.rfind(b"\n", 0, filled) + 1
+            if cut > 0:
+                yield line, cut
+                line += buffer.count(b"\n", 0, cut)
+                tail = filled - cut
+                buffer[:tail] = buffer[cut:filled]
+                filled = tail
+            if at_end:
+                return
+
+    def _line_end(self, start: int, end: int) -> int:
+        """Where the line at ``start`` ends (after its line end), within ``self.buffer[:end]``."""
+        found = self.buffer.find(b"\n", start, end)
+        return end if found < 0 else found + 1
 
     # -- the header
 
@@ -506,9 +537,7 @@ class _CsvReader:
             )
         duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
         if duplicates:
-            raise DataError(
-                f"{self.path}: line {line}: column name(s) {_names_shown(duplicates)} appear more than once"
-            )
+            raise DataError(f"{self.path}: line {line}: column name(s) {shown_names(duplicates)} appear more than once")
         by_case: dict[str, str] = {}
         for name in names:
             other = by_case.setdefault(name.casefold(), name)
@@ -526,7 +555,7 @@ class _CsvReader:
             kind = "semicolon"
         elif tabs > commas:
             kind = "tab"
-        elif len(cells) == 1 and len(text.split()) > 1:
+        elif len(cells) == 1 and sum(1 for word in text.split() if _DATA_COLUMN.match(word)) >= 2:
             kind = "space"
         else:
             return
@@ -552,7 +581,6 @@ class _CsvReader:
                 grouped.update(group)
         self.rest_index = np.array([c for c, name in enumerate(names) if name not in grouped], dtype=np.intp)
         self.rest = np.empty((capacity, self.rest_index.size))
-        self.row_lines = np.empty(capacity, dtype=np.int64)
         self.capacity = capacity
 
     # -- rows
@@ -565,8 +593,9 @@ class _CsvReader:
         cells = self._cells(text, line)
         names = self.names
         if len(cells) != len(names):
+            fields = f"{len(cells)} field" if len(cells) == 1 else f"{len(cells)} fields"
             raise DataError(
-                f"{self.path}: line {line} has {len(cells)} fields; the header has {len(names)}"
+                f"{self.path}: line {line} has {fields}; the header has {len(names)}"
                 + _ragged_hint(text, cells, len(names))
             )
         values = []
@@ -577,62 +606,80 @@ class _CsvReader:
                 raise DataError(f"{self.path}: line {line}, column {name}: {_not_a_number(cell)}") from None
         return values
 
-    def _rows(self, first_line: int, data: bytes) -> None:
-        n_columns = len(self.names)
-        k = data.count(b"\n") + (0 if data.endswith(b"\n") else 1)
-        out = np.empty((k, n_columns))
+    def _scratch(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """A reused ``(k, columns)`` array for one block's rows, and one for their line numbers."""
+        if self.scratch.shape[0] < k:
+            self.scratch = np.empty((k, len(self.names)))
+            self.scratch_lines = np.empty(k, dtype=np.int64)
+        return self.scratch, self.scratch_lines
+
+    def _rows(self, line: int, start: int, end: int) -> None:
+        """Parse the whole lines in ``self.buffer[start:end]`` (the first is line ``line``) into the columns."""
+        buffer = self.buffer
+        k = buffer.count(b"\n", start, end) + (0 if buffer.endswith(b"\n", start, end) else 1)
+        out, lines = self._scratch(k)
         bits = out.view(np.uint64)
-        lines = np.empty(k, dtype=np.int64)
-        buf = np.frombuffer(data, dtype=np.uint8)
-        pos, row, line = 0, 0, first_line
-        while pos < len(data):
-            row, pos, line, done = _parse_lines(buf, pos, n_columns, out, bits, lines, row, line)
-            if done:
-                break
-            end = data.find(b"\n", pos)
-            end = len(data) if end < 0 else end + 1
-            values = self._careful_row(data[pos:end], line)
-            if values is not None:
-                out[row] = values
-                lines[row] = line
-                row += 1
-            pos, line = end, line + 1
-        start, stop = self.n_rows, self.n_rows + row
-        if stop > self.capacity:
+        view = np.frombuffer(buffer, dtype=np.uint8)
+        pos, row = start, 0
+        try:
+            while pos < end:
+                row, pos, line, done = _parse_lines(view, pos, end, len(self.names), out, bits, lines, row, line)
+                if done:
+                    break
+                stop = self._line_end(pos, end)
+                values = self._careful_row(bytes(buffer[pos:stop]), line)
+                if values is not None:
+                    out[row] = values
+                    lines[row] = line
+                    row += 1
+                pos, line = stop, line + 1
+        finally:
+            del view  # the buffer may grow again only without views
+        first, last = self.n_rows, self.n_rows + row
+        if last > self.capacity:
             raise DataError(f"{self.path}: the file changed while it was read; read it again when it is complete")
         for _, columns, storage in self.groups:
-            storage[start:stop] = out[:row, columns]
+            np.take(out[:row], columns, axis=1, out=storage[first:last], mode="clip")
         if self.rest_index.size:
-            self.rest[start:stop] = out[:row, self.rest_index]
-        self.row_lines[start:stop] = lines[:row]
-        self.n_rows = stop
+            np.take(out[:row], self.rest_index, axis=1, out=self.rest[first:last], mode="clip")
+        if row:
+            starts = np.flatnonzero(np.diff(lines[:row]) != 1) + 1
+            starts = np.concatenate([[0], starts])
+            self.run_starts.append(first + starts)
+            self.run_lines.append(lines[starts])
+        self.n_rows = last
+
+    def _find_header(self, line: int, start: int, end: int) -> tuple[int, int]:
+        """Read the header if it is in ``self.buffer[start:end]``: the line and position after it."""
+        buffer = self.buffer
+        while start < end and not self.names:
+            stop = self._line_end(start, end)
+            raw = bytes(buffer[start:stop])
+            if not _blank(raw):
+                following = self._line_end(stop, end) if stop < end else stop
+                next_raw = bytes(buffer[stop:following]).rstrip(b"\r\n") if stop < end else None
+                self._header(raw, line, next_raw)
+            start, line = stop, line + 1
+        return line, start
 
     def read(self) -> Table:
+        """The table of the file.
+
+        Raises:
+            DataError: see :func:`read_table`.
+        """
         newlines = self._count_newlines()
-        header_line = 0
-        for first_line, block in self._blocks():
-            data, line = block, first_line
+        for first_line, end in self._blocks():
+            line, start = first_line, 0
             if not self.names:
-                if first_line == 1:
-                    self._sniff(data)
-                    if data.startswith(_UTF8_BOM):  # "CSV UTF-8" of spreadsheets
-                        data = data[len(_UTF8_BOM) :]
-                start = 0
-                while start < len(data) and not self.names:
-                    end = data.find(b"\n", start)
-                    end = len(data) if end < 0 else end + 1
-                    if not _blank(data[start:end]):
-                        following = data.find(b"\n", end)
-                        next_raw = data[end : len(data) if following < 0 else following] if end < len(data) else None
-                        self._header(data[start:end], line, next_raw)
-                        header_line = line
-                    start, line = end, line + 1
+                if first_line == 1 and self.buffer.startswith(_UTF8_BOM):  # "CSV UTF-8" of spreadsheets
+                    start = len(_UTF8_BOM)
+                line, start = self._find_header(line, start, end)
                 if not self.names:
                     continue
-                self._allocate(max(newlines + 1 - header_line, 0))
-                data = data[start:]
-            if data:
-                self._rows(line, data)
+                self._allocate(max(newlines + 2 - line, 0))  # the lines after the header's
+            if start < end:
+                self._rows(line, start, end)
         if not self.names:
             raise DataError(f"{self.path}: file is empty; expected a header row of column names, then data rows")
         n = self.n_rows
@@ -645,7 +692,12 @@ class _CsvReader:
         for j, c in enumerate(self.rest_index):
             columns[self.names[c]] = self.rest[:n, j]
         ordered = {name: columns[name] for name in self.names}
-        return Table(self.path, ordered, self.row_lines[:n], "line", blocks)
+        runs = (
+            (np.concatenate(self.run_starts), np.concatenate(self.run_lines))
+            if self.run_starts
+            else (_NO_RUNS, _NO_RUNS)
+        )
+        return Table(self.path, ordered, n, *runs, "line", blocks)
 
 
 def _is_float(text: str) -> bool:
@@ -699,7 +751,7 @@ def _table_of_columns(path: Path, columns: dict[str, FloatArray]) -> Table:
                 block[:, j] = columns[name]
                 columns[name] = block[:, j]  # the original array is freed here
             blocks[group] = block
-    return Table(path, columns, np.arange(1, n + 1), "row", blocks)
+    return Table(path, columns, n, np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64), "row", blocks)
 
 
 def _check_dtype(path: Path, name: str, dtype: np.dtype) -> None:

@@ -6,10 +6,16 @@ torque limit and a joint velocity limit), whether a fault enters FAIL from it, a
 guards (from :data:`~daror_runtime.fsm.guards.GUARDS`) of its advance, revert and reset
 transitions; and the FAIL state with the guards of the reset that leaves it.
 
-Loading is two passes: pydantic checks the shape and the types; :func:`check_spec` checks the
-meaning (names registered, numbering, hierarchy, test states consistent with their modes, FAIL
-left only after the fault is cleared and acknowledged). Every problem is reported with the file,
-the line and the field, all problems at once, and the runtime refuses to start on any.
+Loading is two passes: pydantic checks the shape and the types (strict: a bool or a string where
+a number is meant is refused; the file itself is read by :func:`hal.yamlfile.read_yaml`, which
+refuses duplicate keys, aliases, tags, deep nesting and anything that is not a small regular
+file); :func:`check_spec` checks the meaning (names registered, numbering, hierarchy) and the
+safety invariants of the spec itself (:data:`INVARIANTS`: torque and speed limits within the
+device's, no torque in the first state nor before the e-stops were tested, test states consistent
+with their modes, FAIL left only after the fault is cleared and acknowledged, position control and
+torque inside the pilot's ISB limits, only approved models compensate; docs/fsm.md has the
+table). Every problem is reported with the file, the line and the field, all problems at once,
+and the runtime refuses to start on any.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from pathlib import Path
 from daror_runtime.data.load import dataset_from_table
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
-from daror_runtime.data.tables import read_table
+from daror_runtime.data.tables import read_table, shown_names
 from daror_runtime.errors import DataError
 from hal.robot import N_JOINTS
 
@@ -62,7 +62,7 @@ def load_residual_file(path: Path | str, reduction: ReductionSettings | None = N
     extra = _extra_joints(list(table.columns))
     if extra:
         raise DataError(
-            f"{path}: column(s) {', '.join(extra)} belong to a robot with more than {N_JOINTS} joints; "
+            f"{path}: column(s) {shown_names(extra)} belong to a robot with more than {N_JOINTS} joints; "
             f"expected DAROR-01 data with joints 1-{N_JOINTS}"
         )
     data = dataset_from_table(table)

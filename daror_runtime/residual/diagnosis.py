@@ -32,7 +32,14 @@ from daror_runtime.residual.evidence import (
     residual_structure,
     span_basis,
 )
-from daror_runtime.residual.structure import Structure, StructureFit, base_model, fit_structure, standard_errors
+from daror_runtime.residual.structure import (
+    Structure,
+    StructureFit,
+    Workspace,
+    base_model,
+    fit_structure,
+    standard_errors,
+)
 from hal.robot import N_JOINTS, RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -109,7 +116,9 @@ def _lowest_order(
     best_fit, best_effect, best_bic = fit, effect, bic(fit)
     for order in range(1, settings.stiffness_order):
         candidate = Effect(effect.family, effect.joint, order)
-        trial = fit_structure(fit.structure.replacing(effect, candidate), data, fit.phi if fit.phi.size else None)
+        trial = fit_structure(
+            fit.structure.replacing(effect, candidate), data, fit.phi if fit.phi.size else None, fit.workspace
+        )
         if bic(trial) < best_bic:
             best_fit, best_effect, best_bic = trial, candidate, bic(trial)
     return best_fit, best_effect
@@ -147,8 +156,10 @@ def diagnose(
     settings = settings or DiagnosisSettings()
     start = time.perf_counter()
     notes: list[str] = []
-    structure = Structure(base_model(base_kind, description, dummy_arm), (), description, settings.stiffness_order)
-    current = fit_structure(structure, train)
+    base = base_model(base_kind, description, dummy_arm)
+    structure = Structure(base, (), description, settings.stiffness_order)
+    workspace = Workspace(train, description, base, settings.families, settings.stiffness_order, settings.folds)
+    current = fit_structure(structure, train, workspace=workspace)
     _check_base_identifiable(current, train, description)
     base_fit = current
     candidates = []
@@ -165,11 +176,9 @@ def diagnose(
         remaining = [c for c in candidates if not current.structure.has_site(c)]
         if not remaining:
             break
+        span = span_basis(current, train)  # first: its factor serves the cross-validation too
         cv_before = cv_rmse(current, train, settings.folds)
-        basis = span_basis(current, train)
-        evidence = [
-            evaluate_candidate(current, cv_before, basis, c, train, settings, len(remaining)) for c in remaining
-        ]
+        evidence = [evaluate_candidate(current, cv_before, span, c, train, settings, len(remaining)) for c in remaining]
         rounds.append(sorted(evidence, key=lambda e: e.delta_bic))
         passing = [e for e in evidence if e.found]
         if not passing:

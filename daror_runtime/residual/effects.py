@@ -78,14 +78,6 @@ def tilt_rotation(tilt_rad: FloatArray) -> FloatArray:
     return rot_x(float(tilt_rad[0])) @ rot_z(float(tilt_rad[1]))
 
 
-@dataclass(frozen=True)
-class ColumnContext:
-    """Signals the linear families build their columns from: (N, 4) each."""
-
-    q_rad: FloatArray  # measured angles minus any encoder offsets
-    direction: FloatArray | None
-
-
 class EffectFamily(ABC):
     """One family of the library; stateless, shared."""
 
@@ -102,12 +94,6 @@ class EffectFamily(ABC):
 
     def linear_names(self, effect: Effect, stiffness_order: int) -> list[str]:
         return []
-
-    def columns(self, effect: Effect, context: ColumnContext, stiffness_order: int) -> FloatArray:
-        """Column values on the effect's joint row, (n_linear, N)."""
-        raise ConfigurationError(
-            f"{self.name} adds no least-squares columns; only linear families are asked for columns"
-        )
 
     # nonlinear families
     initial: ClassVar[tuple[float, ...]] = ()
@@ -159,11 +145,6 @@ class DirectionOffset(EffectFamily):
     def linear_names(self, effect: Effect, stiffness_order: int) -> list[str]:
         return [f"direction_offset{effect.joint}_nm"]
 
-    def columns(self, effect: Effect, context: ColumnContext, stiffness_order: int) -> FloatArray:
-        if context.direction is None:
-            raise UsageError("direction_offset needs the dir1..dir4 columns in the data")
-        return context.direction[:, _joint_index(effect)][None, :]
-
     def physical(
         self, effect: Effect, linear: FloatArray, nonlinear: FloatArray, context: PhysicalContext
     ) -> dict[str, Any]:
@@ -186,10 +167,6 @@ class JointStiffness(EffectFamily):
 
     def linear_names(self, effect: Effect, stiffness_order: int) -> list[str]:
         return [f"stiffness{effect.joint}_c{k}" for k in range(self.n_linear(effect, stiffness_order))]
-
-    def columns(self, effect: Effect, context: ColumnContext, stiffness_order: int) -> FloatArray:
-        q = context.q_rad[:, _joint_index(effect)]
-        return np.vander(q, self.n_linear(effect, stiffness_order), increasing=True).T
 
     def physical(
         self, effect: Effect, linear: FloatArray, nonlinear: FloatArray, context: PhysicalContext

@@ -31,13 +31,16 @@ import scipy.linalg
 import scipy.stats
 
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.models.least_squares import min_norm_least_squares
+from daror_runtime.errors import ConfigurationError
 from daror_runtime.residual.effects import FAMILIES, Effect, family
+from daror_runtime.residual.reduced import Factor
 from daror_runtime.residual.structure import (
     DEFAULT_STIFFNESS_ORDER,
+    Structure,
     StructureFit,
+    Workspace,
     fit_structure,
-    nonlinear_jacobian,
+    solve_reduced,
 )
 from hal.robot import N_JOINTS, FloatArray
 
@@ -114,55 +117,101 @@ def fold_labels(n_points: int, folds: int) -> FloatArray:
     return (np.arange(n_points) * folds) // max(n_points, 1)
 
 
+def _on(fit: StructureFit, data: StationaryDataset, folds: int) -> StructureFit:
+    """``fit``, moved to a workspace of ``data`` and ``folds`` when it was fitted with others."""
+    workspace = fit.workspace
+    if data is workspace.data and folds == workspace.folds:
+        return fit
+    structure = fit.structure
+    workspace = Workspace(
+        data, structure.description, structure.base, structure.families, structure.stiffness_order, folds
+    )
+    return dataclasses.replace(fit, workspace=workspace, _memo={})
+
+
 def cv_rmse(fit: StructureFit, data: StationaryDataset, folds: int) -> float:
     """Held-out RMSE (Nm) of the structure refitted on all but one contiguous block, per block.
 
     The nonlinear parameters stay at the full-data fit (a handful against dozens of linear
-    ones); the linear ones are refitted per fold.
+    ones); the linear ones are refitted per fold. Each fold has a QR factor of its own, and the
+    other folds' factors stacked stand for the training rows (:mod:`.reduced`): nothing is copied.
     """
-    design = fit.structure.design(fit.phi, data)
-    y = np.ascontiguousarray(data.tau_nm.T)
-    target = y - design.gain[:, None] * design.fixed  # (4, N)
-    scaled = design.columns * design.gain[None, :, None]  # (P, 4, N)
-    labels = fold_labels(len(data), folds)
-    errors = np.empty_like(target)
-    for k in range(folds):
-        held = labels == k
-        if not held.any():
+    fit = _on(fit, data, folds)
+    factor = fit.factor()
+    structure = fit.structure
+    co = structure.coefficients(fit.phi, factor.layout)
+    target = co.per_joint_target(factor.layout)
+    design = co.per_joint_design()
+    total = 0.0
+    for k in range(factor.folds):
+        if factor.points(("fold", k)) == 0:
             continue
-        if scaled.shape[0] == 0:
-            errors[:, held] = target[:, held]
-            continue
-        train = ~held
-        solve = min_norm_least_squares(
-            scaled[:, :, train].reshape(scaled.shape[0], -1), target[:, train].reshape(-1), refinement_steps=1
-        )
-        errors[:, held] = target[:, held] - np.tensordot(solve.theta, scaled[:, :, held], axes=(0, 0))
-    return float(np.sqrt(np.mean(errors**2)))
+        held = factor.assemble(("fold", k), target)
+        if structure.n_linear:
+            theta = solve_reduced(factor, co, ("train", k)).x
+            held = held - factor.assemble(("fold", k), design) @ theta
+        total += float(held @ held)
+    return float(np.sqrt(total / (N_JOINTS * len(data))))
 
 
-def span_basis(fit: StructureFit, data: StationaryDataset) -> FloatArray:
-    """Orthonormal basis (4 N, r) of every direction the fitted model can already move in."""
-    design = fit.structure.design(fit.phi, data)
-    directions = np.column_stack([design.matrix().T, nonlinear_jacobian(fit.structure, fit.phi, fit.x, data)])
+@dataclass(frozen=True)
+class Span:
+    """Orthonormal basis (M, r) of every direction the fitted model can already move in, in the
+    reduced rows of a diagnosis round's factor (:meth:`.Workspace.round_factor`)."""
+
+    basis: FloatArray
+    factor: Factor
+
+
+def _parameter_direction(
+    structure: Structure, phi: FloatArray, x: FloatArray, factor: Factor, index: int
+) -> FloatArray:
+    """d(prediction)/d(phi[index]) in ``factor``'s rows: a combination of its columns, or for an
+    encoder offset the derivative column the round factor carries for that joint."""
+    coefficients = structure.direction_coefficients(phi, x, factor.layout, index)
+    if coefficients is None:
+        kind, joint = structure.derivative_requests()[index]
+        layout = factor.layout
+        if kind != "delta" or layout.n_derivatives != N_JOINTS:
+            raise ConfigurationError(f"no derivative column for {kind} {joint + 1} in this factor")
+        unit = np.zeros(layout.size)
+        unit[layout.derivative(joint)] = 1.0
+        coefficients = [unit] * N_JOINTS
+    return factor.assemble("all", coefficients)
+
+
+def span_basis(fit: StructureFit, data: StationaryDataset) -> Span:
+    """Orthonormal basis of every direction the fitted model can already move in."""
+    fit = _on(fit, data, fit.workspace.folds)
+    factor = fit.workspace.round_factor(fit)
+    structure = fit.structure
+    co = structure.coefficients(fit.phi, factor.layout)
+    parts = [factor.assemble("all", co.per_joint_design())]
+    parts += [_parameter_direction(structure, fit.phi, fit.x, factor, i)[:, None] for i in range(structure.n_nonlinear)]
+    directions = np.column_stack(parts)
     if directions.shape[1] == 0:
-        return np.zeros((directions.shape[0], 0))
+        return Span(np.zeros((directions.shape[0], 0)), factor)
     norms = np.linalg.norm(directions, axis=0)
+    if not np.any(norms > 0):
+        return Span(np.zeros((directions.shape[0], 0)), factor)
     directions = directions[:, norms > 0] / norms[norms > 0]
     # Pivoted Householder QR: as reliable as an SVD for the span, several times faster here.
     q, r, _ = scipy.linalg.qr(directions, mode="economic", pivoting=True)
     diagonal = np.abs(np.diag(r))
-    return q[:, diagonal > 1e-10 * diagonal[0]]
+    return Span(q[:, diagonal > 1e-10 * diagonal[0]], factor)
 
 
-def candidate_directions(fit: StructureFit, effect: Effect, data: StationaryDataset) -> FloatArray:
-    """Directions (4 N, m) the candidate adds to the fitted model's prediction."""
+def candidate_directions(fit: StructureFit, effect: Effect, data: StationaryDataset, factor: Factor) -> FloatArray:
+    """Directions (M, m) the candidate adds to the fitted model's prediction, in ``factor``'s rows."""
     extended = fit.structure.with_effect(effect)
     phi = np.concatenate([fit.phi, np.asarray(family(effect.family).initial, dtype=float)])
     linear = extended.linear_slice(effect)
     if linear is not None:
-        return extended.design(phi, data).matrix()[linear].T
-    return nonlinear_jacobian(extended, phi, fit.x, data, extended.nonlinear_slice(effect))
+        co = extended.coefficients(phi, factor.layout)
+        return factor.assemble("all", [co.gain[j] * co.design[:, linear] for j in range(N_JOINTS)])
+    where = extended.nonlinear_slice(effect)
+    indices = range(where.start, where.stop)  # type: ignore[union-attr]
+    return np.column_stack([_parameter_direction(extended, phi, fit.x, factor, i) for i in indices])
 
 
 def orthogonal_fraction(basis: FloatArray, directions: FloatArray) -> float:
@@ -180,19 +229,19 @@ def orthogonal_fraction(basis: FloatArray, directions: FloatArray) -> float:
 def evaluate_candidate(
     current: StructureFit,
     cv_before_nm: float,
-    basis: FloatArray,
+    span: Span,
     effect: Effect,
     data: StationaryDataset,
     settings: DiagnosisSettings,
     n_candidates: int,
 ) -> CandidateEvidence:
     """Fit ``current`` plus ``effect`` and weigh the evidence (see the module docstring)."""
-    fraction = orthogonal_fraction(basis, candidate_directions(current, effect, data))
+    fraction = orthogonal_fraction(span.basis, candidate_directions(current, effect, data, span.factor))
     if fraction < settings.absorbed_below:
         return CandidateEvidence(effect, "absorbed", fraction)
     extended = current.structure.with_effect(effect)
     phi0 = np.concatenate([current.phi, np.asarray(family(effect.family).initial, dtype=float)])
-    fit = fit_structure(extended, data, phi0 if extended.n_nonlinear else None)
+    fit = fit_structure(extended, data, phi0 if extended.n_nonlinear else None, current.workspace)
     n = fit.n_rows
     delta_k = fit.n_effective - current.n_effective
     if delta_k <= 0:

@@ -199,6 +199,19 @@ def _save_figure(figure: Any, path: Path) -> None:
         tmp.write_bytes(buffer.getvalue())
 
 
+#: Points drawn per scatter or line at most: beyond this a PNG shows no more (1,100 px wide), and
+#: drawing a million markers per panel takes tens of seconds and hundreds of MB.
+MAX_PLOTTED_POINTS = 20_000
+
+
+def _plotted(n_points: int) -> tuple[slice, str]:
+    """Every k-th point when there are more than :data:`MAX_PLOTTED_POINTS`, and a note saying so."""
+    step = -(-n_points // MAX_PLOTTED_POINTS)
+    if step <= 1:
+        return slice(None), ""
+    return slice(None, None, step), f" (one point in {step} of {n_points:,} shown)"
+
+
 def plot_residual_signals(diagnosis: Diagnosis, train: StationaryDataset, path: Path) -> None:
     """Training residual, base (grey) and augmented (blue), against each candidate's signal."""
     import matplotlib
@@ -206,7 +219,9 @@ def plot_residual_signals(diagnosis: Diagnosis, train: StationaryDataset, path: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    before, after = diagnosis.base_fit.residual_nm, diagnosis.final_fit.residual_nm
+    shown, note = _plotted(len(train))
+    train = train.subset(shown)
+    before, after = diagnosis.base_fit.residual_nm[shown], diagnosis.final_fit.residual_nm[shown]
     model_torque = train.tau_nm - before
     signals: list[tuple[str, Any]] = [
         ("joint angle q_j (deg)  [joint_stiffness, encoder_offset]", lambda j: np.degrees(train.q_rad[:, j])),
@@ -234,7 +249,7 @@ def plot_residual_signals(diagnosis: Diagnosis, train: StationaryDataset, path: 
             if c == 0:
                 ax.set_ylabel(f"joint {j + 1} residual (Nm)")
     axes[0, 0].legend(loc="upper right", fontsize=7, markerscale=3)
-    figure.suptitle("Training residual against each candidate's signal")
+    figure.suptitle(f"Training residual against each candidate's signal{note}")
     figure.tight_layout()
     _save_figure(figure, path)
     plt.close(figure)
@@ -247,9 +262,11 @@ def plot_before_after(diagnosis: Diagnosis, model: AugmentedModel, validate: Sta
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    shown, note = _plotted(len(validate))
+    index = np.arange(len(validate))[shown]
+    validate = validate.subset(shown)
     base = diagnosis.base_fit.predict(validate)
     augmented = model.predict(validate.q_rad, validate.direction)
-    index = np.arange(len(validate))
     figure, axes = plt.subplots(N_JOINTS, 1, figsize=(11, 2.3 * N_JOINTS), sharex=True)
     for j in range(N_JOINTS):
         ax = axes[j]
@@ -259,7 +276,7 @@ def plot_before_after(diagnosis: Diagnosis, model: AugmentedModel, validate: Sta
         ax.set_ylabel(f"tau{j + 1} (Nm)")
     axes[0].legend(loc="upper right", fontsize=8, ncol=3)
     axes[-1].set_xlabel("validation point")
-    figure.suptitle("Validation data and the models, before and after")
+    figure.suptitle(f"Validation data and the models, before and after{note}")
     figure.tight_layout()
     _save_figure(figure, path)
     plt.close(figure)

@@ -20,7 +20,7 @@ from rich.table import Table
 
 from daror_runtime.studies.data_efficiency import DataEfficiencyResult
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
-from daror_runtime.util.outputs import check_output_dir
+from daror_runtime.util.outputs import OutputPathError
 
 JSON_NAME = "data_efficiency.json"
 PNG_NAME = "data_efficiency.png"
@@ -176,9 +176,12 @@ def check_out_dir(out_dir: Path | str) -> None:
     """Refuse an output path that cannot become the study's directory, before any work is done.
 
     Raises:
-        OutputPathError: ``out_dir`` is a file, or its parent is missing or not writable.
+        OutputPathError: ``out_dir`` exists and is not a folder (missing parents are created; the
+            command line refuses them before it gets here, docs/decisions.md D61).
     """
-    check_output_dir(out_dir)
+    folder = Path(out_dir)
+    if folder.exists() and not folder.is_dir():
+        raise OutputPathError(f"{folder}: is a file; expected a folder")
 
 
 def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Path, Path, Path]:
@@ -188,7 +191,7 @@ def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Pa
         The paths written: JSON, PNG, Markdown.
 
     Raises:
-        OutputPathError: ``out_dir`` is a file, or its parent is missing or not writable.
+        OutputPathError: ``out_dir`` exists and is not a folder.
     """
     folder = Path(out_dir)
     check_out_dir(folder)

@@ -14,6 +14,7 @@ may start from another with ``extends: NAME`` (see :func:`load_scenario_file`).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -408,7 +409,8 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         hal.errors.DescriptionError: unknown name, missing file, or a file that does not match.
     """
     candidate = Path(name_or_path)
-    if candidate.suffix in {".yaml", ".yml"} or candidate.exists():
+    # lexists: a broken link or a symlink loop is still a path the person named, not a scenario name
+    if candidate.suffix in {".yaml", ".yml"} or os.path.lexists(candidate):
         return load_scenario_file(candidate)
     names = scenario_names()
     if str(name_or_path) not in names:
