@@ -6,7 +6,8 @@ asserted in tests.
 
 * MinimalImpedance: the SEA torque loop with its observer (one compiled kernel call).
 * Compensation: the same plus a PLF+ model's torque (fitted as bench/bench_models.py does).
-* PositionPD: the same plus the PD kernel and a minimum-jerk reference.
+* MotorPositionPD: the identification's position controller on a validation trajectory (with its
+  approach) and an A Priori feed-forward: reference, model and PD in one compiled call.
 """
 
 from __future__ import annotations
@@ -21,12 +22,13 @@ from daror_runtime.control import (
     Controller,
     LinkBounds,
     MinimalImpedance,
-    PositionPD,
     SeaTorqueController,
-    minimum_jerk,
 )
+from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.models.linear import fit_plf_plus
+from daror_runtime.identification.trajectory_planning import build_trajectory
+from daror_runtime.identification.waypoints import load_waypoints
+from daror_runtime.models.linear import APModel, fit_plf_plus
 from hal.interface import DriveState, Sample
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
@@ -103,15 +105,19 @@ def bench_compensation_update(quick: bool) -> BenchFigure:
     )
 
 
-def bench_position_pd_update(quick: bool) -> BenchFigure:
+def bench_motor_position_update(quick: bool) -> BenchFigure:
     description = load_description()
     bounds = LinkBounds.from_description(description)
-    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])
+    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])  # where _samples() are
+    reference = build_trajectory(load_waypoints(), "validation").with_approach(q0, 2.0, 1.0)
+    feedforward = APModel.from_description(description, dummy_arm=True, elbow_stiffness=True)
 
     def build() -> Controller:
-        return PositionPD(SeaTorqueController(description.sea), minimum_jerk(q0, q0 + 0.3, 2.0), bounds)
+        return MotorPositionPD(description, reference, bounds, feedforward=feedforward)
 
-    return _figure("PositionPD.update, 4 joints", build, quick, 10.0, "minimum-jerk reference + PD + torque loop")
+    return _figure(
+        "MotorPositionPD.update, 4 joints", build, quick, 10.0, "trajectory table + AP feed-forward + PD, one kernel"
+    )
 
 
-BENCHMARKS = [bench_minimal_impedance_update, bench_compensation_update, bench_position_pd_update]
+BENCHMARKS = [bench_minimal_impedance_update, bench_compensation_update, bench_motor_position_update]

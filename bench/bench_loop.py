@@ -24,10 +24,11 @@ from daror_runtime.clocks import RealTimeClock
 from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.data.recorder import Recorder
+from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.identification.protocol import run_protocol
-from daror_runtime.identification.trajectory import build_trajectory
+from daror_runtime.identification.trajectory_planning import build_trajectory
 from daror_runtime.identification.waypoints import load_waypoints
-from daror_runtime.loop import RECORD_COLUMNS, ControlLoop, FixedSupervisor
+from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.models.linear import APModel
 from daror_runtime.realtime import release_realtime, request_realtime
 from daror_runtime.safety.limits import SafetyLimits
@@ -41,7 +42,7 @@ def _protocol_once(kind: str = "training") -> tuple[float, float, int]:
     trajectory = build_trajectory(load_waypoints(), kind)  # type: ignore[arg-type]
     feedforward = APModel.from_description(hal.description, dummy_arm=True, elbow_stiffness=True)
     with tempfile.TemporaryDirectory() as tmp:
-        result = run_protocol(hal, trajectory, Path(tmp) / "run.rec", feedforward=feedforward)
+        result = run_protocol(hal, trajectory, Path(tmp) / "run.rec", Path(tmp) / "run.csv", feedforward=feedforward)
     return result.real_time_factor, result.wall_time_s / result.ticks * 1e6, result.ticks
 
 

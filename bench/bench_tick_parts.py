@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from daror_runtime.bench import BenchFigure, time_calls, time_each
-from daror_runtime.identification.trajectory import build_trajectory
+from daror_runtime.identification.trajectory_planning import build_trajectory
 from daror_runtime.identification.waypoints import load_waypoints
 from hal.isb import default_shoulder
 
@@ -26,7 +26,9 @@ def bench_trajectory_reference(quick: bool) -> BenchFigure:
     times = np.arange(0.0, 60.0, 0.001).tolist()
     repeats = 20 if quick else 100
     median, p90 = time_each(training.reference, times, repeats)
-    note = f"training: {training.duration_s / 60:.2f} min, {len(training.stops)} stops, {training.nbytes / 1e6:.1f} MB"
+    starts, coefficients = training.piecewise_table
+    table_mb = (coefficients.nbytes + starts.nbytes + 2 * 32 * len(starts)) / 1e6  # arrays + the per-tick lists
+    note = f"training: {training.duration_s / 60:.2f} min, {len(training.stops)} stops, {table_mb:.1f} MB"
     return BenchFigure("trajectory reference(t) (Python path)", median, p90, "us", repeats, note=note)
 
 

@@ -132,20 +132,22 @@ def cmd_simulate_list(args: argparse.Namespace, console: Console) -> int:
 def cmd_identify(args: argparse.Namespace, console: Console) -> int:
 
     from daror_runtime.data.load import raw_log_path, write_dataset
-    from daror_runtime.identification.protocol import ProtocolSettings, run_protocol
-    from daror_runtime.identification.trajectory import build_trajectory
+    from daror_runtime.identification.protocol import run_protocol
+    from daror_runtime.identification.trajectory_planning import build_trajectory
     from daror_runtime.identification.waypoints import load_waypoints
     from daror_runtime.models.files import load_model
     from daror_runtime.models.linear import APModel
+    from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.outputs import output_lock
     from hal.isb import IsbLimits, load_isb_limits
     from hal.sim.backend import SimHal
     from hal.sim.scenario import load_scenario
 
     out = _output_file(args.out)
-    raw_path = _output_file(raw_log_path(out))
+    raw_path = _output_file(raw_log_path(out, f".{args.raw_format}"))
     scenario = load_scenario(args.scenario)
-    waypoints = load_waypoints(args.waypoints)
+    settings = load_session_settings(args.settings).identification
+    waypoints = load_waypoints(args.waypoints or settings.waypoints_file)
     isb = load_isb_limits(args.isb_limits) if args.isb_limits is not None else None
     hal = SimHal(scenario, rate_hz=args.rate_hz)
     if args.feedforward == "ap":
@@ -171,8 +173,9 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
                 hal,
                 trajectory,
                 recording,
+                out,
                 isb_limits=isb,
-                settings=ProtocolSettings(),
+                settings=settings,
                 progress=lambda done, total: bar.update(task, completed=done, total=total),
                 feedforward=feedforward,
             )
@@ -214,20 +217,36 @@ def _unique_recording(out: Path) -> Path:
 # --- fit / evaluate / cvf ---------------------------------------------------------------
 
 
+#: The ``daror fit`` flag of each model option (a field of the kinds' options models), for messages.
+FIT_OPTION_FLAGS = {
+    "name": "--name",
+    "dummy_arm": "--dummy-arm",
+    "elbow_stiffness": "--elbow-stiffness/--no-elbow-stiffness",
+    "seed": "--seed",
+}
+
+
+def _fit_options_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The model options given on the ``daror fit`` command line, by field name (flags left out are absent)."""
+    given = {field: getattr(args, field) for field in FIT_OPTION_FLAGS}
+    return {field: value for field, value in given.items() if value is not None}
+
+
 def cmd_fit(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.data.load import load_stationary
     from daror_runtime.models.files import save_model, training_summary
-    from daror_runtime.models.registry import NO_DATA_KINDS, FitOptions, fit_model, kind_entry
+    from daror_runtime.models.registry import fit_model, kind_entry, options_for
     from hal.robot import load_description
 
     kind = args.kind.lower()
-    kind_entry(kind)
-    if args.train is None and kind not in NO_DATA_KINDS:
+    entry = kind_entry(kind)
+    # the kind's own options: a flag it does not take is refused here, before any work
+    options = options_for(kind, _fit_options_given(args), FIT_OPTION_FLAGS)
+    if args.train is None and entry.needs_data:
         raise UsageError(f"model kind {kind} learns from data; give --train FILE")
     _output_file(args.out, args.train)
     description = load_description(args.robot)
     dataset = load_stationary(args.train) if args.train is not None else None
-    options = FitOptions(name=args.name, dummy_arm=args.dummy_arm, elbow_stiffness=args.elbow_stiffness, seed=args.seed)
     log.info("fit requested", kind=kind, train=None if args.train is None else str(args.train))
     result = fit_model(kind, dataset, description, options)
     summary = training_summary(dataset, args.train) if dataset is not None else None
@@ -298,6 +317,23 @@ def cmd_cvf(args: argparse.Namespace, console: Console) -> int:
 # --- residual ---------------------------------------------------------------------------
 
 
+def _residual_base_takes_dummy_arm(base: str) -> None:
+    """Refuse ``--dummy-arm`` with a base kind whose options have no Dummy Arm (an unknown base is refused later).
+
+    Raises:
+        UsageError: ``base`` is a kind the analysis augments but it takes no ``dummy_arm`` option.
+    """
+    from daror_runtime.models.registry import kind_names
+
+    bases = kind_names(lambda entry: entry.residual_base)
+    takers = kind_names(lambda entry: entry.residual_base and entry.takes("dummy_arm"))
+    if base in bases and base not in takers:
+        raise UsageError(
+            f"--dummy-arm: the base model {base} takes no Dummy Arm (it learns it from the data); "
+            f"only --base {' or '.join(takers)} does"
+        )
+
+
 def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     from rich.table import Table
 
@@ -306,6 +342,8 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     from hal.robot import load_description
 
     families = parse_families(args.effects)
+    if args.dummy_arm:
+        _residual_base_takes_dummy_arm(args.base.lower())
     _output_dir(args.out, args.train, args.validate)
     if args.out.is_dir():
         for name in ("summary.json", "model.json"):
@@ -426,7 +464,28 @@ def cmd_bench(args: argparse.Namespace, console: Console) -> int:
 # --- console --------------------------------------------------------------------------
 
 
+def _hal_config(args: argparse.Namespace) -> Any:
+    """The HAL configuration of ``daror console``: ``--hal-config FILE``, or the ``--hal``/``--scenario`` flags.
+
+    Raises:
+        UsageError: ``--hal-config`` together with ``--hal`` or ``--scenario``; ``--scenario`` for ``--hal can``.
+        HalConfigError: the file or the flags do not make a configuration (one line).
+    """
+    from hal.config import hal_config, load_hal_config
+
+    if args.hal_config is not None:
+        given = [flag for flag, value in (("--hal", args.hal), ("--scenario", args.scenario)) if value is not None]
+        if given:
+            raise UsageError(f"--hal-config names the backend and its scenario; leave out {' and '.join(given)}")
+        return load_hal_config(args.hal_config)
+    backend = args.hal or "sim"
+    if args.scenario is not None and backend == "can":
+        raise UsageError("--scenario names a simulated plant: it goes with --hal sim or can-sim, not --hal can")
+    return hal_config(backend, source=f"--hal {backend}", scenario=args.scenario)
+
+
 def cmd_console(args: argparse.Namespace, console: Console) -> int:
+    from daror_runtime.clocks import LockStepClock, RealTimeClock, check_clock
     from daror_runtime.console.commands import parse_context
     from daror_runtime.console.grammar import check_lines
     from daror_runtime.console.run import hal_has_world, read_script, stdin_is_terminal
@@ -437,12 +496,7 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
 
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
     settings = load_session_settings(args.settings)
-    if args.hal == "sim":
-        from hal.sim.scenario import load_scenario
-
-        hal = open_hal("sim", scenario=load_scenario(args.scenario))
-    else:
-        hal = open_hal(args.hal)
+    hal = open_hal(_hal_config(args))  # a backend not built or not installed: one line, exit 2
     checked = None
     if args.script is not None:  # the whole script is checked before anything runs or is written
         checked = check_lines(
@@ -450,11 +504,14 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
         )
     typed = checked is None and stdin_is_terminal()
     realtime = args.realtime or typed
+    period_s = 1.0 / hal.rate_hz
+    clock = RealTimeClock(period_s) if realtime else LockStepClock(period_s)
+    check_clock(clock, hal)  # lock-step on hardware: refused here, before anything is written
     if args.out is None:  # the default: a new folder under ./sessions (created)
         _output_dir("sessions").mkdir(exist_ok=True)
     out = _output_dir(args.out if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S"))
     with output_lock(out):  # one session per folder
-        return _console_session(args, console, hal, out, spec, settings, checked, typed, realtime)
+        return _console_session(args, console, hal, out, spec, settings, checked, typed, clock)
 
 
 def _console_session(
@@ -466,14 +523,13 @@ def _console_session(
     settings: Any,
     checked: Any,
     typed: bool,
-    realtime: bool,
+    clock: Any,
 ) -> int:
-    """The session itself, in ``out`` (checked and locked by :func:`cmd_console`)."""
-    from daror_runtime.clocks import RealTimeClock
+    """The session itself, in ``out`` (checked and locked by :func:`cmd_console`), on ``clock``."""
     from daror_runtime.console.run import history_path, make_session, run_interactive, run_piped, run_script
     from daror_runtime.runtime import Runtime
 
-    clock = RealTimeClock(1.0 / hal.rate_hz) if realtime else None
+    realtime = not clock.virtual
     runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock)
     out.mkdir(parents=True, exist_ok=True)
     configure_logging(
@@ -615,28 +671,61 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--feedforward", default="ap", help="gravity feed-forward: ap (default), none, or a MODEL.json")
     ident.add_argument("--dummy-arm", action="store_true", help="the Dummy Arm is installed (AP feed-forward)")
     ident.add_argument("--rate-hz", type=float, default=1000.0, help="loop rate (default 1000)")
+    ident.add_argument(
+        "--raw-format",
+        choices=["npz", "csv", "mat"],
+        default="npz",
+        help="format of the raw log written beside --out (default npz: exact and fast; csv to read by eye)",
+    )
+    ident.add_argument(
+        "--settings",
+        type=Path,
+        help="session settings YAML: its identification block (approach, settle, gains, points per stop) is used",
+    )
     ident.set_defaults(handler=cmd_identify)
 
-    fit = commands.add_parser("fit", help="fit a compensation model: ap, plf, plf+, augmented")
-    fit.add_argument(
-        "kind",
-        help="model kind: ap, plf, plf+, augmented (PLF+ plus the effects the training data support, see daror residual)",
+    # Every list of model kinds below comes from the model registry (cheap: it imports no model code).
+    from daror_runtime.models.registry import kinds
+
+    every_kind = kinds()
+    without_data = [k.kind for k in every_kind if not k.needs_data]
+    fitted = [k.kind for k in every_kind if k.needs_data]
+    bases = [k.kind for k in every_kind if k.residual_base]
+
+    def taken_by(option: str) -> str:
+        return ", ".join(k.kind for k in every_kind if k.takes(option)) or "no registered kind"
+
+    fit = commands.add_parser(
+        "fit",
+        help=f"fit a compensation model: {', '.join(k.kind for k in every_kind)}",
+        epilog="model kinds:\n" + "\n".join(f"  {k.kind:10s} {k.summary}" for k in every_kind),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    fit.add_argument("--train", type=Path, help="stationary dataset or raw log (optional for ap)")
+    fit.add_argument("kind", help=f"model kind: {', '.join(k.kind for k in every_kind)} (see the list below)")
+    fit.add_argument(
+        "--train", type=Path, help=f"stationary dataset or raw log (optional for {', '.join(without_data)})"
+    )
     fit.add_argument("--out", type=Path, required=True, help="model file to write (JSON)")
     fit.add_argument("--name", help="model name shown in tables (default: the kind's name)")
     fit.add_argument("--robot", type=Path, help="robot description YAML (default: the packaged DAROR-01)")
-    fit.add_argument("--dummy-arm", action="store_true", help="ap: include the Dummy Arm (Eq. 4.5)")
+    fit.add_argument(
+        "--dummy-arm",
+        action="store_true",
+        default=None,
+        help=f"{taken_by('dummy_arm')}: include the Dummy Arm (Eq. 4.5)",
+    )
     stiff = fit.add_mutually_exclusive_group()
     stiff.add_argument(
         "--elbow-stiffness",
         dest="elbow_stiffness",
         action="store_true",
         default=None,
-        help="ap: include the first-order elbow stiffness (Eq. 4.7); default with --dummy-arm",
+        help=f"{taken_by('elbow_stiffness')}: include the first-order elbow stiffness (Eq. 4.7); default with --dummy-arm",
     )
     stiff.add_argument("--no-elbow-stiffness", dest="elbow_stiffness", action="store_false")
-    fit.add_argument("--seed", type=int, default=0, help="random seed of models that use one")
+    fit.add_argument(
+        "--seed", type=int, default=None, help=f"random seed of the models that use one ({taken_by('seed')})"
+    )
     fit.set_defaults(handler=cmd_fit)
 
     ev = commands.add_parser("evaluate", help="RMSE and nRMSE of models on a dataset (Table III)")
@@ -664,13 +753,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     residual.add_argument("--train", type=Path, required=True, help="training data (stationary dataset or raw log)")
     residual.add_argument("--validate", type=Path, required=True, help="validation data: every reported RMSE is on it")
-    residual.add_argument("--base", default="plf+", help="base model kind: plf+ (default), plf or ap")
+    residual.add_argument("--base", default="plf+", help=f"base model kind: {', '.join(bases)} (default plf+)")
     residual.add_argument(
         "--effects",
         help="comma-separated families to test (default all): direction_offset, joint_stiffness, gravity_tilt, "
         "encoder_offset, torque_gain",
     )
-    residual.add_argument("--dummy-arm", action="store_true", help="with --base ap: add the Dummy Arm (Eq. 4.5, 4.7)")
+    dummy_arm_bases = " or ".join(k.kind for k in every_kind if k.residual_base and k.takes("dummy_arm"))
+    residual.add_argument(
+        "--dummy-arm", action="store_true", help=f"with --base {dummy_arm_bases}: add the Dummy Arm (Eq. 4.5, 4.7)"
+    )
     residual.add_argument("--robot", type=Path, help="robot description (default: the packaged DAROR-01)")
     residual.add_argument(
         "--out", type=Path, required=True, help="output folder: summary.json, report.md, plots, model.json"
@@ -688,7 +780,7 @@ def build_parser() -> argparse.ArgumentParser:
     efficiency.add_argument(
         "--validate", type=Path, required=True, metavar="FILE", help="validation set: stationary dataset or raw log"
     )
-    efficiency.add_argument("--kind", default="plf+", help="fitted model kind: plf, plf+ (default plf+)")
+    efficiency.add_argument("--kind", default="plf+", help=f"fitted model kind: {', '.join(fitted)} (default plf+)")
     efficiency.add_argument(
         "--sizes",
         metavar="N,N,...",
@@ -706,8 +798,9 @@ def build_parser() -> argparse.ArgumentParser:
         "console",
         help="operator console session: typed at a terminal, a --script, or lines piped in (audit log in --out)",
     )
-    con.add_argument("--hal", choices=["sim", "can-sim", "can"], default="sim", help="backend (default sim)")
-    con.add_argument("--scenario", default="exo_dummy_arm", help="simulated plant scenario (--hal sim)")
+    con.add_argument("--hal", choices=["sim", "can-sim", "can"], help="backend (default sim)")
+    con.add_argument("--scenario", help="simulated plant: a scenario name or .yaml (default exo_dummy_arm)")
+    con.add_argument("--hal-config", type=Path, metavar="FILE", help="HAL configuration YAML (instead of --hal)")
     con.add_argument(
         "--script", type=Path, help="run these console lines, all checked first (lock-step unless --realtime)"
     )

@@ -9,6 +9,11 @@
   misses 20 deadlines, not one) and skips the missed ones instead of bursting to catch up; the
   loop's watchdog turns too many missed deadlines in a row, or one long stall, into a fault.
 
+A clock says whether its time is virtual (:attr:`Clock.virtual`); a HAL backend says whether it
+owns its time (:attr:`hal.interface.Hal.virtual_time`). Lock-step needs both: :func:`check_clock`
+refuses a virtual clock on a backend whose time is the wall clock's (hardware, a bus), and
+:func:`clock_for` picks the clock a backend runs on by default.
+
 Deadlines are ``t0 + k * period`` on one grid, so lateness never accumulates; the grid is anchored
 when the first tick of a run has ended (it runs cold, and no command of the loop was on the drives
 before it). Lateness is measured against the deadline a tick was originally due at, so a stall
@@ -20,9 +25,12 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-from daror_runtime.errors import ConfigurationError
+from daror_runtime.errors import ConfigurationError, UsageError
+
+if TYPE_CHECKING:
+    from hal.interface import Hal
 
 
 class TickTiming(NamedTuple):
@@ -83,6 +91,14 @@ class Clock(ABC):
         self.period_s = period_s
         self._reset_totals()
 
+    @property
+    def virtual(self) -> bool:
+        """True for virtual time: ticks start at once, one after the other, and time is the backend's (lock-step).
+
+        Only a backend that owns its time (:attr:`hal.interface.Hal.virtual_time`) can run on it.
+        """
+        return False
+
     @abstractmethod
     def start(self) -> None:
         """Start counting (and reset the totals); the first :meth:`wait` returns at once as tick 0, at deadline 0."""
@@ -109,6 +125,10 @@ class Clock(ABC):
 
 class LockStepClock(Clock):
     """Virtual time: every tick starts exactly on its deadline, immediately."""
+
+    @property
+    def virtual(self) -> bool:
+        return True
 
     def start(self) -> None:
         self._reset_totals()
@@ -199,3 +219,38 @@ class RealTimeClock(Clock):
         self._next = index + 1
         self.ticks += 1
         return TickTiming(index, index * period, lateness, False, 0, 0)
+
+
+class LockStepRefusedError(UsageError):
+    """Lock-step (a virtual clock) was asked for on a backend whose time is the wall clock's."""
+
+
+def check_clock(clock: Clock, hal: Hal) -> None:
+    """Refuse a virtual clock on a backend that does not own its time.
+
+    A virtual clock starts each tick as soon as the previous one ends; on hardware that would send
+    commands as fast as the CPU allows, with the time in every sample passing at its own pace.
+
+    Raises:
+        LockStepRefusedError: ``clock`` is virtual and ``hal`` is not (one line, naming the backend).
+    """
+    if clock.virtual and not hal.virtual_time:
+        what = "drives hardware" if hal.drives_hardware else "runs on wall-clock time"
+        raise LockStepRefusedError(
+            f"the {hal.kind or type(hal).__name__} HAL backend {what}: it cannot run lock-step (virtual time); "
+            "run it in real time (daror console --realtime)"
+        )
+
+
+def clock_for(hal: Hal, period_s: float | None = None) -> Clock:
+    """The clock ``hal`` runs on by default: lock-step if it owns its time, else real time.
+
+    Args:
+        hal: the backend.
+        period_s: the tick period, s; default ``1 / hal.rate_hz``.
+
+    Raises:
+        ConfigurationError: the period is not positive.
+    """
+    period = period_s if period_s is not None else 1.0 / hal.rate_hz
+    return LockStepClock(period) if hal.virtual_time else RealTimeClock(period)

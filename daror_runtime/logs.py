@@ -150,9 +150,3 @@ def configure_logging(
         cache_logger_on_first_use=False,
     )
     _configured = True
-
-
-def ensure_logging() -> None:
-    """Configure the defaults unless something already configured logging."""
-    if not _configured:
-        configure_logging()

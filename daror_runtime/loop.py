@@ -29,10 +29,9 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 import structlog
-from numba import njit
 
 from daror_runtime.clocks import Clock, TickTiming
-from daror_runtime.data.recorder import recording_columns
+from daror_runtime.data.tick_row import N_RECORD_COLUMNS, fill_tick_row
 from daror_runtime.errors import ConfigurationError, DarorError
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.monitor import SafetyMonitor
@@ -40,11 +39,6 @@ from hal.errors import HalError
 from hal.interface import TORQUE_OFF, Command, Hal, Sample
 
 log = structlog.get_logger(__name__)
-
-#: Columns of the loop's recording, one row per tick: the raw-log columns (t, q, dq, tau, theta,
-#: tau_cmd), then whether the drives were enabled, whether a fault was latched, and the lateness
-#: (s after the deadline the tick was originally due at: a 20 ms stall records ~0.02).
-RECORD_COLUMNS: tuple[str, ...] = recording_columns(theta=True, tau_cmd=True, extra=("enable", "faulted", "lateness_s"))
 
 #: Deadlines missed in a row that make a fault (a 1 kHz loop that misses 5 ms in a row is not in control).
 DEFAULT_OVERRUN_LIMIT = 5
@@ -141,7 +135,8 @@ class ControlLoop:
         monitor: the safety monitor (owns the latched faults).
         supervisor: decides the controller per tick.
         clock: real-time or lock-step.
-        recorder: receives one row of :data:`RECORD_COLUMNS` per tick (optional).
+        recorder: receives one row of :data:`~daror_runtime.data.tick_row.RECORD_COLUMNS` per tick
+            (optional).
         overrun_limit: deadlines missed in a row that make an ``overrun`` fault (at least 1).
         max_stall_periods: deadlines one stall may miss; a stall that missed more is an
             ``overrun`` fault by itself (at least 0; see :data:`DEFAULT_MAX_STALL_PERIODS`).
@@ -172,17 +167,23 @@ class ControlLoop:
         self.overrun_limit = overrun_limit
         self.max_stall_periods = max_stall_periods
         self.dt_s = clock.period_s
-        self._row = np.zeros(len(RECORD_COLUMNS))
+        self._row = np.zeros(N_RECORD_COLUMNS)
+        # The sample's part of the row in a tick without a reading; read-only like a HAL's arrays, so
+        # the row kernel runs the variant the warm-up below loaded.
+        self._no_reading = np.full(4, np.nan)
+        self._no_reading.flags.writeable = False
         self._last_t_s = 0.0
         self._started = False
         self.dropped_rows = 0
         self.last_command: Command = TORQUE_OFF  # as written to the hardware in the last tick
         # Load the row kernel now, not in the tick a recording starts in (5 ms the first time), for
-        # both kinds of sample array (numba compiles per type: a HAL's read-only arrays and plain ones).
+        # both kinds of sample and command array (numba compiles per type: a HAL's read-only arrays
+        # and plain ones; the shared torque-off command is read-only, a controller's is not).
         for readonly in (True, False):
             zeros = np.zeros(4)
             zeros.flags.writeable = not readonly
-            _fill_tick_row(self._row, 0.0, zeros, zeros, zeros, zeros, np.zeros(4), 0.0, 0.0, 0.0)
+            for command_torque in (np.zeros(4), TORQUE_OFF.motor_torque_nm):
+                fill_tick_row(self._row, 0.0, zeros, zeros, zeros, zeros, command_torque, 0.0, 0.0, 0.0)
         self._ticks = 0
         self._work_total_s = 0.0
         self._work_worst_s = 0.0
@@ -334,28 +335,13 @@ class ControlLoop:
         faulted = 1.0 if self.monitor.faulted else 0.0
         enable = 1.0 if command.enable else 0.0
         if sample is None:  # no reading this tick: NaN, which recording_to_raw_log(drop_nan_rows=True) skips
-            row[:17] = np.nan
-            row[0] = self._last_t_s
-            row[17:21] = command.motor_torque_nm
-            row[21:24] = (enable, faulted, timing.lateness_s)
+            nan = self._no_reading
+            fill_tick_row(
+                row, self._last_t_s, nan, nan, nan, nan, command.motor_torque_nm, enable, faulted, timing.lateness_s
+            )
         else:
-            _fill_tick_row(
+            fill_tick_row(
                 row, sample.t_s, sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad,
                 command.motor_torque_nm, enable, faulted, timing.lateness_s,
             )  # fmt: skip
         return row
-
-
-@njit(cache=True)
-def _fill_tick_row(row, t, q, dq, tau, theta, torque, enable, faulted, lateness):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """The whole row of :data:`RECORD_COLUMNS` in one compiled call (it runs every tick)."""
-    row[0] = t
-    for j in range(4):
-        row[1 + j] = q[j]
-        row[5 + j] = dq[j]
-        row[9 + j] = tau[j]
-        row[13 + j] = theta[j]
-        row[17 + j] = torque[j]
-    row[21] = enable
-    row[22] = faulted
-    row[23] = lateness

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daror_runtime.clocks import Clock, LockStepClock
+from daror_runtime.clocks import Clock, check_clock, clock_for
 from daror_runtime.control.base import ControlError, ControlSettingError
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.data.recorder import Recorder
@@ -47,14 +47,14 @@ from daror_runtime.fsm.machine import OPERATOR_EVENTS, Event
 from daror_runtime.fsm.signals import ESTOP_BUTTONS, Checklist, SessionSignals
 from daror_runtime.fsm.spec import FsmSpec, StateSpec, load_fsm_spec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
-from daror_runtime.identification.protocol import let_the_writer_catch_up
+from daror_runtime.identification.protocol import IdentificationRun, let_the_writer_catch_up
 from daror_runtime.logs import flush_logs, set_session_id
 from daror_runtime.loop import ControlLoop, TickResult
 from daror_runtime.models.linear import APModel
 from daror_runtime.models.registry import kind_entry
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
-from daror_runtime.session.controllers import IdentificationRun, build_mode_controllers
+from daror_runtime.session.controllers import build_mode_controllers
 from daror_runtime.session.events import AnnouncementKind, Announcements
 from daror_runtime.session.identification import (
     abandon_run,
@@ -144,8 +144,12 @@ class Runtime:
         session_dir: where the session's data, models and summary go (created).
         spec: the FSM spec (default: ``fsm_spec.yaml``, loaded and checked).
         settings: session settings.
-        clock: default lock-step at the HAL's rate.
+        clock: default lock-step at the HAL's rate on a backend that owns its time
+            (``hal.virtual_time``), real time otherwise.
         session_id: tags every log event of the session (default: a new random id).
+
+    Raises:
+        LockStepRefusedError: a virtual clock on a backend that does not own its time (hardware).
     """
 
     def __init__(
@@ -163,8 +167,9 @@ class Runtime:
         self.session_dir = Path(session_dir)
         self.session_id = session_id or uuid.uuid4().hex[:12]
         self.dt_s = 1.0 / hal.rate_hz
-        self.clock = clock if clock is not None else LockStepClock(self.dt_s)
-        self.lock_step = isinstance(self.clock, LockStepClock)
+        self.clock = clock if clock is not None else clock_for(hal, self.dt_s)
+        check_clock(self.clock, hal)  # lock-step only on a backend that owns its time
+        self.lock_step = self.clock.virtual
         description = hal.description
         self.description = description
         self.shoulder = Shoulder.from_description(description)
@@ -629,7 +634,7 @@ class Runtime:
         waypoints, outside = session_waypoints(self.settings.identification, limits, self.description)
         run = prepare_run(
             kind, self.description, sample.q_rad, waypoints, limits, self.settings.identification,
-            self.a_priori, self.bounds, self.dt_s, self.session_dir,
+            self.a_priori, self.dt_s, self.session_dir,
         )  # fmt: skip
         # Load its compiled kernels here, not in the tick that starts the run (5 ms measured);
         # the start resets it again from that tick's sample.

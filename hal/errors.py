@@ -30,5 +30,17 @@ class ShapeError(DarorError, ValueError):
     """An array of the wrong shape reached an API: a programming error, not a person's input."""
 
 
+class HalConfigError(InputError):
+    """A HAL configuration (a YAML file or the command-line flags that stand for one) is malformed."""
+
+
+class BackendUnavailableError(InputError):
+    """A HAL backend that is not built yet, or that needs a Python package which is not installed."""
+
+
 class HalError(DarorError):
     """The hardware (or its simulation) failed: a drive, the bus, the simulator."""
+
+
+class HalNotOpenError(HalError):
+    """``read``/``write`` (or a simulation hook) on a backend that is not open: call ``open()`` first."""

@@ -1,14 +1,20 @@
 """The HAL contract: what the runtime reads and writes each tick, and how backends plug in.
 
 Like python-can's ``BusABC``: one small abstract base, backends in their own folders
-(``hal/sim``, ``hal/canopen``), looked up by name in a registry that imports them lazily. The
-runtime talks to hardware only through :class:`Hal`.
+(``hal/sim``, ``hal/canopen``), looked up by name in a registry that imports them lazily
+(:func:`open_hal` builds one from a :mod:`hal.config` configuration). The runtime talks to
+hardware only through :class:`Hal`; what a simulating backend offers besides (the pilot, the
+e-stop buttons, fault injection) is the :class:`hal.capabilities.SimulatedWorld` of
+:attr:`Hal.world`.
 
 Per tick the loop calls :meth:`Hal.read` once, then :meth:`Hal.write` once. A backend reports a
 fault in one of two ways: a drive that reports it in its status word (``Sample.drives``), or an
 error the backend latched outside the tick (a CAN thread, a lost heartbeat), which
 :meth:`Hal.read` raises as :class:`HalFaultError` at the next tick. Either way the safety monitor
 turns it into a fault that removes torque in the same tick.
+
+Every backend must pass the contract suite ``tests/hal_contract.py`` (run by
+``tests/test_hal_contract.py``); the docstrings of :class:`Hal` say what it checks.
 
 Units: rad, rad/s, Nm, s. Arrays are ``float64`` of shape (4,), joints 1-4 at indices 0-3.
 """
@@ -19,12 +25,16 @@ import importlib
 from abc import ABC, abstractmethod
 from enum import IntEnum
 from types import TracebackType
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from hal.errors import DarorError, DescriptionError, HalError
+from hal.errors import BackendUnavailableError, HalConfigError, HalError
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
+
+if TYPE_CHECKING:
+    from hal.capabilities import SimulatedWorld
+    from hal.config import AnyHalConfig
 
 
 class DriveState(IntEnum):
@@ -89,8 +99,47 @@ class HalFaultError(HalError):
     """A backend fault latched outside the tick (bus error, lost heartbeat, thread crash)."""
 
 
+#: How long consecutive enabled commands may take to bring every healthy drive to ENABLED, s
+#: (CiA 402: shutdown, switch on, enable operation; each one or two SYNC periods on a bus).
+ENABLE_WITHIN_S = 0.05
+#: Longest a :meth:`Hal.read` or :meth:`Hal.write` call may take, s (what the contract suite
+#: tolerates on a busy test machine; the loop's budget is a fraction of one 1 ms tick).
+NEVER_BLOCKS_S = 0.05
+
+
 class Hal(ABC):
     """A DAROR-01 as the runtime sees it: read a sample, write a command, nothing else in the tick.
+
+    The contract (checked for every backend by ``tests/hal_contract.py``):
+
+    * **identity**: ``kind`` names the backend, ``rate_hz`` is positive and finite,
+      :attr:`virtual_time` and :attr:`drives_hardware` are never both true, and a backend that
+      drives hardware has no :attr:`world`.
+    * **lifecycle**: :meth:`read` and :meth:`write` before :meth:`open` or after :meth:`close`
+      raise :class:`~hal.errors.HalNotOpenError`; :meth:`close` is safe twice and before
+      :meth:`open`; :meth:`open` after :meth:`close` starts a new session with every drive
+      disabled; ``with hal:`` opens and closes.
+    * **never blocks**: every :meth:`read` and :meth:`write` returns within
+      :data:`NEVER_BLOCKS_S`, whatever the drives or the bus do.
+    * **one reading per tick**: in consecutive ticks (``read(); write()``) ``seq`` increases by
+      exactly one; reading again before the next :meth:`write` gives the same ``seq``; ``t_s``
+      never decreases. On a backend with :attr:`virtual_time` the first sample after
+      :meth:`open` has ``seq`` 0 at ``t_s`` 0 and each tick advances ``t_s`` by ``1 / rate_hz``
+      (however long the tick took); on any other backend ``t_s`` follows the wall clock.
+    * **torque only on request**: no drive is ENABLED unless the last command written was an
+      enabled one; the first sample after :meth:`open` shows every drive DISABLED; after a write
+      of a disabled command the next sample shows no drive ENABLED and the drives apply no torque
+      (whatever the command's torque: switching off always works). Consecutive enabled commands
+      bring every healthy drive to ENABLED within :data:`ENABLE_WITHIN_S`.
+    * **drive limits**: an enabled torque beyond the drive's peak (``description.sea.max_motor_torque_nm``)
+      is saturated by the drive at the peak, not refused. An enabled command with a non-finite
+      torque raises :class:`~hal.errors.HalError`, one not of shape (4,) raises
+      :class:`~hal.errors.ShapeError`; either way torque is removed first (the next sample shows
+      no drive ENABLED).
+    * **faults**: a fault latched outside the tick is raised as :class:`HalFaultError` by the next
+      :meth:`read`, once; the read after returns a sample. A drive in fault reports
+      :attr:`DriveState.FAULT` with a non-zero code and applies no torque until its fault is
+      cleared.
 
     ``enable``/``disable`` may take several ticks on real drives (CiA 402 state machine); they
     are requests that :meth:`write` carries out step by step, never blocking calls.
@@ -98,34 +147,68 @@ class Hal(ABC):
 
     #: Registry name: ``sim``, ``can-sim``, ``can``.
     kind: str = ""
+    #: True if the backend owns its time: each :meth:`write` advances it by one tick, however long
+    #: the tick took (a simulation). Only such a backend may run lock-step (a virtual clock); a
+    #: backend on wall-clock time (hardware, a bus) is refused lock-step by the runtime.
+    virtual_time: bool = False
+    #: True if the backend moves a real robot, with a child in it. The safe default of a new backend.
+    drives_hardware: bool = True
 
     def __init__(self, description: RobotDescription) -> None:
         self.description = description
 
+    @classmethod
+    def from_config(cls, config: AnyHalConfig) -> Hal:
+        """The backend built from its configuration (:mod:`hal.config`), not opened yet.
+
+        Raises:
+            BackendUnavailableError: this backend cannot be built from a configuration.
+            InputError: the configuration names a file or scenario that cannot be loaded.
+        """
+        raise BackendUnavailableError(f"HAL backend {cls.kind or cls.__name__!r} cannot be built from a configuration")
+
+    @property
+    def world(self) -> SimulatedWorld | None:
+        """The simulated world around the robot (pilot, e-stop buttons, fault injection), or None.
+
+        None on a backend that drives hardware: there, people and physics are the world. Reading it
+        changes nothing (a pilot enters only by :meth:`~hal.capabilities.SimulatedWorld.seat_pilot`).
+        """
+        return None
+
     @abstractmethod
     def open(self) -> None:
-        """Connect (bus, drives or simulator); drives stay disabled."""
+        """Connect (bus, drives or simulator) and start a session; every drive stays disabled."""
 
     @abstractmethod
     def close(self) -> None:
-        """Remove torque and disconnect. Safe to call twice."""
+        """Remove torque and disconnect. Safe to call twice, and before :meth:`open`."""
 
     @abstractmethod
     def read(self) -> Sample:
-        """The newest sample. Never blocks.
+        """The newest sample (the same ``seq`` until the next :meth:`write`). Never blocks.
 
         Raises:
-            HalFaultError: a fault the backend latched since the previous read.
+            HalFaultError: a fault the backend latched since the previous read (raised once).
+            HalNotOpenError: the backend is not open.
         """
 
     @abstractmethod
     def write(self, command: Command) -> None:
-        """Apply ``command``. Never blocks; a disabled command removes torque at once."""
+        """Apply ``command``: the tick's end. Never blocks; a disabled command removes torque at once.
+
+        An enabled torque beyond the drives' peak is saturated at the peak.
+
+        Raises:
+            HalError: an enabled command with a non-finite torque (torque is removed first).
+            ShapeError: an enabled command's torque is not of shape (4,) (torque is removed first).
+            HalNotOpenError: the backend is not open.
+        """
 
     @property
     @abstractmethod
     def rate_hz(self) -> float:
-        """The tick rate the backend expects to be read and written at."""
+        """The tick rate the backend expects to be read and written at, Hz."""
 
     def __enter__(self) -> Hal:
         self.open()
@@ -137,33 +220,78 @@ class Hal(ABC):
         self.close()
 
 
-#: Backend name -> "module:Class"; imported only when asked for.
+#: Backend name -> ``"module:Class"``; the module is imported only when the backend is asked for.
 BACKENDS: dict[str, str] = {
     "sim": "hal.sim.backend:SimHal",
     "can-sim": "hal.canopen.backend:SimulatedCanHal",
     "can": "hal.canopen.backend:CanHal",
 }
+#: Import name -> the package that provides it (what a message tells a person to install).
+PACKAGES: dict[str, str] = {"can": "python-can", "canopen": "canopen"}
+
+
+def register_backend(kind: str, target: str) -> str | None:
+    """Register (or replace) backend ``kind`` as ``"module:Class"``; returns the target it replaced, if any.
+
+    The module is imported only when the backend is asked for (:func:`hal_class`).
+
+    Raises:
+        HalConfigError: ``target`` is not of the form ``module:Class``.
+    """
+    module_name, _, attribute = target.partition(":")
+    if not module_name or not attribute:
+        raise HalConfigError(f"HAL backend {kind!r}: target {target!r}; expected 'module:Class'")
+    previous = BACKENDS.get(kind)
+    BACKENDS[kind] = target
+    return previous
 
 
 def hal_class(kind: str) -> type[Hal]:
-    """The backend class registered as ``kind``.
+    """The backend class registered as ``kind`` (its module imported now).
 
     Raises:
-        DescriptionError: unknown kind.
-        DarorError: the backend cannot be imported (e.g. a missing dependency).
+        HalConfigError: unknown kind.
+        BackendUnavailableError: the backend is not built yet (its module or class does not
+            exist), or it needs a Python package that is not installed; the message names it.
+        HalError: the backend's module failed to import for another reason (a bug).
     """
     try:
         target = BACKENDS[kind]
     except KeyError:
-        raise DescriptionError(f"unknown HAL backend {kind!r}; expected one of {', '.join(BACKENDS)}") from None
-    module_name, attribute = target.split(":")
+        raise HalConfigError(f"unknown HAL backend {kind!r}; expected one of {', '.join(BACKENDS)}") from None
+    module_name, _, attribute = target.partition(":")
     try:
         module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or ""
+        if missing and (module_name == missing or module_name.startswith(missing + ".")):
+            raise BackendUnavailableError(
+                f"HAL backend {kind!r} is not built yet: this installation has no module {module_name}"
+            ) from None
+        if missing:
+            package = PACKAGES.get(missing.split(".")[0], missing.split(".")[0])
+            raise BackendUnavailableError(
+                f"HAL backend {kind!r} needs the Python package {package!r}, which is not installed "
+                f"(pip install {package})"
+            ) from None
+        raise HalError(f"HAL backend {kind!r} cannot be loaded: {exc}") from None
     except ImportError as exc:
-        raise DarorError(f"HAL backend {kind!r} is not available: {exc}") from None
-    return getattr(module, attribute)
+        raise HalError(f"HAL backend {kind!r} cannot be loaded: {exc}") from None
+    cls = getattr(module, attribute, None)
+    if not (isinstance(cls, type) and issubclass(cls, Hal)):
+        raise BackendUnavailableError(
+            f"HAL backend {kind!r} is not built yet: module {module_name} has no Hal class {attribute}"
+        )
+    return cls
 
 
-def open_hal(kind: str, **options: Any) -> Hal:
-    """Construct the backend ``kind`` with ``options`` (it is not opened yet)."""
-    return hal_class(kind)(**options)
+def open_hal(config: AnyHalConfig) -> Hal:
+    """The backend ``config.backend`` built from ``config`` (not opened yet: the runtime opens it).
+
+    Raises:
+        HalConfigError: an unknown backend.
+        BackendUnavailableError: the backend is not built yet or needs a package that is not
+            installed (one line naming what is missing; the command line exits 2).
+        InputError: a file or scenario the configuration names cannot be loaded.
+    """
+    return hal_class(config.backend).from_config(config)

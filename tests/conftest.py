@@ -15,7 +15,7 @@ from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.logs import configure_logging, flush_logs
 from daror_runtime.models.files import save_model, training_summary
-from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.models.registry import fit_model, installation_options
 from hal.robot import RobotDescription, load_description
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.static_dataset import StationarySet, generate_stationary
@@ -93,6 +93,6 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
     write_dataset(files.validation, dataset(generate_stationary(exo_dummy_arm, "validation")))
     for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
         data = dataset(points, scale)
-        result = fit_model("plf+", data, exo_dummy_arm.description(), FitOptions(dummy_arm=True))
+        result = fit_model("plf+", data, exo_dummy_arm.description(), installation_options("plf+", dummy_arm=True))
         save_model(path, result.model, training_summary(data, files.training if scale == 1.0 else None), result.report)
     return files

@@ -18,7 +18,8 @@ import numpy as np
 
 from daror_runtime.clocks import LockStepClock
 from daror_runtime.control.modes import MinimalImpedance, TorqueOff
-from daror_runtime.control.sea_torque import DEFAULT_ALPHA, SeaTorqueController, SeaTorqueDesign
+from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.sea_torque_design import DEFAULT_ALPHA, SeaTorqueDesign
 from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -71,4 +72,318 @@ def test_no_bare_assert_in_library_code() -> None:
         for node in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
         if isinstance(node, ast.Assert)
     ]
+    assert offenders == []
+
+
+# --- model kinds (issue 11, point 5) -----------------------------------------------------------
+
+
+def model_class_names() -> set[str]:
+    """``CompensationModel`` and every class of the source tree derived from it (by name, through the AST)."""
+    bases: dict[str, set[str]] = {}
+    for p in sources("daror_runtime"):
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                bases.setdefault(node.name, set()).update(ast.unparse(b).split(".")[-1] for b in node.bases)
+    models = {"CompensationModel"}
+    while True:
+        more = {name for name, parents in bases.items() if parents & models} - models
+        if not more:
+            return models
+        models |= more
+
+
+def _named(node: ast.expr) -> set[str]:
+    """The class names an ``isinstance`` second argument refers to (a name, ``module.Name``, or a tuple)."""
+    if isinstance(node, ast.Tuple):
+        return set().union(*(_named(e) for e in node.elts)) if node.elts else set()
+    if isinstance(node, ast.Name):
+        return {node.id}
+    if isinstance(node, ast.Attribute):
+        return {node.attr}
+    if isinstance(node, ast.BinOp):  # A | B
+        return _named(node.left) | _named(node.right)
+    return set()
+
+
+def test_controllers_never_ask_a_models_class() -> None:
+    """A controller asks the model (``tick_kernel()``), never ``isinstance(model, SomeModel)``."""
+    models = model_class_names()
+    assert {"LinearCompensationModel", "PLFPlusModel", "APModel", "AugmentedModel"} <= models
+    offenders = []
+    for p in [*sources("daror_runtime/control"), ROOT / "daror_runtime/session/controllers.py"]:
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if (
+                isinstance(node, ast.Call)
+                and getattr(node.func, "id", None) == "isinstance"
+                and len(node.args) == 2
+                and _named(node.args[1]) & models
+            ):
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    assert offenders == []
+
+
+def test_the_models_package_never_names_the_residual_analysis() -> None:
+    """residual/ depends on models/, not the other way round: no import, and no ``module[:attr]`` string either."""
+    offenders = []
+    for p in sources("daror_runtime/models"):
+        tree = ast.parse(p.read_text(encoding="utf-8"))
+        named = {m for m in imported_modules(p) if m.startswith("daror_runtime.residual")}
+        named |= {
+            node.value
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Constant)
+            and isinstance(node.value, str)
+            and re.fullmatch(r"daror_runtime\.residual[\w.]*(:\w+)?", node.value.strip())
+        }
+        offenders += [f"{p.relative_to(ROOT)}: {n}" for n in sorted(named)]
+    assert offenders == []
+
+
+def test_a_clean_registry_lists_augmented_from_its_entry_point() -> None:
+    """The residual analysis registers ``augmented`` through pyproject.toml's entry point (read lazily)."""
+    from daror_runtime.models.registry import ENTRY_POINT_GROUP, KindRegistry
+
+    pyproject = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    assert (
+        f'[project.entry-points."{ENTRY_POINT_GROUP}"]\naugmented = "daror_runtime.residual.kind:MODEL_KIND"'
+        in pyproject
+    )
+    clean = KindRegistry()
+    assert "augmented" in clean.names()
+    assert clean.entry("augmented").model == "daror_runtime.residual.model:AugmentedModel"
+
+
+# --- controllers and models do no I/O ---------------------------------------------------------------
+
+#: The model-file layer (reads and writes model files) and the model-kind lookup (entry points,
+#: logged warnings): the two places of the models package whose job is I/O.
+IO_LAYER = {"daror_runtime/models/files.py", "daror_runtime/models/registry.py"}
+
+#: Modules through which Python code reaches files, streams, the console, the log, the network or
+#: other processes, and the project's own layers that do (a prefix bans its submodules too).
+IO_MODULES = {
+    # files, streams, the interpreter's own streams and exit
+    "os", "io", "sys", "pathlib", "shutil", "tempfile", "glob", "mmap", "fileinput", "pickle", "shelve",
+    "csv", "sqlite3", "yaml", "h5py", "matplotlib",
+    # the console and the log (a handler writes, and may wait on a lock or a full pipe)
+    "logging", "structlog", "rich.console", "rich.live", "rich.progress",
+    # the network, other processes, other threads (work, and I/O, out of the loop's sight)
+    "socket", "select", "selectors", "ssl", "urllib", "http", "can", "canopen",
+    "subprocess", "multiprocessing", "threading", "concurrent", "asyncio", "signal",
+    # dynamic imports would bring in any of the above past this check
+    "importlib",
+    # the project's file, log and backend layers
+    "daror_runtime.logs", "daror_runtime.util", "daror_runtime.data.load", "daror_runtime.data.tables",
+    "daror_runtime.data.recorder", "daror_runtime.data.recording_reader", "daror_runtime.models.files",
+    "daror_runtime.models.registry", "hal.files", "hal.yamlfile", "hal.config", "hal.canopen",
+}  # fmt: skip
+
+#: Builtins that read or write the console or files, or import or run code dynamically.
+IO_BUILTINS = {"open", "print", "input", "breakpoint", "__import__", "exec", "eval", "compile"}
+#: numpy's file functions (called on ``np`` / ``numpy``).
+NUMPY_FILE_FUNCTIONS = {
+    "load", "save", "savez", "savez_compressed", "loadtxt", "savetxt", "genfromtxt", "fromfile", "fromregex", "memmap",
+}  # fmt: skip
+#: Methods of files, streams, paths and HALs (``Path.open``, ``file.write``, ``hal.read``, ...).
+IO_METHODS = {
+    "open", "read", "write", "flush", "readline", "readlines", "writelines", "seek",
+    "read_text", "write_text", "read_bytes", "write_bytes", "tofile", "savefig",
+}  # fmt: skip
+#: The project names every function that reads or writes a file so (``hal.robot.load_description``,
+#: ``models.files.save_model``, ``data.load.write_dataset``, ``hal.yamlfile.read_yaml``, ...).
+IO_FUNCTION_PREFIXES = ("load_", "read_", "write_", "save_")
+
+
+def _imports(source: str, package: str) -> list[tuple[int, str]]:
+    """(line, module) of every import anywhere in ``source``, a module of ``package`` (dotted).
+
+    Relative imports are made absolute; ``from a import b`` gives both ``a`` and ``a.b`` (``b`` may
+    be a module).
+    """
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parent, base] if base else parent)
+            found.append((node.lineno, base))
+            found += [(node.lineno, f"{base}.{alias.name}") for alias in node.names]
+    return found
+
+
+def _io_calls(source: str) -> list[tuple[int, str]]:
+    """(line, call) of every call of an I/O builtin, numpy file function, I/O method or file function."""
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        if isinstance(func, ast.Name):
+            name = func.id
+            if name in IO_BUILTINS or name.startswith(IO_FUNCTION_PREFIXES):
+                found.append((node.lineno, name))
+        elif isinstance(func, ast.Attribute):
+            owner = func.value.id if isinstance(func.value, ast.Name) else None
+            name = func.attr
+            numpy_file = owner in {"np", "numpy"} and name in NUMPY_FILE_FUNCTIONS
+            if numpy_file or name in IO_METHODS or name.startswith(IO_FUNCTION_PREFIXES):
+                found.append((node.lineno, ast.unparse(func)))
+    return found
+
+
+def _is_io_module(module: str) -> bool:
+    return any(module == banned or module.startswith(banned + ".") for banned in IO_MODULES)
+
+
+def test_controllers_and_models_do_no_io() -> None:
+    """Modules under ``daror_runtime/control`` and ``daror_runtime/models`` (but the model-file layer
+    ``models/files.py`` and the kind lookup ``models/registry.py``) do no I/O.
+
+    Why: the controllers' ``update`` and the models' ``torque`` run inside the 1 kHz tick, where a
+    read, a write, a log line or a lock behind them can wait for an unbounded time (a slow disk, a
+    full pipe on stderr, a logging handler's lock): the tick misses its deadline and the drives hold
+    the last torque, the SEA torque loop running open. Their design-time code (gains, filters, fits)
+    takes its inputs as arguments, so what a controller or model does depends on no file but the
+    ones the audited file layers (``models/files.py``, ``data/``, ``hal/files.py``) read and check.
+
+    What "no I/O" means, checked on the syntax tree of each module (imports and calls anywhere in
+    it, inside functions too):
+
+    * no import of a module through which code reaches files, streams, the console, the log, the
+      network, other processes or threads (:data:`IO_MODULES`: ``os``, ``io``, ``sys``,
+      ``pathlib``, ``logging``, ``structlog``, ``threading``, ``subprocess``, ...), of a dynamic
+      importer (``importlib``), or of the project's own file, log and backend layers. Allowed:
+      ``json`` (values to text and back; reading a file would need ``open``), ``time`` (a clock),
+      ``rich.table`` (a table is a value; the CLI prints it);
+    * no call of the builtins ``open``, ``print``, ``input``, ``breakpoint``, ``__import__``,
+      ``exec``, ``eval``, ``compile``; of numpy's file functions (``np.load``, ``np.save``,
+      ``np.fromfile``, ``np.memmap``, ...); of a method of files, streams, paths or HALs (``open``,
+      ``read``, ``write``, ``flush``, ``read_text``, ``tofile``, ``savefig``, ...); of a function
+      named as the project names its file functions (``load_*``, ``read_*``, ``write_*``,
+      ``save_*``: ``hal.robot.load_description``, ``models.files.save_model``, ...).
+
+    Not covered: numba's on-disk cache of compiled functions (``cache=True``), which numba reads or
+    writes when a module is imported or a function first compiled, never in the tick.
+    """
+    offenders: list[str] = []
+    for package in ("daror_runtime/control", "daror_runtime/models"):
+        for path in sources(package):
+            name = str(path.relative_to(ROOT))
+            if name in IO_LAYER:
+                continue
+            source = path.read_text(encoding="utf-8")
+            imports = _imports(source, package.replace("/", "."))
+            offenders += [f"{name}:{line}: imports {module}" for line, module in imports if _is_io_module(module)]
+            offenders += [f"{name}:{line}: calls {call}" for line, call in _io_calls(source)]
+    assert offenders == []
+
+
+def test_the_no_io_check_finds_io() -> None:
+    """The check above is not vacuous: each kind of I/O it names is found, and plain code is not."""
+    source = (
+        "import os\n"
+        "from pathlib import Path\n"
+        "from hal.robot import load_description\n"
+        "from . import tables\n"
+        "import numpy as np\n"
+        "from daror_runtime.data.schema import Q_COLUMNS\n"
+        "def update(sample, hal):\n"
+        "    import structlog\n"
+        "    print(sample)\n"
+        "    np.save('x.npy', sample)\n"
+        "    Path('x').write_text('x')\n"
+        "    hal.read()\n"
+        "    load_description()\n"
+        "    with open('f') as f:\n"
+        "        return np.clip(sample, -1.0, 1.0)\n"
+    )
+    modules = {m for _, m in _imports(source, "daror_runtime.data") if _is_io_module(m)}
+    assert modules == {"os", "pathlib", "pathlib.Path", "structlog", "daror_runtime.data.tables"}
+    calls = {c for _, c in _io_calls(source)}
+    assert calls == {"print", "np.save", "Path('x').write_text", "hal.read", "load_description", "open"}
+
+
+# --- the backend owns its time and its abilities (issue 11, points 1-3) -----------------------------------
+
+#: Where the simulator's own classes may be named in an isinstance check.
+_SIM_PACKAGE = ROOT / "hal" / "sim"
+#: Classes nobody outside hal/sim and the tests may ask about: ask the clock (``clock.virtual``) or
+#: the backend (``hal.virtual_time``, ``hal.drives_hardware``, ``hal.world``) instead.
+_NEVER_ASKED = {"LockStepClock", "SimHal"}
+
+
+def _classes_named(node: ast.expr) -> set[str]:
+    """Class names in an ``isinstance`` second argument: a name, ``module.Name``, a tuple or ``A | B``."""
+    if isinstance(node, ast.Tuple):
+        return set().union(*(_classes_named(e) for e in node.elts)) if node.elts else set()
+    if isinstance(node, ast.Name):
+        return {node.id}
+    if isinstance(node, ast.Attribute):
+        return {node.attr}
+    if isinstance(node, ast.BinOp):
+        return _classes_named(node.left) | _classes_named(node.right)
+    return set()
+
+
+def _asks_which(path: Path) -> list[str]:
+    """``isinstance(x, LockStepClock)`` / ``isinstance(x, SimHal)`` calls in ``path`` (also via tuples and ``|``)."""
+    found = []
+    name = path.relative_to(ROOT) if ROOT in path.parents else path.name
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if (
+            isinstance(node, ast.Call)
+            and getattr(node.func, "id", None) in {"isinstance", "issubclass"}
+            and len(node.args) == 2
+            and _classes_named(node.args[1]) & _NEVER_ASKED
+        ):
+            found.append(f"{name}:{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_nobody_asks_which_clock_or_backend_it_has() -> None:
+    """Lock-step is the clock's property and the backend's ability, never an isinstance check (outside hal/sim)."""
+    offenders = []
+    for package in ("hal", "daror_runtime", "bench", "examples"):
+        for p in sources(package):
+            if _SIM_PACKAGE not in p.parents:
+                offenders += _asks_which(p)
+    assert offenders == []
+
+
+def test_the_which_check_finds_what_it_forbids(tmp_path: Path) -> None:
+    """The check above is not vacuous: every spelling it forbids is found, an allowed check is not."""
+    source = tmp_path / "probe.py"
+    source.write_text(
+        "isinstance(clock, LockStepClock)\n"
+        "isinstance(hal, backend.SimHal)\n"
+        "isinstance(hal, (Hal, SimHal))\n"
+        "isinstance(clock, RealTimeClock | LockStepClock)\n"
+        "isinstance(hal, Hal)\n",
+        encoding="utf-8",
+    )
+    assert [line.split(":")[1] for line in _asks_which(source)] == ["1", "2", "3", "4"]
+
+
+def test_the_console_never_imports_the_simulator() -> None:
+    """The console (and the rehearsal it drives) reach the simulated world through ``hal.world`` only."""
+    offenders = [
+        f"{p.relative_to(ROOT)}: {m}"
+        for p in [*sources("daror_runtime/console"), ROOT / "daror_runtime/session/rehearsal.py"]
+        for m in sorted(imported_modules(p))
+        if m == "hal.sim" or m.startswith("hal.sim.")
+    ]
+    assert offenders == []
+
+
+def test_backends_are_imported_only_through_the_registry() -> None:
+    """Outside its own package a backend's module is named only in the registry (hal/interface.py), lazily."""
+    offenders = []
+    for p in sources("daror_runtime"):
+        for m in imported_modules(p):
+            if m.startswith(("hal.canopen", "hal.sim.backend")) and p.name not in {"cli.py"}:
+                offenders.append(f"{p.relative_to(ROOT)}: {m}")
     assert offenders == []

@@ -190,6 +190,33 @@ def test_fit_unknown_model_kind(files: Files, tmp_path: Path, capsys: pytest.Cap
     assert "unknown model kind 'foo'; expected one of ap, plf, plf+" in line
 
 
+@pytest.mark.parametrize(
+    ("kind", "flags", "named"),
+    [
+        ("plf", ["--dummy-arm"], "model kind plf does not take --dummy-arm; its options: --name"),
+        ("plf+", ["--no-elbow-stiffness"], "model kind plf+ does not take --elbow-stiffness/--no-elbow-stiffness"),
+        ("augmented", ["--seed", "3"], "model kind augmented does not take --seed"),
+        ("ap", ["--seed", "3"], "model kind ap does not take --seed; its options: --name, --dummy-arm"),
+    ],
+)
+def test_fit_refuses_an_option_the_kind_does_not_take(
+    files: Files, tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str, flags: list[str], named: str
+) -> None:
+    """Issue 11: each kind has its own options; one it does not take is refused, not ignored."""
+    out = tmp_path / "model.json"
+    refused(capsys, ["fit", kind, "--train", files.train, "--out", out, *flags], named, out)
+
+
+def test_fit_passes_the_options_the_kind_takes(files: Files, tmp_path: Path) -> None:
+    out = tmp_path / "ap.json"
+    assert run("fit", "ap", "--dummy-arm", "--no-elbow-stiffness", "--name", "AP0", "--out", out) == 0
+    model, contents = load_model(out)
+    assert (model.name, contents.parameters["includes_dummy_arm"]) == ("AP0", True)
+    assert contents.parameters["includes_elbow_stiffness"] is False
+    assert run("fit", "plf", "--name", "mine", "--train", files.train, "--out", tmp_path / "plf.json") == 0
+    assert load_model(tmp_path / "plf.json")[0].name == "mine"
+
+
 def test_fit_refuses_to_overwrite_its_training_file(
     files: Files, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -352,7 +352,7 @@ def test_the_simulated_world_acts_on_the_plant(lines: Lines) -> None:
     lines.run("sim estop pilot off", "wait 0.05", "sim pilot carry 0.25")
     assert not lines.runtime.monitor.faulted
     assert lines.session.world is not None
-    assert lines.session.world.pilot.carried == 0.25
+    assert lines.session.world.pilot_carried == 0.25
     with pytest.raises(CommandError, match="sim estop: 'maybe' is not one of on, off"):
         lines.run("sim estop operator maybe")
 

@@ -1,4 +1,4 @@
-"""Controllers (issue 3, item 5): filters, the SEA torque loop with its observer, the modes, position control.
+"""Controllers (issue 3, item 5): filters, the SEA torque loop with its observer, the modes, link bounds.
 
 The plant here is a small explicit model of four independent single-joint SEAs, with the as-built
 drive train of scenario ``exo_dummy_arm`` (inertia, viscous and Coulomb friction, spring damping),
@@ -24,20 +24,14 @@ from daror_runtime.control import (
     ControlSettingError,
     LinkBounds,
     MinimalImpedance,
-    PositionPD,
     SeaTorqueController,
     SeaTorqueDesign,
     TorqueOff,
-    minimum_jerk,
 )
 from daror_runtime.control.filters import DiscreteTransferFunction, FilterBank
-from daror_runtime.control.position import (
-    THESIS_KD_NMS_PER_RAD,
-    THESIS_KP_NM_PER_RAD,
-    position_loop_spectral_radius,
-    worst_position_loop,
-)
-from daror_runtime.control.sea_torque import SeaPlant, design_inner_loop, inner_loop_gains
+from daror_runtime.control.motor_position import MotorPositionPD
+from daror_runtime.control.sea_torque import _W_DHAT
+from daror_runtime.control.sea_torque_design import design_inner_loop, inner_loop_gains
 from daror_runtime.errors import InputError, ShapeError
 from daror_runtime.models.base import CompensationModel
 from hal.interface import Command, DriveState, Sample
@@ -228,6 +222,17 @@ def torque(description: RobotDescription) -> SeaTorqueController:
     return SeaTorqueController(description.sea)
 
 
+def d_hat_nm(torque: SeaTorqueController) -> FloatArray:
+    """The observer's disturbance estimate of the last tick (Nm), a copy (the kernel's diagnostics row)."""
+    return torque._work[_W_DHAT].copy()
+
+
+def hold(q_rad: FloatArray) -> Callable[[float], tuple[FloatArray, FloatArray]]:
+    """A position reference that holds ``q_rad`` (no allocation per call)."""
+    q, dq = np.array(q_rad, dtype=float), np.zeros(len(q_rad))
+    return lambda t_s: (q, dq)
+
+
 # --- filters -------------------------------------------------------------------------------------
 
 
@@ -352,7 +357,7 @@ def test_reference_limit_saturation_and_no_windup(torque: SeaTorqueController, d
     spring_limit = sea.spring_stiffness_nm_per_rad * sea.max_spring_deflection_rad
     controller = StepTorque(torque, lambda t: np.full(4, 80.0 if t < 0.5 else 5.0))
     sim = JointSim("locked")
-    rows = run(sim, controller, 800, lambda s: (np.array(sim.queue[-1]), sim.spring().copy(), torque.d_hat_nm))
+    rows = run(sim, controller, 800, lambda s: (np.array(sim.queue[-1]), sim.spring().copy(), d_hat_nm(torque)))
     commands, spring = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
     assert np.max(np.abs(commands)) <= sea.max_motor_torque_nm
     assert np.max(spring[:500]) < 1.05 * spring_limit  # no ringing past the end stop
@@ -483,11 +488,16 @@ def test_observer_adds_no_motor_torque_noise(description: RobotDescription) -> N
 
 def test_modes_satisfy_the_controller_protocol(torque: SeaTorqueController, description: RobotDescription) -> None:
     model = ConstantModel(description, np.ones(4))
-    modes = [TorqueOff(), MinimalImpedance(torque), Compensation(torque, model)]
+    modes = [
+        TorqueOff(),
+        MinimalImpedance(torque),
+        Compensation(torque, model),
+        MotorPositionPD(description, hold(np.zeros(4)), BOUNDS),
+    ]
     for mode in modes:
         assert isinstance(mode, Controller)
     assert TorqueOff.commands == ()
-    assert MinimalImpedance.commands == Compensation.commands == PositionPD.commands == ("motor_torque",)
+    assert MinimalImpedance.commands == Compensation.commands == MotorPositionPD.commands == ("motor_torque",)
     off = TorqueOff().update(still_sample(), PERIOD_S)
     assert not off.enable
     np.testing.assert_array_equal(off.motor_torque_nm, 0.0)
@@ -565,90 +575,16 @@ def test_compensation_refuses_a_non_finite_model_torque(
         Compensation(torque, None).reset(still_sample())
 
 
-# --- position control -------------------------------------------------------------------------------
+# --- link bounds (what the position gains are checked over) ------------------------------------------
 
 LINK_INERTIA = np.array([0.03, 0.1, 0.3, 0.1])  # kg m^2, one single-joint link per "joint"
 LINK_MGL = np.array([1.5, 3.0, 6.0, 3.0])  # Nm: gravity torque at 90 degrees
 BOUNDS = LinkBounds(LINK_INERTIA / 2, LINK_INERTIA * 2, LINK_MGL)
 
 
-def test_thesis_gains_make_the_cascade_unstable_and_are_refused(torque: SeaTorqueController) -> None:
-    """Kp 700, Kd 175 pass the first-order criterion w > Kp/Kd but not the full discrete model."""
-    w_torque = 2 * np.pi * torque.design.bandwidth_hz
-    assert w_torque > THESIS_KP_NM_PER_RAD / THESIS_KD_NMS_PER_RAD
-    plant = SeaPlant.nominal(torque.sea)
-    for inertia in (0.003, 0.027, 0.1, 0.37, 0.6):
-        radius = position_loop_spectral_radius(torque, plant, inertia, THESIS_KP_NM_PER_RAD, THESIS_KD_NMS_PER_RAD)
-        assert radius > 1.02, f"I = {inertia}: spectral radius {radius:.3f}"
-    with pytest.raises(ControlDesignError, match="unstable"):
-        PositionPD(
-            torque, minimum_jerk(np.zeros(4), np.zeros(4), 1.0), BOUNDS, THESIS_KP_NM_PER_RAD, THESIS_KD_NMS_PER_RAD
-        )
-
-
-def test_designed_position_gains_keep_margin(torque: SeaTorqueController, description: RobotDescription) -> None:
+def test_link_bounds_refuse_a_load_outside_zero_to_one(description: RobotDescription) -> None:
     with pytest.raises(ControlSettingError):
         LinkBounds.from_description(description, load_in_minimum=1.5)
-    bounds = LinkBounds.from_description(description)
-    pd = PositionPD(torque, minimum_jerk(np.zeros(4), np.zeros(4), 1.0), bounds)
-    assert np.all(worst_position_loop(torque, bounds, pd.kp_nm_per_rad, pd.kd_nms_per_rad, gain_margin=2.0) < 1.0)
-    assert np.all(pd.kp_nm_per_rad > bounds.gravity_stiffness_nm_per_rad)  # holds the arm against gravity
-    # Twice the designed gains is the edge; four times is beyond it on some joint.
-    assert np.any(worst_position_loop(torque, bounds, 4 * pd.kp_nm_per_rad, 4 * pd.kd_nms_per_rad, 1.0) >= 1.0)
-
-
-def test_position_pd_tracks_minimum_jerk_and_holds(torque: SeaTorqueController, description: RobotDescription) -> None:
-    """0.2 -> 0.8 rad in 2 s against gravity, with a feedforward 10 % off; 0.5 s to settle, then hold 1 s."""
-    q0, q1 = np.full(4, 0.2), np.full(4, 0.8)
-    reference = minimum_jerk(q0, q1, 2.0)
-    model_error = 0.1
-    pd = PositionPD(torque, reference, BOUNDS, feedforward=Gravity(description, LINK_MGL, error=model_error))
-    sim = JointSim("free", inertia_kgm2=LINK_INERTIA, mgl_nm=LINK_MGL)
-    sim.hold(q0)
-    rows = np.array(run(sim, pd, 3500, lambda s: (sim.q - reference(s.t_s)[0], sim.q.copy())))
-    error, q = rows[:, 0], rows[:, 1]
-    rms_move = np.sqrt(np.mean(error[:2000] ** 2, axis=0))
-    assert np.all(rms_move < 0.005), f"RMS tracking error {rms_move.round(4)} rad"
-    # At rest the PD holds the model's error: (error x mgl sin q) / Kp, nothing more.
-    static = model_error * LINK_MGL * np.sin(q1) / pd.kp_nm_per_rad
-    assert np.all(np.abs(error[-1]) < 1.2 * static + 1e-3), (
-        f"final error {error[-1].round(4)}, static {static.round(4)}"
-    )
-    assert np.all(np.std(q[-1000:], axis=0) < 1e-4), "does not hold still"
-
-
-def test_thesis_gains_oscillate_in_simulation(torque: SeaTorqueController, description: RobotDescription) -> None:
-    """What the analysis predicts happens: forced past the check, Kp 700 / Kd 175 shake the joint."""
-    pd = PositionPD(torque, minimum_jerk(np.zeros(4), np.zeros(4), 1.0), BOUNDS)
-    pd._gains[0], pd._gains[1] = THESIS_KP_NM_PER_RAD, THESIS_KD_NMS_PER_RAD  # bypass the refusal, test only
-    sim = JointSim("free", inertia_kgm2=LINK_INERTIA, mgl_nm=LINK_MGL)
-    commands = np.array(run(sim, pd, 1500, lambda s: np.array(sim.queue[-1])))
-    late = commands[-500:]
-    assert np.all(np.max(np.abs(late), axis=0) >= 0.99 * description.sea.max_motor_torque_nm), "no limit cycle"
-
-
-def test_position_pd_refuses_a_reference_away_from_the_robot(torque: SeaTorqueController) -> None:
-    pd = PositionPD(torque, minimum_jerk(np.full(4, 0.3), np.full(4, 0.3), 1.0), BOUNDS)
-    with pytest.raises(ControlSettingError, match="joint 1"):
-        pd.reset(still_sample())
-    with pytest.raises(ControlSettingError):
-        PositionPD(torque, minimum_jerk(np.zeros(4), np.zeros(4), 1.0), BOUNDS, kp_nm_per_rad=10.0)
-    nan_reference = PositionPD(torque, lambda t: (np.full(4, np.nan), np.zeros(4)), BOUNDS)
-    with pytest.raises(ControlSettingError):
-        nan_reference.reset(still_sample())
-
-
-def test_position_pd_refuses_non_finite_references_mid_run(torque: SeaTorqueController) -> None:
-    def reference(t: float) -> tuple[FloatArray, FloatArray]:
-        return (np.zeros(4), np.zeros(4)) if t < 0.0005 else (np.array([0.0, np.inf, 0.0, 0.0]), np.zeros(4))
-
-    pd = PositionPD(torque, reference, BOUNDS)
-    pd.reset(still_sample())
-    pd.update(still_sample(), PERIOD_S)
-    with pytest.raises(ControlError, match="joint 2"):
-        pd.update(still_sample(t_s=0.002), PERIOD_S)
-    with pytest.raises(ControlSettingError):
-        minimum_jerk(np.zeros(4), np.ones(4), 0.0)
 
 
 # --- per-tick cost: small arrays only ------------------------------------------------------------------
@@ -658,7 +594,7 @@ def test_updates_allocate_only_small_arrays(torque: SeaTorqueController, descrip
     modes: list[Controller] = [
         MinimalImpedance(torque),
         Compensation(torque, Gravity(description, LINK_MGL), ramp_per_s=None),
-        PositionPD(torque, minimum_jerk(np.zeros(4), np.zeros(4), 1.0), BOUNDS),
+        MotorPositionPD(description, hold(np.zeros(4)), BOUNDS),
     ]
     sample = still_sample()
     for mode in modes:

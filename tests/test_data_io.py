@@ -205,6 +205,8 @@ def test_raw_log_path_puts_raw_before_the_extension() -> None:
     assert raw_log_path("out/train.csv") == Path("out/train.raw.csv")
     assert raw_log_path(Path("data/B.npz")) == Path("data/B.raw.npz")
     assert raw_log_path("run.v2.mat") == Path("run.v2.raw.mat")
+    assert raw_log_path("out/train.csv", ".npz") == Path("out/train.raw.npz")
+    assert raw_log_path("out/train.npz", ".csv") == Path("out/train.raw.csv")
 
 
 # --- atomic writes -------------------------------------------------------------------------

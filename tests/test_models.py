@@ -13,7 +13,7 @@ from daror_runtime.models.compare import evaluate_models
 from daror_runtime.models.files import load_model, save_model, training_summary
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.linear import APModel, design_theta, dummy_arm_theta, fit_plf, fit_plf_plus
-from daror_runtime.models.registry import KINDS, FitOptions, fit_model
+from daror_runtime.models.registry import fit_model, installation_options, kind_names
 from daror_runtime.models.regressor import regressor_parameter_major
 from hal.robot import RobotDescription
 from hal.sim.scenario import Scenario
@@ -80,7 +80,9 @@ def test_base_parameters_recover_the_physical_combinations(exo: Scenario, descri
 
 def test_dataset_b_ranks_plf_plus_first(dataset_b, description: RobotDescription) -> None:
     train, validation = dataset_b
-    models = [fit_model(k, train, description, FitOptions(dummy_arm=True)).model for k in ("ap", "plf", "plf+")]
+    models = [
+        fit_model(k, train, description, installation_options(k, dummy_arm=True)).model for k in ("ap", "plf", "plf+")
+    ]
     rmse = {e.kind: e.metrics.rmse_nm for e in evaluate_models(models, validation)}
     assert rmse["plf+"] < rmse["plf"]
     assert rmse["plf+"] < rmse["ap"]
@@ -165,7 +167,7 @@ def test_plf_plus_needs_six_distinct_elbow_angles(dataset_b, description: RobotD
 @pytest.mark.parametrize("kind", ["ap", "plf", "plf+"])
 def test_model_file_round_trip(kind: str, dataset_b, description: RobotDescription, tmp_path) -> None:
     train, validation = dataset_b
-    result = fit_model(kind, train, description, FitOptions(dummy_arm=True, name=f"my {kind}"))
+    result = fit_model(kind, train, description, installation_options(kind, dummy_arm=True, name=f"my {kind}"))
     path = tmp_path / "model.json"
     save_model(path, result.model, training_summary(train), result.report)
     loaded, contents = load_model(path)
@@ -192,8 +194,8 @@ def test_altered_model_file_is_refused(dataset_b, description: RobotDescription,
 
 def test_single_and_batch_torque_agree_for_every_kind(dataset_b, description: RobotDescription) -> None:
     train, validation = dataset_b
-    for kind in KINDS:
-        model = fit_model(kind, train, description, FitOptions(dummy_arm=True)).model
+    for kind in kind_names():
+        model = fit_model(kind, train, description, installation_options(kind, dummy_arm=True)).model
         batch = model.torque_batch(validation.q_rad[:25])
         single = np.array([model.torque(q) for q in validation.q_rad[:25]])
         assert single == pytest.approx(batch, abs=1e-12), kind

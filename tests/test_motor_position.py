@@ -9,9 +9,10 @@ from daror_runtime.clocks import LockStepClock
 from daror_runtime.control.base import ControlDesignError, ControlError
 from daror_runtime.control.motor_position import MotorPositionPD, _motor_pd, motor_loop_spectral_radius
 from daror_runtime.control.position import LinkBounds
-from daror_runtime.identification.trajectory import build_trajectory
+from daror_runtime.identification.trajectory_planning import build_trajectory
 from daror_runtime.identification.waypoints import WaypointSet, load_waypoints
 from daror_runtime.loop import ControlLoop, FixedSupervisor
+from daror_runtime.models.base import CompensationModel, TickKernel
 from daror_runtime.models.linear import APModel
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
@@ -143,3 +144,55 @@ def test_in_the_loop_it_tracks_with_feed_forward(description: RobotDescription) 
     assert np.sqrt(np.mean(errors**2, axis=0)).max() < 0.015
     assert np.abs(errors[-500:]).max() < 0.02
     assert isinstance(loop.tick().command, Command)
+
+
+class _Wrapped(CompensationModel):
+    """A model that is no LinearCompensationModel: it forwards to one and, when asked, offers its kernel."""
+
+    kind = "wrapped"
+    display_name = "wrapped"
+    conservative_by_construction = True
+
+    def __init__(self, inner: APModel, offer_kernel: bool) -> None:
+        super().__init__(inner.description)
+        self.inner, self.offer_kernel = inner, offer_kernel
+
+    def torque(self, q: np.ndarray) -> np.ndarray:
+        return self.inner.torque(q)
+
+    def torque_batch(self, q: np.ndarray) -> np.ndarray:
+        return self.inner.torque_batch(q)
+
+    def tick_kernel(self) -> TickKernel | None:
+        return self.inner.tick_kernel() if self.offer_kernel else None
+
+    def parameters(self) -> dict[str, object]:
+        return self.inner.parameters()
+
+    @classmethod
+    def from_parameters(cls, description: RobotDescription, parameters: object, name: str | None = None) -> _Wrapped:
+        raise NotImplementedError
+
+
+def test_the_compiled_path_follows_the_models_tick_kernel_not_its_class(description: RobotDescription) -> None:
+    """Issue 11: the controller asks ``tick_kernel()``; the compiled and Python paths give the same commands."""
+    full = load_waypoints()
+    small = WaypointSet(
+        waypoints=[full.waypoints[0], full.waypoints[13]], training_order=[1, 2], validation_order=[2, 1]
+    )
+    trajectory = build_trajectory(small, "training")
+    ap = APModel.from_description(description, dummy_arm=True, elbow_stiffness=True)
+    offered = MotorPositionPD(description, trajectory, bounds(description), feedforward=_Wrapped(ap, True))
+    withheld = MotorPositionPD(description, trajectory, bounds(description), feedforward=_Wrapped(ap, False))
+    assert offered._table is not None  # one compiled call per tick, the model inside it
+    assert withheld._table is None  # the model's torque() in Python
+    hal = SimHal("exo_dummy_arm")
+    hal.open()
+    first = hal.read()
+    for controller in (offered, withheld):
+        controller.reset(first)
+    for n in range(1000):
+        sample = hal.read()
+        a, b = offered.update(sample, 1e-3), withheld.update(sample, 1e-3)
+        assert np.array_equal(a.motor_torque_nm, b.motor_torque_nm), n
+        hal.write(a)

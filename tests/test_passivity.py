@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import replace
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from daror_runtime.control import MinimalImpedance, SeaTorqueController, SeaTorqueDesign
 from daror_runtime.control.base import ControlDesignError
+from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.passivity import (
     AlphaChoice,
     analysis_nominal_plant,
@@ -20,7 +22,7 @@ from daror_runtime.control.passivity import (
     spring_damping_floor,
     torque_loop_spectral_radius,
 )
-from daror_runtime.control.sea_torque import DEFAULT_ALPHA, SeaPlant
+from daror_runtime.control.sea_torque_design import DEFAULT_ALPHA, SeaPlant
 from hal.robot import RobotDescription, SeaConstants
 from tests.test_control import PERIOD_S, JointSim
 
@@ -112,10 +114,10 @@ def test_no_spring_damping_no_passive_sampled_torque_loop(sea: SeaConstants, cho
     assert apparent_impedance(controller, replace(bare, spring_damping_nms_per_rad=0.05)).passive
 
 
-def test_cascade_check_uses_the_passivity_floor(sea: SeaConstants, choice: AlphaChoice) -> None:
-    from daror_runtime.control.position import CASCADE_SPRING_DAMPING_NMS_PER_RAD
-
-    assert choice.spring_damping_floor_nms_per_rad == CASCADE_SPRING_DAMPING_NMS_PER_RAD
+def test_motor_position_check_uses_the_passivity_floor(sea: SeaConstants, choice: AlphaChoice) -> None:
+    """The position controller's stability check assumes the same spring-damping floor as the torque loop's."""
+    default = inspect.signature(MotorPositionPD).parameters["spring_damping_nms_per_rad"].default
+    assert choice.spring_damping_floor_nms_per_rad == default
 
 
 def test_observer_lowers_the_low_frequency_impedance(sea: SeaConstants) -> None:
@@ -127,7 +129,7 @@ def test_observer_lowers_the_low_frequency_impedance(sea: SeaConstants) -> None:
     assert np.all(ratio < 0.45), ratio
     assert ratio[0] == pytest.approx(1.0 - DEFAULT_ALPHA, abs=0.03)
     # At DC the pilot feels the gearbox viscous friction divided by the loop gain (1 + K_p), times 1 - alpha.
-    kp = SeaTorqueController(sea).kp
+    kp = SeaTorqueController(sea).loop.kp
     dc = apparent_impedance(SeaTorqueController(sea, SeaTorqueDesign(), 1), None, np.array([1e-3])).impedance[0]
     assert dc.real == pytest.approx((1 - DEFAULT_ALPHA) * sea.gearbox_viscous_nms_per_rad / (1 + kp), rel=0.01)
 

@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daror_runtime.data.stationary import ReductionSettings
-from daror_runtime.identification.protocol import ProtocolAbortedError, ProtocolResult, ProtocolSettings, run_protocol
-from daror_runtime.identification.trajectory import TrajectorySettings, build_trajectory
+from daror_runtime.errors import UsageError
+from daror_runtime.identification.protocol import ProtocolAbortedError, ProtocolResult, run_protocol
+from daror_runtime.identification.settings import IdentificationSettings
+from daror_runtime.identification.trajectory_planning import TrajectorySettings, build_trajectory
 from daror_runtime.identification.waypoints import WaypointSet, load_waypoints
 from daror_runtime.models.compare import evaluate_models
 from daror_runtime.models.linear import APModel
-from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.models.registry import fit_model, installation_options
 from daror_runtime.residual.diagnosis import closure, diagnose
 from hal.isb import IsbLimits
 from hal.robot import RobotDescription
@@ -34,14 +35,20 @@ def small_set() -> WaypointSet:
 
 
 def run(
-    kind: str, tmp_path: Path, *, settings: ProtocolSettings | None = None, isb: IsbLimits | None = None, hal=None
+    kind: str, tmp_path: Path, *, settings: IdentificationSettings | None = None, isb: IsbLimits | None = None, hal=None
 ) -> ProtocolResult:
     hal = hal or SimHal("exo_dummy_arm")
     hal.open()
     trajectory = build_trajectory(small_set(), kind, TrajectorySettings.for_kind(kind))  # type: ignore[arg-type]
     feedforward = APModel.from_description(hal.description, dummy_arm=True, elbow_stiffness=True)
     return run_protocol(
-        hal, trajectory, tmp_path / f"{kind}.rec", isb_limits=isb, settings=settings, feedforward=feedforward
+        hal,
+        trajectory,
+        tmp_path / f"{kind}.rec",
+        tmp_path / f"{kind}.csv",
+        isb_limits=isb,
+        settings=settings,
+        feedforward=feedforward,
     )
 
 
@@ -87,8 +94,8 @@ def test_the_pilots_isb_limits_stop_the_protocol(tmp_path: Path) -> None:
         run("validation", tmp_path, isb=narrow)
 
 
-def test_reduction_settings_are_honoured(tmp_path: Path) -> None:
-    one = run("training", tmp_path, settings=ProtocolSettings(points_per_stop=1, reduction=ReductionSettings()))
+def test_points_per_stop_is_honoured(tmp_path: Path) -> None:
+    one = run("training", tmp_path, settings=IdentificationSettings(points_per_stop=1))
     assert len(one.stationary) <= one.stops
 
 
@@ -101,11 +108,13 @@ def test_full_protocol_meets_the_acceptance_figures(tmp_path: Path, description:
         hal.open()
         trajectory = build_trajectory(load_waypoints(), kind)  # type: ignore[arg-type]
         feedforward = APModel.from_description(hal.description, dummy_arm=True, elbow_stiffness=True)
-        results[kind] = run_protocol(hal, trajectory, tmp_path / f"{kind}.rec", feedforward=feedforward)
+        results[kind] = run_protocol(
+            hal, trajectory, tmp_path / f"{kind}.rec", tmp_path / f"{kind}.csv", feedforward=feedforward
+        )
     train, validation = results["training"].stationary, results["validation"].stationary
     assert len(train) >= 1000
     assert len(validation) == 166  # 83 waypoints forward and back: the thesis's 166
-    models = [fit_model(k, train, description, FitOptions(dummy_arm=True)).model for k in ("ap", "plf+")]
+    models = [fit_model(k, train, description, installation_options(k, dummy_arm=True)).model for k in ("ap", "plf+")]
     rmse = {e.kind: e.metrics.rmse_nm for e in evaluate_models(models, validation)}
     assert rmse["plf+"] < 0.5 * rmse["ap"]
     for result in results.values():
@@ -119,3 +128,21 @@ def test_full_protocol_meets_the_acceptance_figures(tmp_path: Path, description:
     after = closure(diagnosis, validation)
     assert after.before.rmse_nm == pytest.approx(rmse["plf+"], rel=1e-9)
     assert after.after.rmse_nm < 0.4 * after.before.rmse_nm
+
+
+class _HardwareStandIn(SimHal):
+    """The simulated plant claiming to drive hardware (not on virtual time), as a CAN backend will."""
+
+    virtual_time = False
+
+
+def test_a_run_outside_a_session_refuses_a_backend_that_drives_hardware(tmp_path: Path) -> None:
+    """``run_protocol`` has no FSM (no e-stop test, no installation): never on hardware."""
+    hal = _HardwareStandIn("exo_dummy_arm")
+    hal.open()
+    trajectory = build_trajectory(small_set(), "validation")
+    with pytest.raises(UsageError, match=r"drives hardware.*skips the FSM"):
+        run_protocol(hal, trajectory, tmp_path / "run.rec", tmp_path / "run.csv")
+    assert list(tmp_path.iterdir()) == []  # no recording started, nothing written
+    assert np.all(hal.applied_motor_torque_nm == 0.0)
+    assert hal.read().t_s == 0.0  # not a single tick ran

@@ -1,10 +1,11 @@
-"""The crash-safe recorder (``daror_runtime.data.recorder``, issue 3).
+"""The crash-safe recorder (``daror_runtime.data.recorder``, issue 3), its reader and the loop's row layout.
 
 What is checked: exact round trips over many blocks; the partial block at close and at flush;
 bounded memory (a slowed writer makes ``push`` drop and count rows, never wait); a disk error in
 the writer thread latched and raised at the next ``push``; no overwrite; a real ``kill -9`` of a
 recording process, after which every complete row is readable and exact; a truncated tail is
-ignored, a damaged header refused; and a recording turns into a raw log the reducer accepts.
+ignored, a damaged header refused; the loop's row (``daror_runtime.data.tick_row``) puts every value
+under its name; and a recording of such rows turns into a raw log the reducer accepts.
 """
 
 from __future__ import annotations
@@ -27,20 +28,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daror_runtime.data.recorder import (
-    FORMAT_NAME,
-    Recorder,
-    RecorderError,
-    fill_raw_row,
-    inspect_recording,
-    read_recording,
-    recording_columns,
-    recording_to_raw_log,
-)
-from daror_runtime.data.schema import RawLog
+from daror_runtime.data import tick_row
+from daror_runtime.data.recorder import FORMAT_NAME, VALUE_BYTES, Recorder, RecorderError
+from daror_runtime.data.recording_reader import inspect_recording, read_recording, recording_to_raw_log
+from daror_runtime.data.schema import RAW_REQUIRED, RawLog
 from daror_runtime.data.stationary import reduce_to_stationary
+from daror_runtime.data.tick_row import RECORD_COLUMNS, fill_tick_row
 from daror_runtime.errors import DataError, ShapeError, UsageError
-from hal.interface import Command, DriveState, Sample
 from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
 from hal.sim.scenario import Scenario
 from hal.sim.static_dataset import stream
@@ -50,6 +44,11 @@ COLUMNS = tuple(f"c{k}" for k in range(6))
 
 
 # --- helpers -------------------------------------------------------------------------------
+
+
+def pool_bytes(recorder: Recorder) -> int:
+    """Bytes of row storage the recorder owns: its blocks, allocated at start."""
+    return recorder.capacity_rows * len(recorder.columns) * VALUE_BYTES
 
 
 def counting_rows(n_rows: int, n_columns: int, start: int = 0) -> np.ndarray:
@@ -252,9 +251,9 @@ def test_memory_stays_within_the_blocks_whatever_the_run_length(path: Path, monk
         tracemalloc.stop()
         release.set()
         recorder.close()
-    assert after_start - baseline >= recorder.memory_bytes  # the blocks, allocated once at start
+    assert after_start - baseline >= pool_bytes(recorder)  # the blocks, allocated once at start
     # Blocks plus a little bookkeeping (queue entries, the thread); nothing that grows with the run.
-    assert peak - baseline < recorder.memory_bytes + 256 * 1024, f"peak {peak - baseline} bytes"
+    assert peak - baseline < pool_bytes(recorder) + 256 * 1024, f"peak {peak - baseline} bytes"
     assert recorder.rows_written + recorder.dropped_rows == 100_000
 
 
@@ -535,24 +534,32 @@ def test_a_non_recording_binary_file_is_refused(tmp_path: Path) -> None:
 # --- raw logs ------------------------------------------------------------------------------
 
 
-def test_recording_columns_and_fill_raw_row_agree() -> None:
-    columns = recording_columns()
+def test_the_tick_row_puts_every_value_under_its_name() -> None:
+    """One layout: the names, the index constants and the compiled fill agree, and the raw-log part
+    is named as a raw log names it."""
+    columns = RECORD_COLUMNS
     assert columns[:13] == ("t", "q1", "q2", "q3", "q4", "dq1", "dq2", "dq3", "dq4", "tau1", "tau2", "tau3", "tau4")
-    assert columns[13:] == ("theta1", "theta2", "theta3", "theta4", "tau_cmd1", "tau_cmd2", "tau_cmd3", "tau_cmd4")
-    assert recording_columns(tau_cmd=False, extra=("state",))[-5:] == ("theta1", "theta2", "theta3", "theta4", "state")
-    with pytest.raises(UsageError, match="q1"):
-        recording_columns(extra=("q1",))
-    sample = Sample(
-        seq=1,
-        t_s=2.5,
-        q_rad=np.array([0.1, 0.2, 0.3, 0.4]),
-        dq_rad_s=np.array([1.1, 1.2, 1.3, 1.4]),
-        theta_rad=np.array([3.1, 3.2, 3.3, 3.4]),
-        tau_nm=np.array([2.1, 2.2, 2.3, 2.4]),
-        estop=(False, False),
-        drives=(DriveState.ENABLED,) * 4,
-    )
-    row = fill_raw_row(np.full(len(columns), np.nan), sample, Command(np.array([4.1, 4.2, 4.3, 4.4]), True))
+    assert columns[13:21] == ("theta1", "theta2", "theta3", "theta4", "tau_cmd1", "tau_cmd2", "tau_cmd3", "tau_cmd4")
+    assert columns[21:] == ("enable", "faulted", "lateness_s")
+    assert len(columns) == len(set(columns)) == tick_row.N_RECORD_COLUMNS
+    for name, index in (
+        ("t", tick_row.T_INDEX),
+        ("enable", tick_row.ENABLE_INDEX),
+        ("faulted", tick_row.FAULTED_INDEX),
+        ("lateness_s", tick_row.LATENESS_INDEX),
+    ):
+        assert columns[index] == name
+    for prefix, group in (
+        ("q", tick_row.Q_SLICE),
+        ("dq", tick_row.DQ_SLICE),
+        ("tau", tick_row.TAU_SLICE),
+        ("theta", tick_row.THETA_SLICE),
+        ("tau_cmd", tick_row.TAU_CMD_SLICE),
+    ):
+        assert columns[group] == tuple(f"{prefix}{j}" for j in range(1, 5))
+    row = np.full(len(columns), -1.0)
+    q, dq, tau, theta, tau_cmd = (np.array([k + 0.1, k + 0.2, k + 0.3, k + 0.4]) for k in range(5))
+    fill_tick_row(row, 2.5, q, dq, tau, theta, tau_cmd, 1.0, 0.0, 0.003)
     named = dict(zip(columns, row, strict=True))
     assert named["t"] == 2.5
     assert [named[f"q{j}"] for j in range(1, 5)] == [0.1, 0.2, 0.3, 0.4]
@@ -560,23 +567,30 @@ def test_recording_columns_and_fill_raw_row_agree() -> None:
     assert [named[f"tau{j}"] for j in range(1, 5)] == [2.1, 2.2, 2.3, 2.4]
     assert [named[f"theta{j}"] for j in range(1, 5)] == [3.1, 3.2, 3.3, 3.4]
     assert [named[f"tau_cmd{j}"] for j in range(1, 5)] == [4.1, 4.2, 4.3, 4.4]
-    fill_raw_row(row, sample, Command(np.array([5.1, 5.2, 5.3, 5.4]), False))
-    assert np.array_equal(row[17:21], [5.1, 5.2, 5.3, 5.4])  # as the controller set it; enable is separate
-    with pytest.raises(ShapeError, match="21 values"):
-        fill_raw_row(np.zeros(17), sample, Command.torque_off())
+    assert (named["enable"], named["faulted"], named["lateness_s"]) == (1.0, 0.0, 0.003)
 
 
 def test_a_recorded_raw_log_reduces_to_the_same_stationary_points(path: Path, exo: Scenario) -> None:
     stops = np.array([[0.0, 0.3, 0.0, 0.6], [0.2, 0.5, 0.1, 0.9], [0.1, 0.2, -0.1, 1.2], [0.3, 0.4, 0.0, 0.8]])
     log = quasi_static_log(exo, stops, stream(exo.seed, 7), QuasiStaticSettings(rate_hz=1000.0, dwell_s=1.0))
-    columns = recording_columns()
-    row = np.empty(len(columns))
+    row = np.empty(len(RECORD_COLUMNS))
     tau_cmd = np.empty((len(log.t_s), 4))
-    with Recorder(path, columns, block_rows=500, max_queued_blocks=len(log.t_s) // 500 + 2) as recorder:
-        for i in range(len(log.t_s)):
-            sample = Sample(i, log.t_s[i], log.q_rad[i], log.dq_rad_s[i], log.theta_rad[i], log.tau_nm[i], (False,), ())
+    with Recorder(path, RECORD_COLUMNS, block_rows=500, max_queued_blocks=len(log.t_s) // 500 + 2) as recorder:
+        for i in range(len(log.t_s)):  # the loop's rows, as the loop fills them
             tau_cmd[i] = log.tau_nm[i] + 0.01 * i
-            recorder.push(fill_raw_row(row, sample, Command(tau_cmd[i], True)))
+            fill_tick_row(
+                row,
+                log.t_s[i],
+                log.q_rad[i],
+                log.dq_rad_s[i],
+                log.tau_nm[i],
+                log.theta_rad[i],
+                tau_cmd[i],
+                1.0,
+                0.0,
+                0.0,
+            )
+            recorder.push(row)
     assert recorder.dropped_rows == 0
 
     raw = recording_to_raw_log(path)
@@ -603,7 +617,7 @@ def test_recording_to_raw_log_maps_renamed_columns_and_refuses_what_is_missing(t
     rng = np.random.default_rng(3)
     values = rng.uniform(-1, 1, size=(n, 12))
     renamed = tmp_path / "renamed.rec"
-    with Recorder(renamed, ("time_s", *recording_columns(theta=False, tau_cmd=False)[1:])) as recorder:
+    with Recorder(renamed, ("time_s", *RAW_REQUIRED[1:])) as recorder:
         for i in range(n):
             recorder.push(np.concatenate([[t[i]], values[i]]))
     raw = recording_to_raw_log(renamed, {"t": "time_s"})
@@ -628,7 +642,7 @@ def test_recording_to_raw_log_maps_renamed_columns_and_refuses_what_is_missing(t
         recording_to_raw_log(degrees, {"t": "time_s"})
 
     gaps = tmp_path / "gaps.rec"  # the loop records NaN (and the previous t) for a tick without a sample
-    with Recorder(gaps, recording_columns(theta=False, tau_cmd=False, extra=("enable",))) as recorder:
+    with Recorder(gaps, (*RAW_REQUIRED, "enable")) as recorder:
         for i in range(n):
             values_i = np.full(12, np.nan) if i in (7, 8, 100) else values[i]
             recorder.push(np.concatenate([[t[i - 1 if i in (7, 8, 100) else i]], values_i, [1.0]]))
@@ -646,7 +660,7 @@ def test_recording_to_raw_log_maps_renamed_columns_and_refuses_what_is_missing(t
         recording_to_raw_log(gaps, drop_nan_rows=True)
 
     empty = tmp_path / "empty.rec"
-    with Recorder(empty, recording_columns()):
+    with Recorder(empty, RECORD_COLUMNS):
         pass
     with pytest.raises(DataError, match="no complete row"):
         recording_to_raw_log(empty)

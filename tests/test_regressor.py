@@ -11,20 +11,35 @@ from hypothesis.extra.numpy import arrays
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.regressor import (
     GRAVITY_PARAMETER_NAMES,
+    N_GRAVITY_PARAMETERS,
     LinearTorqueEvaluator,
-    elbow_polynomial_regressor,
     gravity_regressor,
     linear_torque,
-    potential_regressor,
     regressor_parameter_major,
 )
 from hal.errors import ShapeError
-from hal.robot import load_description
+from hal.robot import N_JOINTS, FloatArray, Kinematics, as_configurations, load_description
 
 KIN = load_description().kinematics()
 configurations = arrays(np.float64, (6, 4), elements=st.floats(-3.0, 3.0))
 parameters = arrays(np.float64, (12,), elements=st.floats(-5.0, 5.0))
 polynomials = arrays(np.float64, (6,), elements=st.floats(-2.0, 2.0))
+
+
+def potential_regressor(kinematics: Kinematics, q: FloatArray) -> FloatArray:
+    """``Kbar_y(q)`` of Eq. 4.19 with Eq. 4.3: ``V_y = Kbar_y theta``; shape (N, 12)."""
+    rotors = kinematics.rotor_rotations_component_major(q)  # (4, 3, 3, N)
+    return rotors[:, 1, :, :].reshape(N_GRAVITY_PARAMETERS, -1).T
+
+
+def elbow_polynomial_regressor(q: FloatArray, order: int) -> FloatArray:
+    """``K_s(q4)`` of Eq. 4.26 placed on the elbow row; shape (N, 4, order + 1)."""
+    q = as_configurations(q)
+    regressor = np.zeros((q.shape[0], N_JOINTS, order + 1))
+    regressor[:, 3, 0] = 1.0
+    # successive products, exactly as regressor_parameter_major builds them
+    regressor[:, 3, 1:] = np.cumprod(np.repeat(q[:, 3:4], order, axis=1), axis=1)
+    return regressor
 
 
 @given(q=configurations, theta=parameters, mu=polynomials)

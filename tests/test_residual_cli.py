@@ -219,6 +219,8 @@ def test_without_dir_the_other_families_still_run(files: tuple[Path, Path], tmp_
         (["--effects", "gravity_tilt,magic"], "unknown effect family 'magic'"),
         (["--effects", "gravity_tilt,gravity_tilt"], "named twice"),
         (["--base", "penn"], "--base penn"),
+        (["--base", "plf", "--dummy-arm"], "--dummy-arm: the base model plf takes no Dummy Arm"),
+        (["--dummy-arm"], "only --base ap does"),  # the default base, plf+
     ],
 )
 def test_bad_options(
@@ -251,7 +253,7 @@ def test_dataset_type_is_what_the_loader_gives(files: tuple[Path, Path]) -> None
     pair = load_pair(*files)
     assert isinstance(pair.train, StationaryDataset)
     assert pair.has_direction
-    assert pair.has_time
+    assert pair.train.t_s is not None
 
 
 def test_fit_augmented_diagnoses_the_training_data_alone(files: tuple[Path, Path], tmp_path: Path) -> None:

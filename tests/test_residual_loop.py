@@ -14,7 +14,8 @@ import pytest
 
 from daror_runtime.clocks import LockStepClock
 from daror_runtime.control.modes import Compensation
-from daror_runtime.control.sea_torque import SeaTorqueController, SeaTorqueDesign
+from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.sea_torque_design import SeaTorqueDesign
 from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.residual.diagnosis import diagnose

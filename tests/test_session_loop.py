@@ -28,7 +28,7 @@ import yaml
 
 from daror_runtime.clocks import LockStepClock, TickTiming
 from daror_runtime.console.world import SimWorld
-from daror_runtime.data.load import load_stationary, raw_log_path, write_dataset
+from daror_runtime.data.load import RAW_LOG_SUFFIX, load_stationary, raw_log_path, write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import ConfigurationError
 from daror_runtime.fsm.machine import Outcome
@@ -36,15 +36,16 @@ from daror_runtime.fsm.modes import MODES, ModeInfo
 from daror_runtime.fsm.signals import EstopButton
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH, FsmSpecError, StateSpec, load_fsm_spec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
+from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.logs import configure_logging, flush_logs
 from daror_runtime.loop import TickResult
 from daror_runtime.models.files import save_model, training_summary
-from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.models.registry import fit_model, installation_options
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
-from daror_runtime.session.settings import IdentificationSettings, SessionSettings
+from daror_runtime.session.settings import SessionSettings
 from hal.errors import HalError
 from hal.isb import AngleRange, IsbLimits
 from hal.robot import FloatArray
@@ -123,7 +124,7 @@ def model_files(tmp_path_factory: pytest.TempPathFactory) -> ModelFiles:
     training = _dataset(generate_stationary(scenario, "training"))
     files = ModelFiles(folder / "plf_plus.json", folder / "validation.csv")
     write_dataset(files.validation, _dataset(generate_stationary(scenario, "validation")))
-    result = fit_model("plf+", training, scenario.description(), FitOptions(dummy_arm=True))
+    result = fit_model("plf+", training, scenario.description(), installation_options("plf+", dummy_arm=True))
     save_model(files.model, result.model, training_summary(training))
     return files
 
@@ -668,7 +669,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
     assert set(saved) == {"training", "validation"}
     for kind, path in saved.items():
         assert Path(path).is_file()
-        assert raw_log_path(path).is_file()
+        assert raw_log_path(path, RAW_LOG_SUFFIX).is_file()
         assert len(load_stationary(path)) == points[kind] > 0
     # the model: PLF+ trained on them, validated within the session's limit
     model = status["model"]
@@ -696,20 +697,17 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
 
 def support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) -> tuple[FloatArray, FloatArray]:
     """Mean |holding torque| of the arm and RMS of the relaxed pilot's torque, per joint (as rehearsal.py)."""
-    hal = world.hal
-    assert isinstance(hal, SimHal)
-    plant = hal.plant
     holding: list[FloatArray] = []
     pilot: list[FloatArray] = []
 
     def sample(result: TickResult) -> bool:
-        truth = hal.truth()
-        holding.append(np.abs(plant.holding_torque_nm(truth.q_rad)))
-        pilot.append(world.pilot(hal.time_s, truth.q_rad, truth.dq_rad_s))
+        holding_nm, pilot_nm = world.support_torques()
+        holding.append(np.abs(holding_nm))
+        pilot.append(pilot_nm)
         return False
 
-    assert world.pilot.carried == 0.0
-    runtime.run_ticks(round(seconds * hal.rate_hz), stop=sample)
+    assert world.pilot_carried == 0.0
+    runtime.run_ticks(round(seconds * runtime.hal.rate_hz), stop=sample)
     return np.mean(holding, axis=0), np.sqrt(np.mean(np.square(pilot), axis=0))
 
 

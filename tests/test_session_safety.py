@@ -398,7 +398,7 @@ def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: st
         assert second_end == pytest.approx(now + 2.0)  # it starts now, not queued behind the first
         assert second_end < first_end
     if command in ("hold", "stop"):
-        assert not world.pilot.moving
+        assert not world.pilot_moving
     # past the first sweep's end: no fault anywhere, and the arm is where the new command put it
     _, _, speeds = watch(session, first_end - session.hal.time_s + 2.0)
     assert not runtime.monitor.faulted, runtime.monitor.latched

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
+from hal.config import SimHalConfig
 from hal.errors import DescriptionError, HalError, InputError, ShapeError
 from hal.interface import Command, DriveState, HalFaultError, Sample, hal_class, open_hal
 from hal.robot import N_JOINTS, load_description
@@ -59,7 +60,7 @@ def assert_same_truth(hal: SimHal, plant: DynamicPlant) -> None:
 
 def test_registered_as_the_sim_backend() -> None:
     assert hal_class("sim") is SimHal
-    hal = open_hal("sim", scenario="exo", rate_hz=500.0)
+    hal = open_hal(SimHalConfig(scenario="exo", rate_hz=500.0))
     assert isinstance(hal, SimHal)
     assert hal.kind == "sim"
     assert hal.rate_hz == 500.0

@@ -24,6 +24,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daror_runtime.clocks import LockStepClock, RealTimeClock, TickTiming
+from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.errors import ConfigurationError
 from daror_runtime.fsm.machine import Event
 from daror_runtime.fsm.supervisor import (
@@ -37,7 +38,6 @@ from daror_runtime.logs import configure_logging
 from daror_runtime.loop import (
     DEFAULT_MAX_STALL_PERIODS,
     DEFAULT_OVERRUN_LIMIT,
-    RECORD_COLUMNS,
     ControlLoop,
     FixedSupervisor,
     TickResult,

@@ -209,6 +209,13 @@ SPECIFIC: dict[str, dict[str, Hostile]] = {
             "field support_level: key 'support_level' is written twice (first on line 1)",
             2,
         ),
+        "model_kind not registered": text(
+            "support_level: 0.8\nmodel_kind: penn\n",
+            "field model_kind: unknown model kind 'penn'; expected one of ap, plf, plf+, augmented",
+            2,
+        ),
+        "model_kind in capitals": text("model_kind: PLF+\n", "field model_kind: unknown model kind 'PLF+'", 1),
+        "model_kind a number": text("model_kind: 5\n", "field model_kind: Input should be a valid string; got 5", 1),
     },
     "scenario": {
         "seed true": text("extends: exo\nname: x\nseed: true\n", "field seed: Input should be a valid integer", 3),

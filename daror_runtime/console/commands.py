@@ -209,7 +209,7 @@ class ConsoleSession:
             world = self.world
 
             def still() -> bool:
-                return not (world is not None and world.pilot.moving) and runtime.at_rest
+                return not (world is not None and world.pilot_moving) and runtime.at_rest
 
             return still
         if what == "model":

@@ -21,7 +21,7 @@ from typing import Any
 
 from daror_runtime.errors import InputError, UsageError
 from daror_runtime.fsm.signals import Checklist
-from daror_runtime.models.registry import KINDS
+from daror_runtime.models.registry import kind_names
 from hal.files import DATA_MAX_BYTES, MODEL_MAX_BYTES, YAML_MAX_BYTES, regular_file
 from hal.isb import load_isb_limits
 from hal.robot import RobotDescription
@@ -166,11 +166,16 @@ def _identify(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     return (_one_of("identify", args[0], ("training", "validation", "stop")),)
 
 
+def _session_kinds() -> tuple[str, ...]:
+    """The model kinds a session may train: the registry's kinds with the capability ``session_training``."""
+    return kind_names(lambda entry: entry.session_training)
+
+
 def _train(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     _arity("train [KIND]", args, (0, 1))
     if not args:
         return (None,)
-    return (_one_of("train KIND", args[0], KINDS),)
+    return (_one_of("train KIND", args[0], _session_kinds()),)
 
 
 def _model(args: list[str], context: ParseContext) -> tuple[Any, ...]:
@@ -336,7 +341,8 @@ COMMANDS: tuple[CommandSpec, ...] = (
         "train a model on this session's identification data",
         GROUPS[1],
         _train,
-        f"KIND: {', '.join(KINDS)} (default: the session's, plf+). The model is used only if it passes validation.",
+        f"KIND: {', '.join(_session_kinds())} (default: the session's, plf+). The model is used only if it passes "
+        "validation.",
     ),
     CommandSpec(
         "model",
@@ -482,7 +488,7 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "support": None,
         "rom": {"start": None, "stop": None, "load": None},
         "identify": {"training": None, "validation": None, "stop": None},
-        "train": {kind: None for kind in KINDS},
+        "train": {kind: None for kind in _session_kinds()},
         "model": None,
         "status": {"json": None},
         "settings": None,

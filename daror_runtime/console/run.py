@@ -184,15 +184,13 @@ def stdin_is_terminal() -> bool:
 
 
 def hal_has_world(hal: Hal) -> bool:
-    """True when the backend is the simulated plant (the console plays the world around it)."""
-    from hal.sim.backend import SimHal
-
-    return isinstance(hal, SimHal)
+    """True when the backend offers a simulated world (the console plays the world around the robot)."""
+    return hal.world is not None
 
 
 def world_for(runtime: Runtime) -> SimWorld | None:
-    """The simulated world around the runtime's HAL, or None on hardware."""
-    return SimWorld(runtime.hal) if hal_has_world(runtime.hal) else None  # type: ignore[arg-type]
+    """The simulated world around the runtime's (opened) HAL, its pilot seated; None on hardware."""
+    return SimWorld(runtime.hal) if hal_has_world(runtime.hal) else None
 
 
 def make_session(runtime: Runtime, out: object | None = None) -> ConsoleSession:

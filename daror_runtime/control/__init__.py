@@ -4,18 +4,26 @@ Structure (docs/control.md)::
 
     MinimalImpedance --(tau_ref = 0)------------------+
     Compensation ----(support x model.torque(q))------+--> SeaTorqueController --> motor torque
-    PositionPD ------(K_p e + K_d de + tau_ff)--------+    (C, C_ff, DOB: H_n, Q, alpha)
+                                                           (C, C_ff, DOB: H_n, Q, alpha)
+    MotorPositionPD -(K_p (theta_ref - theta) + K_d (dq_ref - theta') + tau_ff)--> motor torque
 
 Every mode is a :class:`~daror_runtime.control.base.Controller`: ``reset(sample)`` when selected,
-``update(sample, dt_s) -> Command`` once per tick, no I/O, no threads. The analysis that chose the
-observer gain (apparent impedance, passivity) is in :mod:`daror_runtime.control.passivity`; the
-position cascade's stability check in :mod:`daror_runtime.control.position`.
+``update(sample, dt_s) -> Command`` once per tick, no I/O, no threads (``tests/test_boundaries.py``
+checks the I/O). What runs in the tick and what is designed once before the loop live apart:
+
+* in the tick: :mod:`.sea_torque` (the torque loop's state and compiled kernel), :mod:`.modes`,
+  :mod:`.handover`, :mod:`.motor_position` (the identification's position PD);
+* before the loop: :mod:`.sea_torque_design` (gains, filters and observer of the torque loop),
+  :mod:`.filters` (transfer functions, discretised once; their state-space matrices are what the
+  kernels run), :mod:`.position` (the link bounds position gains are checked over), and
+  :mod:`.passivity` (the analysis that chose the observer gain: apparent impedance, passivity).
 """
 
 from daror_runtime.control.base import ControlDesignError, ControlError, Controller, ControlSettingError
 from daror_runtime.control.modes import Compensation, MinimalImpedance, TorqueOff
-from daror_runtime.control.position import LinkBounds, PositionPD, design_position_gains, minimum_jerk
-from daror_runtime.control.sea_torque import SeaPlant, SeaTorqueController, SeaTorqueDesign
+from daror_runtime.control.position import LinkBounds
+from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.sea_torque_design import SeaPlant, SeaTorqueDesign
 
 __all__ = [
     "Compensation",
@@ -25,11 +33,8 @@ __all__ = [
     "Controller",
     "LinkBounds",
     "MinimalImpedance",
-    "PositionPD",
     "SeaPlant",
     "SeaTorqueController",
     "SeaTorqueDesign",
     "TorqueOff",
-    "design_position_gains",
-    "minimum_jerk",
 ]

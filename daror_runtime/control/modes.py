@@ -8,8 +8,8 @@
 
 Both SEA torque modes enter bumplessly: the torque the springs carry at entry is handed over
 (:mod:`daror_runtime.control.handover`), never dropped or stepped.
-* :class:`~daror_runtime.control.position.PositionPD`: joint PD through the torque loop
-  (Sec. 2.2.4), for the identification protocol.
+The identification protocol's position control is the collocated motor position PD
+(:mod:`daror_runtime.control.motor_position`), not a mode of this module.
 
 Every torque mode returns ``Command(motor_torque, enable=True)``; what may actually reach the
 drives is the safety filter's decision. Each keeps the torque reference of its last tick in
@@ -24,14 +24,13 @@ import numpy as np
 
 from daror_runtime.control.base import ControlError, ControlSettingError
 from daror_runtime.control.handover import DEFAULT_TOLERANCE_NM, MAX_RAMP_DT_S, Handover, handover_reference
-from daror_runtime.control.position import PositionPD
 from daror_runtime.control.sea_torque import SeaTorqueController
 from daror_runtime.errors import ShapeError
 from daror_runtime.models.base import CompensationModel
 from hal.interface import Command, Sample
 from hal.robot import FloatArray
 
-__all__ = ["Compensation", "MinimalImpedance", "PositionPD", "TorqueOff"]
+__all__ = ["Compensation", "MinimalImpedance", "TorqueOff"]
 
 
 class TorqueOff:

@@ -19,9 +19,10 @@ noise and the same tracking. Every gain set is checked at construction: the disc
 (one tick of command delay, the velocity filter, motor, spring, the lightest and heaviest link,
 the gravity that pulls away) must have a spectral radius below one with the given margin.
 
-Compared with :class:`daror_runtime.control.position.PositionPD` (a PD on the link angle whose
-output is the torque reference of the SEA torque loop), this controller is 40 times stiffer at
-the link for the same stability; it is what the identification protocol uses.
+Compared with a PD on the link angle whose output is the torque reference of the SEA torque loop
+(the thesis's cascade, Sec. 2.2.4; built and removed in issue 11, docs/control.md section 5),
+this controller is 40 times stiffer at the link for the same stability; it is what the
+identification protocol uses.
 """
 
 from __future__ import annotations
@@ -34,8 +35,7 @@ from numba import njit
 
 from daror_runtime.control.base import ControlDesignError, ControlError, ControlSettingError
 from daror_runtime.control.position import LinkBounds, Reference
-from daror_runtime.models.base import CompensationModel
-from daror_runtime.models.linear import LinearCompensationModel
+from daror_runtime.models.base import Feedforward
 from daror_runtime.models.regressor import linear_torque
 from hal.interface import Command, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
@@ -189,7 +189,7 @@ class MotorPositionPD:
             compiled controller (with no feed-forward or a linear one): the identification's fast path.
         bounds: link inertia and gravity-stiffness ranges the gains are checked over.
         kp_nm_per_rad, kd_nms_per_rad: gains (scalar or per joint).
-        feedforward: compensation model evaluated at the reference (None: no feed-forward).
+        feedforward: compensation model (or a hold's held torque) evaluated at the reference (None: none).
         velocity_filter_hz: first-order low-pass of the motor velocity estimate.
         delay_ticks: command delay of the drives the gains are checked for.
         slowest_decay_s: every mode must decay with a time constant below this (nominal gains).
@@ -214,7 +214,7 @@ class MotorPositionPD:
         kp_nm_per_rad: float | FloatArray = DEFAULT_KP_NM_PER_RAD,
         kd_nms_per_rad: float | FloatArray = DEFAULT_KD_NMS_PER_RAD,
         *,
-        feedforward: CompensationModel | None = None,
+        feedforward: Feedforward | None = None,
         velocity_filter_hz: float = DEFAULT_VELOCITY_FILTER_HZ,
         dt_s: float = 1e-3,
         delay_ticks: int = 1,
@@ -276,9 +276,13 @@ class MotorPositionPD:
         self._state = np.zeros((2, N_JOINTS))
         self._zero = np.zeros(N_JOINTS)
         self._feedforward = np.zeros(N_JOINTS)
-        self._linear = feedforward.packed_parameters() if isinstance(feedforward, LinearCompensationModel) else None
+        # The compiled paths are compiled with linear_torque: a model offering that kernel (AP, PLF,
+        # PLF+) runs inside them; any other feed-forward (a hold's held torque offers none) runs
+        # through its torque().
+        kernel = feedforward.tick_kernel() if feedforward is not None else None
+        self._linear = kernel.parameters if kernel is not None and kernel.function is linear_torque else None
         table = getattr(reference, "piecewise_table", None)
-        # The compiled path needs the feed-forward compiled too: none, or a linear model.
+        # The compiled path needs the feed-forward compiled too: none, or a model offering linear_torque.
         self._table = table if (feedforward is None or self._linear is not None) else None
         self._model_or_empty = self._linear if self._linear is not None else np.zeros(0)
         self._cursor = np.zeros(1)

@@ -49,7 +49,8 @@ from scipy import signal
 
 from daror_runtime.control.base import ControlDesignError
 from daror_runtime.control.filters import ComplexArray
-from daror_runtime.control.sea_torque import SeaPlant, SeaTorqueController, SeaTorqueDesign
+from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.sea_torque_design import SeaPlant, SeaTorqueDesign
 from hal.robot import FloatArray, SeaConstants
 
 #: Spring damping (Nms/rad) of the nominal plant in the passivity analysis. ``description.sea`` has
@@ -101,12 +102,6 @@ class ImpedanceResponse:
     @property
     def passive(self) -> bool:
         return self.stable and self.min_real_part >= 0.0
-
-    def magnitude_at(self, frequency_hz: float) -> float:
-        """``|Z|`` (Nms/rad) interpolated (log-log) at ``frequency_hz`` inside the grid."""
-        return float(
-            np.exp(np.interp(np.log(frequency_hz), np.log(self.frequencies_hz), np.log(np.abs(self.impedance))))
-        )
 
 
 def _controller_response(

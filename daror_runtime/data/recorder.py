@@ -1,4 +1,4 @@
-"""The crash-safe recorder the control loop streams every tick into (issue 3).
+"""The crash-safe recorder the control loop streams every tick into (issue 3): the writing side.
 
 The loop thread calls :meth:`Recorder.push` once per tick. ``push`` copies the row into a
 preallocated block and, when the block is full, hands it to one background writer thread; it never
@@ -6,7 +6,8 @@ does I/O, never waits for the writer, and allocates no array memory. The writer 
 to the file as raw little-endian float64 rows and flushes it to the operating system, so every row
 of a handed-over block survives the death of the process (``kill -9``) once its block is written.
 
-File format (``docs/recorder.md``)::
+File format (``docs/recorder.md``), written here and read by
+:mod:`daror_runtime.data.recording_reader`::
 
     {"format": "daror-recording", "format_version": 1, "columns": [...], "dtype": "<f8", ...}   \\n
     row 0: len(columns) little-endian float64
@@ -15,7 +16,8 @@ File format (``docs/recorder.md``)::
 The header is one line of JSON padded with spaces to a multiple of 64 bytes, so the rows start
 aligned for memory mapping. Nothing follows the rows (no trailer, no index): a file cut anywhere
 after the header is a valid recording of its complete rows, and a partial last row (the process
-died in the middle of a write) is ignored by :func:`read_recording`.
+died in the middle of a write) is ignored by the reader. The loop's rows are laid out by
+:mod:`daror_runtime.data.tick_row`; the recorder itself takes any columns.
 
 Memory: the recorder owns exactly ``max_queued_blocks`` blocks of ``block_rows`` rows, allocated
 once at :meth:`Recorder.start`: the block being filled plus those queued for or being written by
@@ -34,53 +36,28 @@ import os
 import queue
 import threading
 from collections import deque
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO
 
 import numpy as np
 
-from daror_runtime.data.load import check_raw_log
-from daror_runtime.data.schema import (
-    DQ_COLUMNS,
-    Q_COLUMNS,
-    RAW_REQUIRED,
-    TAU_CMD_COLUMNS,
-    TAU_COLUMNS,
-    THETA_COLUMNS,
-    RawLog,
-)
-from daror_runtime.errors import DarorError, DataError, ShapeError, UsageError
-from hal.interface import Command, Sample
+from daror_runtime.errors import DarorError, ShapeError, UsageError
 from hal.robot import FloatArray
 
+#: The ``format`` of a recording's header.
 FORMAT_NAME = "daror-recording"
+#: The ``format_version`` this recorder writes (and the reader knows).
 FORMAT_VERSION = 1
+#: The rows' value type: little-endian float64.
 DTYPE = "<f8"
-#: Rows read at a time when a recording is converted (bounds the extra memory to ~20 MB).
-_CHUNK_ROWS = 100_000
 #: Bytes per value of a recorded row.
 VALUE_BYTES = 8
 #: The header is padded to a multiple of this, so the rows start aligned for memory mapping.
 HEADER_ALIGN_BYTES = 64
-#: A header line longer than this is not a recording header (guards against reading a whole
-#: binary file looking for a newline).
-MAX_HEADER_BYTES = 1 << 20
 
-__all__ = [
-    "FORMAT_NAME",
-    "FORMAT_VERSION",
-    "Recorder",
-    "RecorderError",
-    "RecordingInfo",
-    "fill_raw_row",
-    "inspect_recording",
-    "read_recording",
-    "recording_columns",
-    "recording_to_raw_log",
-]
+__all__ = ["DTYPE", "FORMAT_NAME", "FORMAT_VERSION", "HEADER_ALIGN_BYTES", "VALUE_BYTES", "Recorder", "RecorderError"]
 
 
 class RecorderError(DarorError):
@@ -178,11 +155,6 @@ class Recorder:
     def capacity_rows(self) -> int:
         """Rows the recorder can hold in memory: ``block_rows * max_queued_blocks``."""
         return self._block_rows * self._n_blocks
-
-    @property
-    def memory_bytes(self) -> int:
-        """Bytes of row storage the recorder owns (allocated at :meth:`start`)."""
-        return self.capacity_rows * self._n_columns * VALUE_BYTES
 
     @property
     def rows_written(self) -> int:
@@ -441,231 +413,3 @@ def _fsync_directory(directory: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-# --- reading ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RecordingInfo:
-    """What a recording file holds, from its header and size."""
-
-    path: Path
-    columns: tuple[str, ...]
-    created_utc: str
-    data_offset: int  # bytes before the first row
-    n_rows: int  # complete rows
-    tail_bytes: int  # bytes of a partial last row (a write cut short by a crash), ignored
-    header: dict[str, Any]
-
-    @property
-    def row_bytes(self) -> int:
-        return len(self.columns) * VALUE_BYTES
-
-
-def _damaged(path: Path, why: str) -> DataError:
-    return DataError(f"{path}: damaged recording header: {why}; expected a {FORMAT_NAME} file written by Recorder")
-
-
-def _read_header(path: Path, handle: BinaryIO) -> tuple[dict[str, Any], int]:
-    head = handle.read(MAX_HEADER_BYTES)
-    end = head.find(b"\n")
-    if not head:
-        raise _damaged(path, "the file is empty (the process may have died before the header was written)")
-    if end < 0:
-        raise _damaged(path, f"no end of line in the first {min(len(head), MAX_HEADER_BYTES)} bytes")
-    try:
-        header = json.loads(head[:end].decode("ascii"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _damaged(path, f"the first line is not JSON ({exc})") from None
-    if not isinstance(header, dict):
-        raise _damaged(path, "the first line is not a JSON object")
-    if header.get("format") != FORMAT_NAME:
-        raise _damaged(path, f"format is {header.get('format')!r}")
-    version = header.get("format_version")
-    if version != FORMAT_VERSION:
-        raise _damaged(path, f"format_version {version!r} is not {FORMAT_VERSION}, the version this reader knows")
-    columns = header.get("columns")
-    if (
-        not isinstance(columns, list)
-        or not columns
-        or not all(isinstance(c, str) and c for c in columns)
-        or len(set(columns)) != len(columns)
-    ):
-        raise _damaged(path, "'columns' is not a list of unique, non-empty names")
-    if header.get("dtype") != DTYPE:
-        raise _damaged(path, f"dtype {header.get('dtype')!r} is not {DTYPE!r}")
-    return header, end + 1
-
-
-def inspect_recording(path: Path | str) -> RecordingInfo:
-    """Read the header and count the complete rows of a recording (the rows are not read).
-
-    Raises:
-        DataError: missing file, or a damaged or unknown header (the message names the file).
-    """
-    path = Path(path)
-    try:
-        with open(path, "rb") as handle:
-            header, offset = _read_header(path, handle)
-            size = os.fstat(handle.fileno()).st_size
-    except FileNotFoundError:
-        raise DataError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read the recording ({exc})") from None
-    columns = tuple(header["columns"])
-    row_bytes = len(columns) * VALUE_BYTES
-    n_rows, tail = divmod(size - offset, row_bytes)
-    return RecordingInfo(path, columns, str(header.get("created_utc", "")), offset, n_rows, tail, header)
-
-
-def read_recording(path: Path | str, mmap: bool = False) -> tuple[tuple[str, ...], np.ndarray]:
-    """The column names and the complete rows, ``(rows, columns)`` float64, of a recording.
-
-    A partial last row (the writer was killed in the middle of a write) is left out; every row
-    returned was written whole. ``mmap=True`` maps the file read-only instead of reading it
-    (for recordings larger than memory); the array then keeps the file open.
-
-    Raises:
-        DataError: missing file, or a damaged or unknown header (the message names the file).
-    """
-    info = inspect_recording(path)
-    n_columns = len(info.columns)
-    if info.n_rows == 0:
-        return info.columns, np.empty((0, n_columns))
-    if mmap:
-        data = np.memmap(info.path, dtype=DTYPE, mode="r", offset=info.data_offset, shape=(info.n_rows, n_columns))
-        return info.columns, data
-    try:
-        with open(info.path, "rb") as handle:
-            handle.seek(info.data_offset)
-            flat = np.fromfile(handle, dtype=DTYPE, count=info.n_rows * n_columns)
-    except OSError as exc:
-        raise DataError(f"{info.path}: cannot read the recording ({exc})") from None
-    # The file may have shrunk since it was inspected (a reader racing a truncation): whole rows only.
-    whole = flat.size - flat.size % n_columns
-    return info.columns, flat[:whole].reshape(-1, n_columns).astype(np.float64, copy=False)
-
-
-def recording_columns(theta: bool = True, tau_cmd: bool = True, extra: Sequence[str] = ()) -> tuple[str, ...]:
-    """The columns of a raw-log recording: ``t, q1..4, dq1..4, tau1..4`` (+ ``theta1..4``, ``tau_cmd1..4``) + ``extra``.
-
-    Raises:
-        UsageError: an ``extra`` name repeats a raw-log column.
-    """
-    columns = (*RAW_REQUIRED, *(THETA_COLUMNS if theta else ()), *(TAU_CMD_COLUMNS if tau_cmd else ()))
-    clash = sorted(set(columns) & set(extra))
-    if clash:
-        raise UsageError(f"extra column(s) {', '.join(clash)} repeat raw-log columns")
-    return (*columns, *extra)
-
-
-def fill_raw_row(out: FloatArray, sample: Sample, command: Command | None = None) -> FloatArray:
-    """Write a tick's sample (and command) into ``out`` in :func:`recording_columns` order; no allocation.
-
-    ``out`` must have the layout of ``recording_columns(theta=True, tau_cmd=command is not None)``
-    (values after that, for extra columns, are left alone). ``tau_cmd`` is the command's motor
-    torque (Nm) as the controller set it, whether or not the command enables the drives (record
-    ``enable`` as an extra column when that matters), as the loop's own recording does.
-
-    Returns:
-        ``out``.
-
-    Raises:
-        ShapeError: ``out`` is too short for the layout.
-    """
-    needed = 17 if command is None else 21
-    if out.shape[0] < needed:
-        raise ShapeError(f"a raw-log row needs {needed} values; got an array of {out.shape[0]}")
-    out[0] = sample.t_s
-    out[1:5] = sample.q_rad
-    out[5:9] = sample.dq_rad_s
-    out[9:13] = sample.tau_nm
-    out[13:17] = sample.theta_rad
-    if command is not None:
-        out[17:21] = command.motor_torque_nm
-    return out
-
-
-def recording_to_raw_log(
-    path: Path | str, mapping: Mapping[str, str] | None = None, drop_nan_rows: bool = False
-) -> RawLog:
-    """A recording as a raw log (DESIGN.md section 5), checked like a raw-log file.
-
-    ``mapping`` names, for a raw-log column (``t``, ``q1``, ...), the recording column that holds
-    it when the names differ (``{"t": "time_s"}``); other columns are looked up by their own name.
-    ``theta1..4`` and ``tau_cmd1..4`` are taken when the recording has all four.
-
-    ``drop_nan_rows`` leaves out rows with a NaN in any raw-log column taken (the loop records
-    NaN for a tick without a fresh sample) instead of refusing the file; infinities are still
-    refused. Error messages give row numbers of the recording (1-based), dropped rows counted.
-
-    Raises:
-        DataError: a damaged header, a missing column, a non-finite value, angles beyond 2 pi,
-            time not increasing, or no rows (the message names the file).
-    """
-    info = inspect_recording(path)
-    if info.n_rows == 0:
-        raise DataError(f"{path}: the recording holds no complete row; expected at least one")
-    mapping = dict(mapping or {})
-    groups = {
-        "t": ("t",),
-        "q": Q_COLUMNS,
-        "dq": DQ_COLUMNS,
-        "tau": TAU_COLUMNS,
-        "theta": THETA_COLUMNS,
-        "tau_cmd": TAU_CMD_COLUMNS,
-    }
-    wanted = tuple(name for names in groups.values() for name in names)
-    unknown = sorted(name for name in mapping if name not in wanted)
-    if unknown:
-        raise DataError(f"{path}: mapping names {', '.join(unknown)}, which are not raw-log columns")
-    index = {name: i for i, name in enumerate(info.columns)}
-    missing_sources = sorted(src for src in mapping.values() if src not in index)
-    if missing_sources:
-        raise DataError(
-            f"{path}: mapped column(s) {', '.join(missing_sources)} not in the recording (it has {', '.join(info.columns)})"
-        )
-    sources: dict[str, list[int]] = {}
-    for group, names in groups.items():
-        found = [index.get(mapping.get(name, name)) for name in names]
-        if all(i is not None for i in found):
-            sources[group] = found  # type: ignore[assignment]
-        elif group not in ("theta", "tau_cmd"):
-            absent = [n for n, i in zip(names, found, strict=True) if i is None]
-            raise DataError(f"{path}: missing column(s) {', '.join(absent)}; a raw log needs t, q1..4, dq1..4, tau1..4")
-    # Stream the rows in chunks into one array per group: only what the raw log keeps is ever
-    # held (a 15-minute run at 1 kHz is ~150 MB of recording, ~125 MB of raw log).
-    arrays = {group: np.empty((info.n_rows, len(cols))) for group, cols in sources.items()}
-    with open(info.path, "rb") as handle:
-        handle.seek(info.data_offset)
-        n_columns = len(info.columns)
-        for start in range(0, info.n_rows, _CHUNK_ROWS):
-            count = min(_CHUNK_ROWS, info.n_rows - start)
-            chunk = np.fromfile(handle, dtype=DTYPE, count=count * n_columns)
-            if chunk.size != count * n_columns:
-                raise DataError(f"{path}: the recording shrank while it was read")
-            chunk = chunk.reshape(count, n_columns)
-            for group, cols in sources.items():
-                arrays[group][start : start + count] = chunk[:, cols]
-    rows = np.arange(1, info.n_rows + 1)
-    if drop_nan_rows:
-        keep = np.ones(info.n_rows, dtype=bool)
-        for group in ("t", "q", "dq", "tau"):  # per group: no stacked copy of the whole log
-            keep &= ~np.isnan(arrays[group]).any(axis=1)
-        if not keep.any():
-            raise DataError(f"{path}: every row has a NaN in a raw-log column; no sample to keep")
-        if not keep.all():
-            arrays = {group: values[keep] for group, values in arrays.items()}
-            rows = rows[keep]
-    raw = RawLog(
-        t_s=arrays["t"][:, 0],
-        q_rad=arrays["q"],
-        dq_rad_s=arrays["dq"],
-        tau_nm=arrays["tau"],
-        theta_rad=arrays.get("theta"),
-        tau_cmd_nm=arrays.get("tau_cmd"),
-        source=str(path),
-    )
-    check_raw_log(raw, lambda row, column: f"{path}: row {int(rows[row])}, column {column}")
-    return raw

@@ -1,18 +1,14 @@
 """The identification protocol's trajectories (thesis Sec. 4.3.1-4.3.2).
 
 :mod:`.waypoints` reads and validates the ISB waypoint set (``waypoints.yaml`` ships with the
-package); :mod:`.trajectory` turns it into the checked training and validation references the
-position controller samples once per tick.
+package); :mod:`.trajectory_planning` turns it into the checked training and validation
+trajectories before anything moves; :mod:`.trajectory` holds the built
+:class:`~daror_runtime.identification.trajectory.ReferenceTrajectory` the position controller
+samples once per tick.
 """
 
-from daror_runtime.identification.trajectory import (
-    ReferenceTrajectory,
-    Stop,
-    TrajectoryError,
-    TrajectoryKind,
-    TrajectorySettings,
-    build_trajectory,
-)
+from daror_runtime.identification.trajectory import ReferenceTrajectory, Stop, TrajectoryKind
+from daror_runtime.identification.trajectory_planning import TrajectoryError, TrajectorySettings, build_trajectory
 from daror_runtime.identification.waypoints import Waypoint, WaypointFileError, WaypointSet, load_waypoints
 
 __all__ = [

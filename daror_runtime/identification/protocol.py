@@ -1,6 +1,9 @@
 """The identification protocol (thesis Sec. 4.3.1-4.3.2): run a trajectory, keep the stationary points.
 
-One run, on any HAL (the simulated plant in lock-step time, or hardware in real time):
+One pipeline, two callers. A session runs it in the FSM's state ``identification``
+(:mod:`daror_runtime.session.identification`, on any backend); ``daror identify`` runs it on the
+simulated plant alone (:func:`run_protocol`, no FSM, so never on hardware). Both plan a run with
+:func:`plan_run` and turn its recording into data with :func:`finish_recording`:
 
 1. *Approach*: from wherever the robot stands, a minimum-jerk joint move to the trajectory's
    start pose, then a short hold so the arm settles.
@@ -17,12 +20,11 @@ One run, on any HAL (the simulated plant in lock-step time, or hardware in real 
 Safety: the run stops on the first fault (torque is already off: the safety filter did that in
 the same tick) and :class:`ProtocolAbortedError` names the fault. The pilot's ISB limits, when
 given, are enforced every tick by the safety monitor, so a trajectory that would leave them is
-stopped automatically (DESIGN.md section 6: an automatic stop that makes the pilot safer).
+stopped automatically (an automatic stop that makes the pilot safer, docs/safety.md).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -32,22 +34,25 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from daror_runtime.clocks import Clock, LockStepClock
-from daror_runtime.control.motor_position import DEFAULT_KD_NMS_PER_RAD, DEFAULT_KP_NM_PER_RAD, MotorPositionPD
+from daror_runtime.clocks import LockStepClock
+from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
-from daror_runtime.data.recorder import Recorder, recording_to_raw_log
+from daror_runtime.data.recorder import Recorder
+from daror_runtime.data.recording_reader import recording_to_raw_log
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
-from daror_runtime.errors import DarorError
+from daror_runtime.data.tick_row import RECORD_COLUMNS
+from daror_runtime.errors import DarorError, UsageError
+from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory import ReferenceTrajectory
-from daror_runtime.loop import RECORD_COLUMNS, ControlLoop, FixedSupervisor
+from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.safety.faults import Fault
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor, faults_text
 from hal.interface import Hal
 from hal.isb import IsbLimits, Shoulder, monitor_isb_function
-from hal.robot import FloatArray
+from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -56,110 +61,195 @@ class ProtocolAbortedError(DarorError):
     """The protocol stopped before its end (a fault); torque is off, nothing was written."""
 
 
-@dataclass(frozen=True)
-class ProtocolSettings:
-    """How one identification run is carried out."""
+@dataclass
+class IdentificationRun:
+    """One protocol run, planned outside the tick: what the tick follows and where it records.
 
-    approach_speed_rad_s: float = 0.25  # mean speed of the joint that moves most on the approach
-    min_approach_s: float = 2.0
-    settle_s: float = 2.0  # hold at the start pose before the trajectory
-    kp_nm_per_rad: float = DEFAULT_KP_NM_PER_RAD
-    kd_nms_per_rad: float = DEFAULT_KD_NMS_PER_RAD
-    points_per_stop: int = 3  # training: averaged points per stop (validation always one)
-    min_samples_per_stop: int = 100  # a stop with fewer stationary samples (0.1 s at 1 kHz) gives no point
-    reduction: ReductionSettings = field(default_factory=ReductionSettings)
-    progress_every_ticks: int = 1000
+    The session hands it to its identification mode; ``daror identify`` runs it in a loop of its
+    own. Both finish it with :func:`finish_recording`.
+    """
+
+    kind: str  # "training" or "validation"
+    reference: ReferenceTrajectory  # approach + trajectory, t = 0 at the start sample
+    controller: MotorPositionPD
+    recorder: Recorder
+    settings: IdentificationSettings
+    dataset_path: Path  # where the caller writes the stationary dataset (the raw log beside it)
+    t0_s: float = 0.0
+    end_t_s: float = field(default=float("inf"))
+
+    @property
+    def duration_s(self) -> float:
+        return self.reference.duration_s
+
+
+@dataclass(frozen=True)
+class RunData:
+    """What a finished run's recording holds: the raw log, its stationary points, the tracking errors."""
+
+    raw: RawLog
+    stationary: StationaryDataset
+    tracking_rms_rad: FloatArray  # (4,) over the trajectory (approach excluded)
+    tracking_max_rad: FloatArray  # (4,)
 
 
 @dataclass(frozen=True)
 class ProtocolResult:
-    """What one run produced, with the figures the closing report needs."""
+    """What one ``daror identify`` run produced, with the figures the closing report needs."""
 
     kind: str
-    stationary: StationaryDataset
-    raw: RawLog
-    tracking_rms_rad: FloatArray  # (4,) over the trajectory (approach excluded)
-    tracking_max_rad: FloatArray  # (4,)
+    data: RunData
     robot_time_s: float
     wall_time_s: float
     stops: int
     ticks: int
-    dropped_rows: int
+    dropped_rows: int  # rows the recorder could not take (a run that dropped any is refused)
+
+    @property
+    def stationary(self) -> StationaryDataset:
+        return self.data.stationary
+
+    @property
+    def raw(self) -> RawLog:
+        return self.data.raw
+
+    @property
+    def tracking_rms_rad(self) -> FloatArray:
+        return self.data.tracking_rms_rad
+
+    @property
+    def tracking_max_rad(self) -> FloatArray:
+        return self.data.tracking_max_rad
 
     @property
     def real_time_factor(self) -> float:
         return self.robot_time_s / self.wall_time_s if self.wall_time_s > 0 else math.inf
 
 
-def build_position_controller(
-    hal: Hal,
-    reference: Callable[[float], tuple[FloatArray, FloatArray]],
-    settings: ProtocolSettings,
-    feedforward: CompensationModel | None = None,
-) -> MotorPositionPD:
-    """The collocated joint position PD, checked stable for ``hal``'s robot at its tick rate."""
-    description = hal.description
-    return MotorPositionPD(
+def plan_run(
+    trajectory: ReferenceTrajectory,
+    description: RobotDescription,
+    q_now_rad: FloatArray,
+    settings: IdentificationSettings,
+    feedforward: CompensationModel | None,
+    dt_s: float,
+    recording_path: Path,
+    dataset_path: Path,
+) -> IdentificationRun:
+    """Everything a run needs, built outside the tick; the recorder is started (its file exists).
+
+    The reference is the trajectory preceded by a minimum-jerk approach from ``q_now_rad`` (rad)
+    and a hold of ``settings.settle_s``; the collocated motor position PD tracks it with the
+    gravity ``feedforward`` (typically the A Priori model).
+
+    Raises:
+        ControlDesignError: the position gains are unstable for this robot at ``dt_s``.
+        RecorderError: the recording file cannot be created.
+    """
+    q_now = np.asarray(q_now_rad, dtype=float)
+    distance = float(np.abs(trajectory.start_q_rad - q_now).max())
+    approach_s = settings.approach_duration_s(distance)
+    reference = trajectory.with_approach(q_now, approach_s, settings.settle_s)
+    controller = MotorPositionPD(
         description,
         reference,
         LinkBounds.from_description(description),
         settings.kp_nm_per_rad,
         settings.kd_nms_per_rad,
         feedforward=feedforward,
-        dt_s=1.0 / hal.rate_hz,
+        dt_s=dt_s,
     )
+    recorder = Recorder(recording_path, RECORD_COLUMNS)
+    recorder.start()
+    log.info(
+        "identification planned",
+        kind=trajectory.kind,
+        robot_s=round(reference.duration_s, 1),
+        approach_s=round(approach_s, 1),
+        recording=str(recording_path),
+    )
+    return IdentificationRun(trajectory.kind, reference, controller, recorder, settings, dataset_path)
+
+
+def finish_recording(run: IdentificationRun) -> RunData:
+    """Close the run's recording and turn it into data (outside the tick; the recording is kept).
+
+    Raises:
+        ProtocolAbortedError: the recorder dropped rows (the raw log would have gaps), or no
+            stop of the trajectory held still.
+        DataError: the recording cannot be read back.
+    """
+    run.recorder.close()
+    recording = run.recorder.path
+    if run.recorder.dropped_rows:
+        raise ProtocolAbortedError(
+            f"{recording}: the recorder dropped {run.recorder.dropped_rows} rows (the disk could not keep up); "
+            "the raw log would have gaps, so no dataset is written"
+        )
+    raw = recording_to_raw_log(recording, drop_nan_rows=True)
+    stationary = stationary_points_of_run(raw, run.reference, run.settings)
+    rms, worst = tracking_errors(raw, run.reference)
+    return RunData(raw, stationary, rms, worst)
 
 
 def run_protocol(
     hal: Hal,
     trajectory: ReferenceTrajectory,
     recording_path: Path,
+    dataset_path: Path,
     isb_limits: IsbLimits | None = None,
-    settings: ProtocolSettings | None = None,
-    clock: Clock | None = None,
+    settings: IdentificationSettings | None = None,
     progress: Callable[[float, float], None] | None = None,
     feedforward: CompensationModel | None = None,
+    progress_every_ticks: int = 1000,
 ) -> ProtocolResult:
-    """Run one identification trajectory on an open ``hal`` and return its data.
+    """Run one identification trajectory on an open simulated ``hal``, in lock-step, and return its data.
+
+    The run is planned and finished by the same pieces a session uses (:func:`plan_run`,
+    :func:`finish_recording`), but its loop has no FSM: no e-stop tests, no pilot installation,
+    no operator. It therefore runs only on a backend on virtual time (a simulation); on hardware,
+    identification runs inside a session, in the FSM's state ``identification``.
 
     Args:
-        hal: an opened backend, drives disabled, the robot at rest.
+        hal: an opened backend on virtual time, drives disabled, the robot at rest.
         trajectory: the training or validation trajectory.
-        recording_path: where the tick recording is streamed (must not exist).
+        recording_path: where the tick recording is streamed (must not exist; kept afterwards).
+        dataset_path: where the caller will write the stationary dataset (not written here).
         isb_limits: the pilot's ISB limits, enforced every tick (None: device limits only).
-        settings: protocol settings.
-        clock: default lock-step (virtual time); a real-time clock for hardware.
+        settings: how the run is carried out (default :class:`IdentificationSettings`).
         progress: called with (robot seconds done, robot seconds total) every
-            ``settings.progress_every_ticks`` ticks.
+            ``progress_every_ticks`` ticks.
         feedforward: gravity feed-forward of the position PD (typically the A Priori model).
 
     Raises:
-        ProtocolAbortedError: a fault stopped the run (its message says which).
+        UsageError: ``hal`` drives hardware (not on virtual time).
+        ProtocolAbortedError: a fault stopped the run (its message says which), or its recording
+            is unusable.
         DarorError: the recording could not be read back or reduced.
     """
-    settings = settings or ProtocolSettings()
+    if not hal.virtual_time:
+        raise UsageError(
+            f"the {hal.kind} backend drives hardware: an identification run outside a session skips the FSM "
+            "(e-stop tests, installation, operator); expected a simulated backend, or identify in a session "
+            "(daror console, state identification)"
+        )
+    settings = settings or IdentificationSettings()
     description = hal.description
+    period = 1.0 / hal.rate_hz
     first = hal.read()
-    distance = float(np.abs(trajectory.start_q_rad - first.q_rad).max())
-    approach_s = max(distance / settings.approach_speed_rad_s * 1.875, settings.min_approach_s)
-    reference = trajectory.with_approach(first.q_rad, approach_s, settings.settle_s)
-    controller = build_position_controller(hal, reference, settings, feedforward)
-    controller.reset(first)
+    run = plan_run(trajectory, description, first.q_rad, settings, feedforward, period, recording_path, dataset_path)
+    run.controller.reset(first)
     limits = SafetyLimits.from_description(description)
     isb_function = None
     if isb_limits is not None:
         isb_function = monitor_isb_function(Shoulder.from_description(description), isb_limits)
         limits = limits.with_isb(isb_limits)
     monitor = SafetyMonitor(limits, isb_angles=isb_function)
-    period = 1.0 / hal.rate_hz
+    reference = run.reference
     ticks = math.ceil(reference.duration_s / period) + 1
-    recorder = Recorder(recording_path, RECORD_COLUMNS)
-    recorder.start()
-    clock = clock or LockStepClock(period)
-    lock_step = isinstance(clock, LockStepClock)
-    loop = ControlLoop(hal, monitor, FixedSupervisor(controller), clock, recorder)
+    loop = ControlLoop(hal, monitor, FixedSupervisor(run.controller), LockStepClock(period), run.recorder)
     faults: list[Fault] = []
-    every = max(settings.progress_every_ticks, 1)
+    every = max(progress_every_ticks, 1)
     done = 0
     log.info("identification started", trajectory=trajectory.kind, robot_s=round(reference.duration_s, 1), ticks=ticks)
     wall_start = time.perf_counter()
@@ -173,37 +263,25 @@ def run_protocol(
                 break
             if progress is not None:
                 progress(done * period, reference.duration_s)
-            if lock_step:  # virtual time may wait for the disk between ticks; real time may not
-                let_the_writer_catch_up(recorder)
+            let_the_writer_catch_up(run.recorder)  # virtual time may wait for the disk between ticks
     finally:
         wall = time.perf_counter() - wall_start
-        recorder.close()
+        run.recorder.close()
     if faults or monitor.faulted:
         message = faults_text(faults or monitor.latched)
         log.error("identification aborted", reason=message)
         raise ProtocolAbortedError(f"identification stopped at t = {hal.read().t_s:.3f} s: {message}")
-    if loop.dropped_rows:
-        raise ProtocolAbortedError(
-            f"the recorder dropped {loop.dropped_rows} rows (the disk could not keep up); the raw log would have "
-            "gaps, so no dataset is written"
-        )
-    raw = recording_to_raw_log(recording_path, drop_nan_rows=True)
-    stationary = stationary_points_of_run(raw, reference, settings)
-    tracking = tracking_errors(raw, reference)
+    data = finish_recording(run)
     log.info(
         "identification finished",
         trajectory=trajectory.kind,
-        points=len(stationary),
+        points=len(data.stationary),
         wall_s=round(wall, 2),
         real_time_factor=round(reference.duration_s / wall, 1) if wall > 0 else None,
-        dropped_rows=loop.dropped_rows,
     )
     return ProtocolResult(
         kind=trajectory.kind,
-        stationary=stationary,
-        raw=raw,
-        tracking_rms_rad=tracking[0],
-        tracking_max_rad=tracking[1],
+        data=data,
         robot_time_s=loop.clock.ticks * period,
         wall_time_s=wall,
         stops=len(trajectory.stops),
@@ -222,7 +300,7 @@ def let_the_writer_catch_up(recorder: Recorder, timeout_s: float = 10.0) -> None
 
 
 def stationary_points_of_run(
-    raw: RawLog, reference: ReferenceTrajectory, settings: ProtocolSettings
+    raw: RawLog, reference: ReferenceTrajectory, settings: IdentificationSettings
 ) -> StationaryDataset:
     """Points of the trajectory's stops: the raw log's stationary samples inside each stop's window.
 
@@ -234,7 +312,7 @@ def stationary_points_of_run(
     ``min_samples_per_stop`` stationary samples is left out.
     """
     per_stop = settings.points_per_stop if reference.kind == "training" else 1
-    points = reduce_to_stationary(raw, dataclasses.replace(settings.reduction, per_stop="all"))
+    points = reduce_to_stationary(raw, ReductionSettings(per_stop="all"))
     t = points.t_s if points.t_s is not None else np.zeros(len(points))
     direction = points.direction if points.direction is not None else np.zeros_like(points.q_rad)
     stops = reference.stops if reference.kind == "training" else reference.waypoint_stops

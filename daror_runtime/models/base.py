@@ -9,15 +9,44 @@ Fitting is separate (``daror_runtime.models.registry.fit_model``) and happens ou
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
 from daror_runtime.models.identifiability import BaseParameter
 from daror_runtime.models.metrics import ErrorMetrics
 from hal.robot import FloatArray, RobotDescription
+
+
+@dataclass(frozen=True)
+class TickKernel:
+    """A compiled form of :meth:`CompensationModel.torque` that a compiled controller may call in the tick.
+
+    A controller compiled against a known ``function`` (compare by identity: ``kernel.function is
+    linear_torque``) runs the model inside its own compiled code; for any other function, or no
+    kernel, it calls :meth:`CompensationModel.torque`. Both give the same torque.
+
+    Attributes:
+        function: a numba-compiled ``function(q, parameters, out)``: writes the holding torque (Nm,
+            shape (4,)) at the joint angles ``q`` (rad, shape (4,)) into ``out``; allocates nothing.
+        parameters: the float64 vector ``function`` reads (the model's; never modify it).
+    """
+
+    function: Callable[[np.ndarray, np.ndarray, np.ndarray], None]
+    parameters: np.ndarray
+
+
+class Feedforward(Protocol):
+    """What a controller's feed-forward offers: a torque (Nm) at ``q`` (rad), and maybe a compiled one.
+
+    Every :class:`CompensationModel` is one; so is a hold's constant held torque.
+    """
+
+    def torque(self, q: FloatArray) -> np.ndarray: ...
+
+    def tick_kernel(self) -> TickKernel | None: ...
 
 
 class CompensationModel(ABC):
@@ -41,6 +70,14 @@ class CompensationModel(ABC):
     @abstractmethod
     def torque_batch(self, q: FloatArray) -> FloatArray:
         """Holding torque (N, 4) at N configurations (N, 4)."""
+
+    def tick_kernel(self) -> TickKernel | None:
+        """The compiled torque a compiled controller may run in the tick, or None (the default: none).
+
+        Controllers ask this instead of checking the model's class; a model without a kernel runs
+        through :meth:`torque`.
+        """
+        return None
 
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
         """What the torque sensors would read at N configurations (N, 4).

@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DarorError, DataError, ModelFileError, UnknownModelKindError
 from daror_runtime.models.base import CompensationModel, FitReport
-from daror_runtime.models.registry import model_class
+from daror_runtime.models.registry import ModelKindPluginError, model_class
 from daror_runtime.models.regressor import GRAVITY_PARAMETER_NAMES
 from daror_runtime.util.atomic import write_text_atomic
 from hal.files import DATA_MAX_BYTES, MODEL_MAX_BYTES, read_text_bounded, regular_file
@@ -334,8 +334,10 @@ def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
         ModelFileError: not a regular file of at most :data:`~hal.files.MODEL_MAX_BYTES`, not UTF-8,
             not JSON, nested too deeply, a key written twice, a value that is not a finite number
             where one is meant, an implausible parameter (:data:`PARAMETER_BOUNDS`), not a model
-            file, unsupported version, checksum mismatch, or parameters that do not fit the kind;
-            one line naming the file (and the field where there is one).
+            file, unsupported version, checksum mismatch, an unknown kind, or parameters that do not
+            fit the kind; one line naming the file (and the field where there is one).
+        ModelKindPluginError: the kind is registered by a plugin that cannot be loaded (file named).
+        ExtraMissingError: the kind needs an optional extra that is not installed.
     """
     path = Path(path)
     text = read_text_bounded(path, ModelFileError, MODEL_MAX_BYTES, "model file")
@@ -367,4 +369,6 @@ def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
         model = cls.from_parameters(contents.robot, contents.parameters, contents.name)
     except (ModelFileError, UnknownModelKindError) as exc:
         raise ModelFileError(f"{path}: {exc}") from None
+    except ModelKindPluginError as exc:  # the installation is broken, not the file: exit code 1
+        raise ModelKindPluginError(f"{path}: {exc}") from None
     return model, contents

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import IdentifiabilityError, ModelFileError
-from daror_runtime.models.base import CompensationModel, FitReport, FitResult
+from daror_runtime.models.base import CompensationModel, FitReport, FitResult, TickKernel
 from daror_runtime.models.identifiability import base_parameters, unidentifiable_parameters
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.metrics import error_metrics
@@ -30,6 +30,7 @@ from daror_runtime.models.regressor import (
     GRAVITY_PARAMETER_NAMES,
     N_GRAVITY_PARAMETERS,
     LinearTorqueEvaluator,
+    linear_torque,
     polynomial_parameter_names,
     regressor_parameter_major,
 )
@@ -83,9 +84,9 @@ class LinearCompensationModel(CompensationModel):
     def torque(self, q: FloatArray) -> np.ndarray:
         return self._evaluator.torque(q)
 
-    def packed_parameters(self) -> np.ndarray:
-        """Parameters of :func:`daror_runtime.models.regressor.linear_torque`, for compiled controllers."""
-        return self._evaluator.packed_parameters
+    def tick_kernel(self) -> TickKernel:
+        """:func:`daror_runtime.models.regressor.linear_torque` with this model's packed parameters."""
+        return TickKernel(linear_torque, self._evaluator.packed_parameters)
 
     def torque_batch(self, q: FloatArray) -> FloatArray:
         return self._evaluator.torque_batch(q)

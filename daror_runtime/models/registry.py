@@ -1,110 +1,351 @@
-"""The model kinds the runtime knows, looked up by name, imported lazily.
+"""The model kinds the runtime knows: the one list, looked up by name, imported lazily.
 
 Like python-can's backend registry: a kind maps to ``module:attribute`` strings, so a kind whose
-optional extra is missing (the neural models need ``jax``) costs nothing until it is used, and
-then fails with a message that says which extra to install.
+optional extra is missing (a neural model needing ``jax``) costs nothing until it is used, and
+then fails with a message that says which extra to install. This module imports no numpy and no
+model code: listing the kinds (help texts, the settings check) stays cheap.
+
+Everything else that names kinds asks here: the session settings (``model_kind``), the console's
+``train KIND``, the CLI's help and ``daror fit``, the residual analysis's base kinds, the model
+files. What a kind supports is a *capability* of its entry (:class:`ModelKind`): whether it needs
+training data, whether the residual analysis can augment it, whether a session may train it. Each
+kind has its own options model (:class:`ModelOptions` and subclasses, frozen, unknown fields
+refused), so an option given to a kind that does not take it is refused, not ignored.
+
+The built-in kinds (``ap``, ``plf``, ``plf+``) are listed here. Other packages add kinds through
+the entry point group :data:`ENTRY_POINT_GROUP`, each entry naming a :class:`ModelKind` object
+(this project's ``augmented`` kind comes from ``daror_runtime.residual`` that way: the models
+package never names the residual analysis). The entry points are read once, the first time a
+name is not a built-in kind or the whole list is asked for; a plugin cannot replace a built-in
+kind, and one that cannot be loaded is named in a warning and, when asked for, in the error.
 """
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+import importlib.metadata
+import threading
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Self
 
-from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.errors import ExtraMissingError, UnknownModelKindError
-from daror_runtime.models.base import CompensationModel, FitResult
-from hal.robot import RobotDescription
+import structlog
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError
+
+from daror_runtime.errors import DarorError, ExtraMissingError, UnknownModelKindError, UsageError
+
+if TYPE_CHECKING:
+    from daror_runtime.data.schema import StationaryDataset
+    from daror_runtime.models.base import CompensationModel, FitResult
+    from hal.robot import RobotDescription
+
+__all__ = [
+    "BUILTIN_KINDS",
+    "ENTRY_POINT_GROUP",
+    "APOptions",
+    "KindRegistry",
+    "ModelKind",
+    "ModelKindPluginError",
+    "ModelOptionError",
+    "ModelOptions",
+    "fit_model",
+    "installation_options",
+    "kind_entry",
+    "kind_names",
+    "kinds",
+    "model_class",
+    "options_for",
+]
+
+log = structlog.get_logger(__name__)
+
+#: Entry point group through which a package registers model kinds (``pyproject.toml``)::
+#:
+#:     [project.entry-points."daror_runtime.model_kinds"]
+#:     augmented = "daror_runtime.residual.kind:MODEL_KIND"
+ENTRY_POINT_GROUP = "daror_runtime.model_kinds"
 
 
-@dataclass(frozen=True)
-class FitOptions:
-    """Settings a fit may use; each kind reads the ones it understands."""
+class ModelOptionError(UsageError):
+    """An option a model kind does not take, or a value it cannot use (CLI exit code 2)."""
 
-    name: str | None = None
-    dummy_arm: bool = False  # ap: add theta_DA (Eq. 4.5)
-    elbow_stiffness: bool | None = None  # ap: add Eq. 4.7; default: with the Dummy Arm
-    seed: int = 0  # neural models: initialisation and shuffling
+
+class ModelKindPluginError(DarorError):
+    """A model kind registered through an entry point that cannot be used (a broken installation)."""
+
+
+# --- options ----------------------------------------------------------------------------------
+
+
+class ModelOptions(BaseModel):
+    """Options of a kind that takes nothing but a name (PLF, PLF+, augmented); base of every options model.
+
+    Frozen; an unknown field is refused (``extra="forbid"``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str | None = Field(None, description="model name shown in tables; default the kind's display name")
+
+    @classmethod
+    def for_installation(cls, dummy_arm: bool, name: str | None = None) -> Self:
+        """The options of this kind that follow from the installed robot (``dummy_arm``: the Dummy Arm is on).
+
+        A fitted kind learns the Dummy Arm from the data and takes only the name; AP overrides this.
+        """
+        return cls(name=name)
+
+
+class APOptions(ModelOptions):
+    """Options of the A Priori model (Sec. 4.1): which design terms it includes."""
+
+    dummy_arm: StrictBool = Field(False, description="add the Dummy Arm's theta_DA (Eq. 4.5)")
+    elbow_stiffness: StrictBool | None = Field(
+        None, description="add the first-order elbow stiffness (Eq. 4.7); None: with the Dummy Arm"
+    )
+
+    @property
+    def with_elbow_stiffness(self) -> bool:
+        """Whether the elbow stiffness is included: as given, or with the Dummy Arm when not given."""
+        return self.dummy_arm if self.elbow_stiffness is None else self.elbow_stiffness
+
+    @classmethod
+    def for_installation(cls, dummy_arm: bool, name: str | None = None) -> Self:
+        """AP with the Dummy Arm (and its elbow stiffness) exactly when it is installed."""
+        return cls(name=name, dummy_arm=dummy_arm)
+
+
+# --- entries ------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class ModelKind:
+    """One registry entry: a model kind, where its code is, what it takes and what it supports.
+
+    Attributes:
+        kind: registry key and the ``kind`` field of model files (lower case).
+        summary: one line for help texts.
+        model: ``"module:Class"`` of its :class:`~daror_runtime.models.base.CompensationModel`.
+        fitter: ``"module:function"``, ``function(dataset, description, options) -> FitResult``;
+            ``dataset`` is None only for a kind that does not need data.
+        options: its options model (a :class:`ModelOptions` subclass, or that class itself).
+        extra: the optional dependency extra it needs (``nn``), named when it is missing.
+        needs_data: False for a kind built from the robot description alone (AP).
+        residual_base: the residual analysis (``daror residual --base``) can augment it.
+        session_training: a session may train it (``train KIND``, ``model_kind`` of the settings).
+    """
+
     kind: str
     summary: str
-    model: str  # "module:Class"
-    fitter: str  # "module:function(dataset, description, options) -> FitResult"
+    model: str
+    fitter: str
+    options: type[ModelOptions] = ModelOptions
     extra: str | None = None
+    needs_data: bool = True
+    residual_base: bool = False
+    session_training: bool = False
+
+    @property
+    def option_names(self) -> tuple[str, ...]:
+        """The fields of its options model, in their order (``name`` first)."""
+        return tuple(self.options.model_fields)
+
+    def takes(self, option: str) -> bool:
+        """Whether the kind has the option ``option`` (a field name such as ``dummy_arm``)."""
+        return option in self.options.model_fields
 
 
-def _fit_ap(dataset: StationaryDataset | None, description: RobotDescription, options: FitOptions) -> FitResult:
+def _fit_ap(dataset: StationaryDataset | None, description: RobotDescription, options: APOptions) -> FitResult:
     from daror_runtime.models.linear import build_ap
 
-    stiffness = options.dummy_arm if options.elbow_stiffness is None else options.elbow_stiffness
-    return build_ap(description, dataset, options.dummy_arm, stiffness, options.name)
+    return build_ap(description, dataset, options.dummy_arm, options.with_elbow_stiffness, options.name)
 
 
-def _fit_plf(dataset: StationaryDataset, description: RobotDescription, options: FitOptions) -> FitResult:
+def _fit_plf(dataset: StationaryDataset, description: RobotDescription, options: ModelOptions) -> FitResult:
     from daror_runtime.models.linear import fit_plf
 
     return fit_plf(dataset, description, options.name)
 
 
-def _fit_plf_plus(dataset: StationaryDataset, description: RobotDescription, options: FitOptions) -> FitResult:
+def _fit_plf_plus(dataset: StationaryDataset, description: RobotDescription, options: ModelOptions) -> FitResult:
     from daror_runtime.models.linear import fit_plf_plus
 
     return fit_plf_plus(dataset, description, options.name)
 
 
-def _fit_augmented(dataset: StationaryDataset, description: RobotDescription, options: FitOptions) -> FitResult:
-    from daror_runtime.residual.model import fit_augmented
+#: The kinds this package implements, in the order lists show them (plugins follow, by name).
+BUILTIN_KINDS: tuple[ModelKind, ...] = (
+    ModelKind(
+        "ap",
+        "A Priori: design parameters (+ Dummy Arm, + elbow stiffness), Sec. 4.1",
+        "daror_runtime.models.linear:APModel",
+        f"{__name__}:_fit_ap",
+        options=APOptions,
+        needs_data=False,
+        residual_base=True,
+        session_training=True,
+    ),
+    ModelKind(
+        "plf",
+        "Parameter Linear Form, least squares, Sec. 4.2.1",
+        "daror_runtime.models.linear:PLFModel",
+        f"{__name__}:_fit_plf",
+        residual_base=True,
+        session_training=True,
+    ),
+    ModelKind(
+        "plf+",
+        "PLF + fifth-order elbow stiffness polynomial, Sec. 4.2.2",
+        "daror_runtime.models.linear:PLFPlusModel",
+        f"{__name__}:_fit_plf_plus",
+        residual_base=True,
+        session_training=True,
+    ),
+)
 
-    return fit_augmented(dataset, description, options.name)
+
+# --- the registry -----------------------------------------------------------------------------
 
 
-KINDS: dict[str, ModelKind] = {
-    k.kind: k
-    for k in (
-        ModelKind(
-            "ap",
-            "A Priori: design parameters (+ Dummy Arm, + elbow stiffness), Sec. 4.1",
-            "daror_runtime.models.linear:APModel",
-            f"{__name__}:_fit_ap",
-        ),
-        ModelKind(
-            "plf",
-            "Parameter Linear Form, least squares, Sec. 4.2.1",
-            "daror_runtime.models.linear:PLFModel",
-            f"{__name__}:_fit_plf",
-        ),
-        ModelKind(
-            "plf+",
-            "PLF + fifth-order elbow stiffness polynomial, Sec. 4.2.2",
-            "daror_runtime.models.linear:PLFPlusModel",
-            f"{__name__}:_fit_plf_plus",
-        ),
-        ModelKind(
-            "augmented",
-            "a base model plus the physical effects the data support (daror residual)",
-            "daror_runtime.residual.model:AugmentedModel",
-            f"{__name__}:_fit_augmented",
-        ),
-    )
-}
+def _group_entry_points() -> Iterable[importlib.metadata.EntryPoint]:
+    return importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
 
-#: Kinds that may be fitted without training data.
-NO_DATA_KINDS = frozenset({"ap"})
+
+def _distribution(entry_point: importlib.metadata.EntryPoint) -> str:
+    dist = getattr(entry_point, "dist", None)
+    return "an unknown package" if dist is None else f"package {dist.name}"
+
+
+class KindRegistry:
+    """Built-in kinds plus those registered through entry points (read once, on first need; thread-safe).
+
+    Args:
+        builtins: the kinds known without reading any entry point.
+        entry_points: where the plugin entry points come from (default: the installed packages'
+            :data:`ENTRY_POINT_GROUP`; tests pass their own).
+    """
+
+    def __init__(
+        self,
+        builtins: Iterable[ModelKind] = BUILTIN_KINDS,
+        entry_points: Callable[[], Iterable[importlib.metadata.EntryPoint]] = _group_entry_points,
+    ) -> None:
+        self._kinds: dict[str, ModelKind] = {k.kind: k for k in builtins}
+        self._builtin = frozenset(self._kinds)
+        self._entry_points = entry_points
+        self._broken: dict[str, str] = {}
+        self._plugins_read = False
+        self._reading = False
+        self._lock = threading.RLock()
+
+    def _read_plugins(self) -> None:
+        """Read the entry points once. Other threads wait for the first read; a plugin module that
+        lists the kinds while it is being loaded (same thread) sees the kinds loaded so far."""
+        with self._lock:
+            if self._plugins_read or self._reading:
+                return
+            self._reading = True
+            try:
+                by_name: dict[str, list[importlib.metadata.EntryPoint]] = {}
+                try:
+                    for entry_point in self._entry_points():
+                        by_name.setdefault(entry_point.name, []).append(entry_point)
+                except Exception as exc:  # unreadable package metadata: the built-in kinds still work
+                    log.warning("model kind plugins not read", group=ENTRY_POINT_GROUP, problem=str(exc))
+                for name in sorted(by_name):
+                    entry, problem = self._load(name, by_name[name])
+                    if entry is not None:
+                        self._kinds[name] = entry
+                    elif problem is not None:
+                        self._broken[name] = problem
+                        log.warning("model kind plugin not loaded", kind=name, problem=problem)
+            finally:
+                self._reading = False
+                self._plugins_read = True
+
+    def _load(
+        self, name: str, entry_points: list[importlib.metadata.EntryPoint]
+    ) -> tuple[ModelKind | None, str | None]:
+        """The entry of plugin kind ``name``, or the problem that keeps it out (None, None: ignored)."""
+        values = sorted({e.value for e in entry_points})
+        if name in self._builtin:
+            log.warning(
+                "a plugin cannot replace a built-in model kind; ignored",
+                kind=name,
+                plugin=", ".join(f"{e.value} ({_distribution(e)})" for e in entry_points),
+            )
+            return None, None
+        if len(values) > 1:
+            return None, f"registered more than once, as {' and '.join(values)}"
+        try:
+            entry = entry_points[0].load()
+        except Exception as exc:  # third-party code: any failure keeps only this kind out
+            return None, f"{values[0]} ({_distribution(entry_points[0])}) cannot be loaded: {type(exc).__name__}: {exc}"
+        if not isinstance(entry, ModelKind):
+            return None, f"{values[0]} is a {type(entry).__name__}, not a daror_runtime.models.registry.ModelKind"
+        if entry.kind != name:
+            return None, f"{values[0]} declares kind {entry.kind!r} under the entry point name {name!r}"
+        if name != name.lower():
+            return None, f"{values[0]}: model kind names are lower case, not {name!r}"
+        options = entry.options
+        if not (isinstance(options, type) and issubclass(options, ModelOptions)):
+            return None, f"{values[0]}: its options are not a daror_runtime.models.registry.ModelOptions model"
+        if options.model_config.get("extra") != "forbid" or not options.model_config.get("frozen"):
+            return None, f"{values[0]}: its options model must be frozen and refuse unknown fields"
+        return entry, None
+
+    def entry(self, kind: str) -> ModelKind:
+        """The entry of ``kind`` (exact, lower-case key); the plugins are read if it is not built in.
+
+        Raises:
+            UnknownModelKindError: ``kind`` is not registered (the known kinds are listed).
+            ModelKindPluginError: ``kind`` is registered by a plugin that cannot be loaded.
+        """
+        found = self._kinds.get(kind)
+        if found is not None:
+            return found
+        self._read_plugins()
+        found = self._kinds.get(kind)
+        if found is not None:
+            return found
+        if kind in self._broken:
+            raise ModelKindPluginError(f"model kind {kind!r} is registered but cannot be used: {self._broken[kind]}")
+        raise UnknownModelKindError(f"unknown model kind {kind!r}; expected one of {', '.join(self.names())}")
+
+    def kinds(self, where: Callable[[ModelKind], bool] | None = None) -> tuple[ModelKind, ...]:
+        """Every registered kind (built-in first, then plugins by name), or those ``where`` accepts."""
+        self._read_plugins()
+        return tuple(k for k in self._kinds.values() if where is None or where(k))
+
+    def names(self, where: Callable[[ModelKind], bool] | None = None) -> tuple[str, ...]:
+        """The keys of :meth:`kinds`, in the same order."""
+        return tuple(k.kind for k in self.kinds(where))
+
+
+_REGISTRY = KindRegistry()
 
 
 def kind_entry(kind: str) -> ModelKind:
-    """The registry entry of ``kind``.
+    """The registry entry of ``kind`` (an exact key: ``plf+``, not ``PLF+``).
 
     Raises:
         UnknownModelKindError: ``kind`` is not registered.
+        ModelKindPluginError: ``kind`` is registered by a plugin that cannot be loaded.
     """
-    try:
-        return KINDS[kind]
-    except KeyError:
-        raise UnknownModelKindError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}") from None
+    return _REGISTRY.entry(kind)
+
+
+def kinds(where: Callable[[ModelKind], bool] | None = None) -> tuple[ModelKind, ...]:
+    """Every registered kind (built-in first, then plugins by name), or those ``where`` accepts.
+
+    ``kinds(lambda k: k.residual_base)``: the kinds the residual analysis can augment.
+    """
+    return _REGISTRY.kinds(where)
+
+
+def kind_names(where: Callable[[ModelKind], bool] | None = None) -> tuple[str, ...]:
+    """The keys of :func:`kinds`, in the same order (for messages, help texts and checks)."""
+    return _REGISTRY.names(where)
 
 
 def _resolve(target: str, entry: ModelKind) -> object:
@@ -122,19 +363,102 @@ def _resolve(target: str, entry: ModelKind) -> object:
 
 
 def model_class(kind: str) -> type[CompensationModel]:
-    """The class implementing ``kind`` (imported on first use)."""
+    """The class implementing ``kind`` (imported on first use).
+
+    Raises:
+        UnknownModelKindError: ``kind`` is not registered.
+        ExtraMissingError: the kind's optional extra is not installed.
+        ModelKindPluginError: the plugin cannot be loaded, or its class declares another kind.
+    """
     entry = kind_entry(kind)
-    return _resolve(entry.model, entry)  # type: ignore[return-value]
+    cls: type[CompensationModel] = _resolve(entry.model, entry)  # type: ignore[assignment]
+    if getattr(cls, "kind", None) != entry.kind:
+        raise ModelKindPluginError(
+            f"model kind {kind!r}: its class {entry.model} declares kind {getattr(cls, 'kind', None)!r}"
+        )
+    return cls
+
+
+def options_for(
+    kind: str, values: Mapping[str, Any] | None = None, spelled: Mapping[str, str] | None = None
+) -> ModelOptions:
+    """The options model of ``kind`` with ``values`` (field name to value); absent fields take their defaults.
+
+    Args:
+        kind: a registered kind.
+        values: the options given, by field name (``{"dummy_arm": True}``); give only what the
+            user actually set, so that an option the kind does not take is refused, not ignored.
+        spelled: how the caller names each field in messages (the CLI: ``{"dummy_arm": "--dummy-arm"}``).
+
+    Raises:
+        UnknownModelKindError: ``kind`` is not registered.
+        ModelOptionError: an option the kind does not take, or a value it cannot use (one line).
+    """
+    entry = kind_entry(kind)
+    given = dict(values or {})
+    names = spelled or {}
+
+    def spell(field: str) -> str:
+        return names.get(field, field)
+
+    unknown = [field for field in given if not entry.takes(field)]
+    if unknown:
+        takes = ", ".join(spell(f) for f in entry.option_names)
+        raise ModelOptionError(f"model kind {kind} does not take {spell(unknown[0])}; its options: {takes}")
+    try:
+        return entry.options.model_validate(given)
+    except ValidationError as exc:
+        problem = exc.errors()[0]
+        field = ".".join(str(p) for p in problem["loc"])
+        raise ModelOptionError(f"model kind {kind}, option {spell(field)}: {problem['msg']}") from None
+
+
+def installation_options(kind: str, dummy_arm: bool, name: str | None = None) -> ModelOptions:
+    """The options of ``kind`` that follow from the installed robot (:meth:`ModelOptions.for_installation`).
+
+    ``dummy_arm``: the Dummy Arm is installed (AP then includes it and its elbow stiffness; a
+    fitted kind learns it from the data). ``name``: the model's name (None: the kind's).
+
+    Raises:
+        UnknownModelKindError: ``kind`` is not registered.
+    """
+    return kind_entry(kind).options.for_installation(dummy_arm, name)
+
+
+def _options_of(entry: ModelKind, options: ModelOptions | None) -> ModelOptions:
+    """``options`` as the options model of ``entry`` (another model's are re-checked field by field)."""
+    if options is None:
+        return entry.options()
+    if type(options) is entry.options:
+        return options
+    return options_for(entry.kind, options.model_dump(exclude_unset=True))
 
 
 def fit_model(
-    kind: str, dataset: StationaryDataset | None, description: RobotDescription, options: FitOptions | None = None
+    kind: str,
+    dataset: StationaryDataset | None,
+    description: RobotDescription,
+    options: ModelOptions | None = None,
 ) -> FitResult:
-    """Fit (or, for AP, build) a model of ``kind``.
+    """Fit (or, for a kind that needs no data, build) a model of ``kind``.
+
+    Args:
+        kind: a registered kind.
+        dataset: the training data; None only for a kind with ``needs_data`` False.
+        description: the robot the model is for.
+        options: the kind's options model (default: its defaults). Options of another model
+            are accepted when every field set in them is one this kind takes.
 
     Raises:
-        UnknownModelKindError, IdentifiabilityError, ExtraMissingError.
+        UnknownModelKindError: ``kind`` is not registered.
+        ModelOptionError: an option the kind does not take.
+        UsageError: no dataset for a kind that learns from data.
+        IdentifiabilityError: the data cannot identify the model.
+        ExtraMissingError: the kind's optional extra is not installed.
     """
     entry = kind_entry(kind)
+    checked = _options_of(entry, options)
+    if dataset is None and entry.needs_data:
+        raise UsageError(f"model kind {kind} learns from data; give it training data")
     fitter: Callable[..., FitResult] = _resolve(entry.fitter, entry)  # type: ignore[assignment]
-    return fitter(dataset, description, options or FitOptions())
+    return fitter(dataset, description, checked)

@@ -41,12 +41,6 @@ def polynomial_parameter_names(order: int) -> tuple[str, ...]:
     return tuple(f"mu{k}" for k in range(order + 1))
 
 
-def potential_regressor(kinematics: Kinematics, q: FloatArray) -> FloatArray:
-    """``Kbar_y(q)`` of Eq. 4.19 with Eq. 4.3: ``V_y = Kbar_y theta``; shape (N, 12)."""
-    rotors = kinematics.rotor_rotations_component_major(q)  # (4, 3, 3, N)
-    return rotors[:, 1, :, :].reshape(N_GRAVITY_PARAMETERS, -1).T
-
-
 def regressor_parameter_major(kinematics: Kinematics, q: FloatArray, elbow_order: int | None = None) -> FloatArray:
     """``[K(q) K_s(q4)]`` laid out (P, 4, N): row ``[p, j]`` is a contiguous length-N vector.
 
@@ -87,16 +81,6 @@ def regressor_parameter_major(kinematics: Kinematics, q: FloatArray, elbow_order
 def gravity_regressor(kinematics: Kinematics, q: FloatArray) -> FloatArray:
     """``Ktilde(q)`` of Eq. 4.21-4.23, ``tau = K theta``; shape (N, 4, 12) (a strided view)."""
     return np.transpose(regressor_parameter_major(kinematics, q), (2, 1, 0))
-
-
-def elbow_polynomial_regressor(q: FloatArray, order: int) -> FloatArray:
-    """``K_s(q4)`` of Eq. 4.26 placed on the elbow row; shape (N, 4, order + 1)."""
-    q = as_configurations(q)
-    regressor = np.zeros((q.shape[0], N_JOINTS, order + 1))
-    regressor[:, 3, 0] = 1.0
-    # successive products, exactly as regressor_parameter_major builds them
-    regressor[:, 3, 1:] = np.cumprod(np.repeat(q[:, 3:4], order, axis=1), axis=1)
-    return regressor
 
 
 @njit(cache=True)

@@ -36,10 +36,6 @@ class ResidualInputs:
     def has_direction(self) -> bool:
         return self.train.direction is not None
 
-    @property
-    def has_time(self) -> bool:
-        return self.train.t_s is not None
-
 
 def _extra_joints(columns: list[str]) -> list[str]:
     """Joint columns numbered beyond the DAROR-01's four (``q5``, ``tau6``, ...)."""

@@ -112,11 +112,6 @@ class CandidateEvidence:
         }
 
 
-def fold_labels(n_points: int, folds: int) -> FloatArray:
-    """Contiguous blocks: point ``i`` belongs to fold ``floor(i folds / n)``."""
-    return (np.arange(n_points) * folds) // max(n_points, 1)
-
-
 def _on(fit: StructureFit, data: StationaryDataset, folds: int) -> StructureFit:
     """``fit``, moved to a workspace of ``data`` and ``folds`` when it was fitted with others."""
     workspace = fit.workspace

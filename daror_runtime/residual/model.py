@@ -24,8 +24,9 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import ModelFileError
 from daror_runtime.models.base import CompensationModel, FitReport, FitResult
 from daror_runtime.models.metrics import error_metrics
+from daror_runtime.models.registry import ModelOptions
 from daror_runtime.models.regressor import N_GRAVITY_PARAMETERS, LinearTorqueEvaluator
-from daror_runtime.residual.structure import BASE_KINDS, StructureFit, tilted_kinematics
+from daror_runtime.residual.structure import StructureFit, base_kinds, tilted_kinematics
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 PerJoint = list[float]
@@ -105,8 +106,8 @@ class AugmentedModel(CompensationModel):
             problem = exc.errors()[0]
             field = ".".join(str(p) for p in problem["loc"])
             raise ModelFileError(f"parameters.{field}: {problem['msg']} (model kind {cls.kind})") from None
-        if spec.base_kind not in BASE_KINDS:
-            raise ModelFileError(f"parameters.base_kind: {spec.base_kind!r}; expected one of {', '.join(BASE_KINDS)}")
+        if spec.base_kind not in base_kinds():
+            raise ModelFileError(f"parameters.base_kind: {spec.base_kind!r}; expected one of {', '.join(base_kinds())}")
         return cls(description, spec, name)
 
 
@@ -154,3 +155,14 @@ def fit_augmented(dataset: StationaryDataset, description: RobotDescription, nam
     notes = tuple(f.sentence for f in diagnosis.found) or ("no effect beyond PLF+ is supported by the data",)
     report = FitReport("augmented", len(dataset), metrics, time.perf_counter() - start, notes=notes)
     return FitResult(model, report)
+
+
+def fit_augmented_kind(dataset: StationaryDataset, description: RobotDescription, options: ModelOptions) -> FitResult:
+    """The registry's fitter of kind ``augmented`` (:mod:`daror_runtime.residual.kind`): :func:`fit_augmented`.
+
+    ``options`` is the kind's options model (a name only).
+
+    Raises:
+        DataError, IdentifiabilityError: the data cannot train the base model.
+    """
+    return fit_augmented(dataset, description, options.name)

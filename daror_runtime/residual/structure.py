@@ -33,6 +33,7 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import UsageError
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.linear import PLF_PLUS_ELBOW_ORDER, APModel
+from daror_runtime.models.registry import kind_names
 from daror_runtime.models.regressor import (
     GRAVITY_PARAMETER_NAMES,
     N_GRAVITY_PARAMETERS,
@@ -53,9 +54,16 @@ from daror_runtime.residual.effects import Effect, Transform, family, tilt_rotat
 from daror_runtime.residual.reduced import Factor, FactorCache, factorize
 from hal.robot import N_JOINTS, FloatArray, Geometry, Kinematics, RobotDescription
 
-#: Base model kinds the analysis can augment. The neural models (PENN, NNN) are not linear in
-#: their parameters and are not implemented yet.
-BASE_KINDS = ("plf+", "plf", "ap")
+
+def base_kinds() -> tuple[str, ...]:
+    """The model kinds the analysis can augment: those of the registry with the capability ``residual_base``.
+
+    :func:`base_model` builds each of them. The neural models (PENN, NNN) are not linear in their
+    parameters and are not implemented yet.
+    """
+    return kind_names(lambda entry: entry.residual_base)
+
+
 DEFAULT_STIFFNESS_ORDER = 3
 
 
@@ -103,7 +111,7 @@ def base_model(kind: str, description: RobotDescription, dummy_arm: bool = False
         ap = APModel.from_description(description, dummy_arm=dummy_arm, elbow_stiffness=dummy_arm)
         return BaseModel("ap", fixed_theta=ap.theta, fixed_mu=ap.elbow_polynomial)
     raise UsageError(
-        f"--base {kind}: the residual analysis augments {', '.join(BASE_KINDS)}; "
+        f"--base {kind}: the residual analysis augments {', '.join(base_kinds())}; "
         "the neural models are not linear in their parameters (and not implemented yet)"
     )
 
@@ -218,9 +226,6 @@ class Structure:
     def kinematics(self) -> Kinematics:
         """The untilted chain: a tilt enters as the up direction the chain sees (:mod:`.columns`)."""
         return Kinematics(self.description.geometry)
-
-    def initial_phi(self) -> FloatArray:
-        return self.nonlinear_bounds[0].copy()
 
     def transform(self, phi: FloatArray) -> Transform:
         transform = Transform()

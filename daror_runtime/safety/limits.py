@@ -47,9 +47,6 @@ class SafetyLimits:
             command_limit_nm=np.full(N_JOINTS, float(limit)),
         )
 
-    def with_command_limit(self, limit_nm: float) -> SafetyLimits:
-        return replace(self, command_limit_nm=np.full(N_JOINTS, float(limit_nm)))
-
     def with_isb(self, isb: IsbLimits | None, margin_rad: float | None = None) -> SafetyLimits:
         margin = self.isb_margin_rad if margin_rad is None else margin_rad
         return replace(self, isb=isb, isb_margin_rad=margin)

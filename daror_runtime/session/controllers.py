@@ -14,9 +14,8 @@ resets the one it switches to. The modes (:data:`daror_runtime.fsm.modes.MODES`)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,15 +23,14 @@ from daror_runtime.control.base import Controller
 from daror_runtime.control.modes import Compensation, MinimalImpedance
 from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
-from daror_runtime.control.sea_torque import SeaTorqueController, SeaTorqueDesign
+from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.sea_torque_design import SeaTorqueDesign
 from daror_runtime.models.base import CompensationModel
 from hal.interface import Command, DriveState, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 if TYPE_CHECKING:
-    from daror_runtime.data.recorder import Recorder
-    from daror_runtime.identification.protocol import ProtocolSettings
-    from daror_runtime.identification.trajectory import ReferenceTrajectory
+    from daror_runtime.identification.protocol import IdentificationRun
 
 
 class _FixedReference:
@@ -68,6 +66,10 @@ class _HeldTorque:
     def torque(self, q_rad: FloatArray) -> FloatArray:
         return self.value
 
+    def tick_kernel(self) -> None:
+        """No compiled torque: the held value is a constant the controller reads through :meth:`torque`."""
+        return None
+
 
 class Hold:
     """Hold the joint angles of the reset sample (motor position PD; feed-forward: what held the arm there)."""
@@ -79,13 +81,7 @@ class Hold:
     ) -> None:
         self._reference = _FixedReference()
         self._held = _HeldTorque(feedforward, description.sea.spring_stiffness_nm_per_rad)
-        self.pd = MotorPositionPD(
-            description, self._reference, bounds, feedforward=cast("CompensationModel", self._held), dt_s=dt_s
-        )
-
-    @property
-    def target_q_rad(self) -> FloatArray:
-        return self._reference.q_rad
+        self.pd = MotorPositionPD(description, self._reference, bounds, feedforward=self._held, dt_s=dt_s)
 
     def reset(self, sample: Sample) -> None:
         """Hold the sample's pose from now on, with the torque that held it there.
@@ -99,24 +95,6 @@ class Hold:
 
     def update(self, sample: Sample, dt_s: float) -> Command:
         return self.pd.update(sample, dt_s)
-
-
-@dataclass
-class IdentificationRun:
-    """One protocol run, prepared outside the tick and handed to :class:`IdentificationMode`."""
-
-    kind: str  # "training" or "validation"
-    reference: ReferenceTrajectory  # approach + trajectory, t = 0 at the start sample
-    controller: MotorPositionPD
-    recorder: Recorder
-    dataset_path: Path
-    protocol: ProtocolSettings
-    t0_s: float = 0.0
-    end_t_s: float = field(default=float("inf"))
-
-    @property
-    def duration_s(self) -> float:
-        return self.reference.duration_s
 
 
 class IdentificationMode:

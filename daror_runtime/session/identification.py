@@ -20,19 +20,13 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from daror_runtime.control.motor_position import MotorPositionPD
-from daror_runtime.control.position import LinkBounds
-from daror_runtime.data.load import raw_log_path, write_dataset
-from daror_runtime.data.recorder import Recorder, recording_to_raw_log
-from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path, write_dataset
 from daror_runtime.errors import InputError
-from daror_runtime.identification.protocol import ProtocolSettings, stationary_points_of_run, tracking_errors
-from daror_runtime.identification.trajectory import TrajectorySettings, build_trajectory
+from daror_runtime.identification.protocol import IdentificationRun, finish_recording, plan_run
+from daror_runtime.identification.settings import IdentificationSettings
+from daror_runtime.identification.trajectory_planning import TrajectorySettings, build_trajectory
 from daror_runtime.identification.waypoints import WaypointSet, load_waypoints
-from daror_runtime.loop import RECORD_COLUMNS
 from daror_runtime.models.base import CompensationModel
-from daror_runtime.session.controllers import IdentificationRun
-from daror_runtime.session.settings import IdentificationSettings
 from hal.isb import AngleRange, IsbLimits
 from hal.robot import FloatArray, RobotDescription
 
@@ -104,7 +98,7 @@ def next_free_path(directory: Path, stem: str, suffix: str) -> Path:
     """``directory/stem.suffix``, or ``stem_2.suffix``, ... : a file is never overwritten."""
     path = directory / f"{stem}{suffix}"
     n = 2
-    while path.exists() or raw_log_path(path).exists():
+    while path.exists() or raw_log_path(path, RAW_LOG_SUFFIX).exists():
         path = directory / f"{stem}_{n}{suffix}"
         n += 1
     return path
@@ -118,11 +112,10 @@ def prepare_run(
     limits: IsbLimits,
     settings: IdentificationSettings,
     feedforward: CompensationModel | None,
-    bounds: LinkBounds,
     dt_s: float,
     directory: Path,
 ) -> IdentificationRun:
-    """Everything a run needs, built outside the tick; the recorder is started (its file exists).
+    """The session's run: its trajectory inside the pilot's limits, planned by :func:`plan_run`.
 
     Raises:
         TrajectoryError: a waypoint or a path leaves the pilot's limits or the device's.
@@ -132,40 +125,14 @@ def prepare_run(
     # Checked against the recorded range widened by the tolerance: still inside what the monitor enforces.
     limits = widened(limits, settings.waypoint_tolerance_deg)
     trajectory = build_trajectory(waypoints, kind, trajectory_settings, limits, description)  # type: ignore[arg-type]
-    protocol = ProtocolSettings(
-        approach_speed_rad_s=settings.approach_speed_rad_s,
-        settle_s=settings.settle_s,
-        points_per_stop=settings.points_per_stop,
-    )
-    distance = float(np.abs(trajectory.start_q_rad - q_now_rad).max())
-    approach_s = max(distance / protocol.approach_speed_rad_s * 1.875, protocol.min_approach_s)
-    reference = trajectory.with_approach(np.asarray(q_now_rad, dtype=float), approach_s, protocol.settle_s)
-    controller = MotorPositionPD(
-        description,
-        reference,
-        bounds,
-        protocol.kp_nm_per_rad,
-        protocol.kd_nms_per_rad,
-        feedforward=feedforward,
-        dt_s=dt_s,
-    )
     dataset_path = next_free_path(directory, f"identification_{kind}", ".csv")
-    recorder = Recorder(dataset_path.with_name(f".{dataset_path.name}.rec"), RECORD_COLUMNS)
-    recorder.start()
-    log.info(
-        "identification prepared",
-        kind=kind,
-        waypoints=len(waypoints),
-        robot_s=round(reference.duration_s, 1),
-        approach_s=round(approach_s, 1),
-        dataset=str(dataset_path),
-    )
-    return IdentificationRun(kind, reference, controller, recorder, dataset_path, protocol)
+    recording = dataset_path.with_name(f".{dataset_path.name}.rec")
+    return plan_run(trajectory, description, q_now_rad, settings, feedforward, dt_s, recording, dataset_path)
 
 
 @dataclasses.dataclass(frozen=True)
-class RunData:
-    """What a finished run produced."""
+class RunSummary:
+    """What a finished run left in the session folder."""
 
     kind: str
     dataset_path: Path
@@ -174,35 +141,25 @@ class RunData:
     tracking_max_rad: FloatArray
 
 
-def finish_run(run: IdentificationRun) -> RunData:
-    """Close the run's recording and write its stationary dataset and raw log (a job, outside the tick).
+def finish_run(run: IdentificationRun) -> RunSummary:
+    """Turn the run's recording into data and write the dataset and raw log, atomically (a job, outside the tick).
 
     Raises:
         ProtocolAbortedError: no stop of the trajectory held still, or the recorder dropped rows.
         DataError: the recording cannot be read back.
     """
-    from daror_runtime.identification.protocol import ProtocolAbortedError
-
-    run.recorder.close()
-    recording = run.recorder.path
-    if run.recorder.dropped_rows:
-        raise ProtocolAbortedError(
-            f"{recording}: the recorder dropped {run.recorder.dropped_rows} rows; the raw log would have gaps"
-        )
-    raw = recording_to_raw_log(recording, drop_nan_rows=True)
-    stationary: StationaryDataset = stationary_points_of_run(raw, run.reference, run.protocol)
-    rms, worst = tracking_errors(raw, run.reference)
-    write_dataset(raw_log_path(run.dataset_path), raw)
-    write_dataset(run.dataset_path, stationary)
-    recording.unlink(missing_ok=True)
+    data = finish_recording(run)
+    write_dataset(raw_log_path(run.dataset_path, RAW_LOG_SUFFIX), data.raw)
+    write_dataset(run.dataset_path, data.stationary)
+    run.recorder.path.unlink(missing_ok=True)
     log.info(
         "identification saved",
         kind=run.kind,
         dataset=str(run.dataset_path),
-        points=len(stationary),
-        tracking_rms_mrad=[round(v * 1e3, 2) for v in rms],
+        points=len(data.stationary),
+        tracking_rms_mrad=[round(v * 1e3, 2) for v in data.tracking_rms_rad],
     )
-    return RunData(run.kind, run.dataset_path, len(stationary), rms, worst)
+    return RunSummary(run.kind, run.dataset_path, len(data.stationary), data.tracking_rms_rad, data.tracking_max_rad)
 
 
 def abandon_run(run: IdentificationRun, reason: str) -> None:

@@ -23,11 +23,12 @@ from daror_runtime.console.run import read_script, run_script
 from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import DarorError
 from daror_runtime.fsm.machine import Outcome
+from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.loop import TickResult
 from daror_runtime.runtime import Runtime
-from daror_runtime.session.settings import IdentificationSettings, SessionSettings
-from hal.sim.backend import SimHal
-from hal.sim.scenario import load_scenario
+from daror_runtime.session.settings import SessionSettings
+from hal.config import SimHalConfig
+from hal.interface import open_hal
 
 #: The demo's protocol: every third waypoint (28 of 83) keeps the demo near half a minute.
 DEMO_SETTINGS = SessionSettings(dummy_arm=True, identification=IdentificationSettings(waypoint_stride=3))
@@ -69,7 +70,7 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
     Raises:
         ScriptCheckError: a step of the session did not happen (the message names the line).
     """
-    hal = SimHal(load_scenario(scenario_name))
+    hal = open_hal(SimHalConfig(scenario=scenario_name))
     runtime = Runtime(hal, directory, settings=DEMO_SETTINGS)
     transitions: list[dict[str, Any]] = []
 
@@ -99,7 +100,7 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
             runtime.status(),
             holding,
             unsupported,
-            hal.time_s,
+            world.t_s,
         )
     finally:
         runtime.shutdown("the rehearsal ended")
@@ -111,15 +112,13 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
 
 def _support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) -> tuple[list[float], list[float]]:
     """Over ``seconds`` of compensation with the pilot relaxed: mean |g(q)| and RMS of the pilot's torque, per joint."""
-    hal = world.hal
-    plant = hal.plant
     holding: list[np.ndarray] = []
     pilot: list[np.ndarray] = []
 
     def sample(result: TickResult) -> bool:
-        truth = hal.truth()
-        holding.append(np.abs(plant.holding_torque_nm(truth.q_rad)))
-        pilot.append(world.pilot(hal.time_s, truth.q_rad, truth.dq_rad_s))
+        holding_nm, pilot_nm = world.support_torques()
+        holding.append(np.abs(holding_nm))
+        pilot.append(pilot_nm)
         return False
 
     runtime.run_ticks(round(seconds * runtime.hal.rate_hz), stop=sample)

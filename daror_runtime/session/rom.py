@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from daror_runtime.data.tick_row import Q_SLICE
 from daror_runtime.errors import InputError
 from hal.isb import ISB_NAMES, AngleRange, IsbLimits, Shoulder
 from hal.robot import N_JOINTS
@@ -40,8 +41,8 @@ class RomEnvelope:
         self.samples = 0
 
     def push(self, row: np.ndarray) -> bool:
-        """One loop row (``RECORD_COLUMNS``: q at columns 1-4); NaN rows (no reading) are skipped."""
-        q = row[1:5]
+        """One loop row (:data:`~daror_runtime.data.tick_row.RECORD_COLUMNS`); NaN rows (no reading) are skipped."""
+        q = row[Q_SLICE]
         if not np.all(np.isfinite(q)):
             return True
         angles = self._isb(np.ascontiguousarray(q))

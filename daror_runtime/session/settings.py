@@ -10,36 +10,47 @@ Every value has a default a session can run with; the file only lists what diffe
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic_core import PydanticCustomError
 
 from daror_runtime.errors import InputError
-from hal.yamlfile import Flag, Integer, Number, load_yaml_model
+from daror_runtime.identification.settings import IdentificationSettings
+from daror_runtime.models.registry import kind_names
+from hal.yamlfile import Flag, Number, load_yaml_model
 
 
 class SessionSettingsError(InputError):
     """The session settings file is missing, not YAML, or wrong (file, line and field named)."""
 
 
+def _session_model_kind(kind: str) -> str:
+    """``kind`` if the registry has it and a session may train it (capability ``session_training``).
+
+    Raises:
+        PydanticCustomError: an unknown kind, or one a session may not train; the message lists
+            the kinds a session may train.
+    """
+    trainable = kind_names(lambda entry: entry.session_training)
+    if kind in trainable:
+        return kind
+    problem = (
+        "model kind {kind} cannot be trained in a session" if kind in kind_names() else "unknown model kind {kind}"
+    )
+    raise PydanticCustomError(
+        "model_kind",
+        problem + "; expected one of {kinds}",
+        {"kind": repr(kind), "kinds": ", ".join(trainable)},
+    )
+
+
+#: A model kind of the registry that a session may train (the registry is the one list of kinds).
+SessionModelKind = Annotated[str, Strict(), AfterValidator(_session_model_kind)]
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class IdentificationSettings(_Strict):
-    """How the protocol runs inside a session (state ``identification``)."""
-
-    waypoints_file: Path | None = Field(None, description="waypoint YAML; default the shipped 83 waypoints")
-    waypoint_stride: Integer = Field(1, ge=1, le=20, description="use every n-th waypoint (a shorter protocol)")
-    approach_speed_rad_s: Number = Field(0.25, gt=0.0, le=1.0, description="mean speed of the approach move")
-    settle_s: Number = Field(2.0, ge=0.0, le=30.0, description="hold at the start pose before the trajectory")
-    points_per_stop: Integer = Field(3, ge=1, le=20, description="training points averaged per stop")
-    waypoint_tolerance_deg: Number = Field(
-        2.0,
-        ge=0.0,
-        le=10.0,
-        description="waypoints this close outside the recorded ISB range are kept; the trajectory may use it too",
-    )
 
 
 class SessionSettings(_Strict):
@@ -62,7 +73,9 @@ class SessionSettings(_Strict):
     at_rest_rad_s: Number = Field(0.05, gt=0.0, le=1.0, description="every joint slower than this: at rest")
     isb_margin_deg: Number = Field(5.0, ge=0.0, le=30.0, description="tolerance outside the recorded ISB limits")
     rom_min_range_deg: Number = Field(5.0, gt=0.0, le=90.0, description="a recorded ISB range must span at least this")
-    model_kind: Literal["ap", "plf", "plf+"] = Field("plf+", description="the model trained in state training")
+    model_kind: SessionModelKind = Field(
+        "plf+", description="the model trained in state training: a kind of the model registry a session may train"
+    )
     max_validation_rmse_nm: Number = Field(
         1.5, gt=0.0, le=20.0, description="a model is validated when its validation RMSE is at most this"
     )

@@ -17,12 +17,12 @@ import structlog
 
 from daror_runtime.data.load import load_stationary
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.errors import InputError, ModelFileError
+from daror_runtime.errors import InputError, ModelFileError, UsageError
 from daror_runtime.fsm.signals import SelectedModel
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.files import file_sha256, load_model, save_model, training_summary
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
-from daror_runtime.models.registry import FitOptions, fit_model
+from daror_runtime.models.registry import fit_model, installation_options, kind_entry
 from daror_runtime.session.identification import next_free_path
 from hal.robot import RobotDescription
 
@@ -52,11 +52,19 @@ def train_model(
 ) -> TrainedModel:
     """Fit ``kind`` on the training data, validate it, and save the model file (atomically).
 
+    The kind's options follow from the installed robot (``dummy_arm``: the A Priori model includes
+    the Dummy Arm; a fitted kind learns it from the data).
+
     Raises:
+        UnknownModelKindError: ``kind`` is not registered.
+        UsageError: the registry does not let a session train ``kind`` (capability ``session_training``).
         DataError, IdentifiabilityError: the data cannot train the model.
     """
+    entry = kind_entry(kind)
+    if not entry.session_training:
+        raise UsageError(f"model kind {kind} cannot be trained in a session")
     training = load_stationary(training_path)
-    result = fit_model(kind, training, description, FitOptions(dummy_arm=dummy_arm))
+    result = fit_model(kind, training, description, installation_options(kind, dummy_arm))
     metrics = validation_errors(result.model, load_stationary(validation_path))
     path = next_free_path(directory, f"model_{kind.replace('+', '_plus')}", ".json")
     save_model(path, result.model, training_summary(training, training_path), result.report)

@@ -37,7 +37,7 @@ import structlog
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DataError, IdentifiabilityError, UsageError
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
-from daror_runtime.models.registry import NO_DATA_KINDS, FitOptions, fit_model, kind_entry
+from daror_runtime.models.registry import fit_model, kind_entry, kind_names
 from hal.robot import N_JOINTS, RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -162,18 +162,18 @@ class DataEfficiencyResult:
 
 
 def check_kind(kind: str) -> str:
-    """The registry key of a model kind the study can fit (lower-cased).
+    """The registry key of a model kind the study can fit (lower-cased): one that learns from data.
 
     Raises:
         UnknownModelKindError: ``kind`` is not registered (e.g. ``penn``/``nnn`` before they exist).
-        UsageError: ``kind`` is built without data (``ap``): there is nothing to learn.
+        UsageError: ``kind`` is built without data (``ap``, capability ``needs_data`` False):
+            there is nothing to learn.
     """
     key = kind.lower()
-    kind_entry(key)
-    if key in NO_DATA_KINDS:
+    if not kind_entry(key).needs_data:
         raise UsageError(
             f"--kind {key}: this model is built from the robot description, not fitted, so it has nothing "
-            "to learn from more data; choose a fitted kind such as plf or plf+"
+            f"to learn from more data; choose a fitted kind: {', '.join(kind_names(lambda entry: entry.needs_data))}"
         )
     return key
 
@@ -312,7 +312,7 @@ def run_data_efficiency(
             f"{validate.source}: {len(validate)} stationary points; expected at least {MIN_VALIDATION_POINTS} "
             "to validate on"
         )
-    options = FitOptions()
+    options = kind_entry(key).options()  # the kind's defaults: the study varies only the data
     # The full-data fit is the reference every size is compared with; if even all the training
     # points cannot identify the model the study is meaningless, so its refusal is bad input.
     full = fit_model(key, train, description, options)

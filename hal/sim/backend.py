@@ -17,28 +17,39 @@ What the drives do, per tick, in this order (``write``):
    direction-dependent error of Sec. 2.2.2, computed with the nominal spring constant; the
    scenario's undeclared angle offset and torque drift on top, docs/simulation.md).
 
-Sim-only hooks for tests (not part of the Hal contract): :meth:`SimHal.set_external_torque`,
-:meth:`SimHal.press_estop`, :meth:`SimHal.inject_fault`, :meth:`SimHal.clear_faults`,
-:meth:`SimHal.truth`. Randomness comes only from the scenario seed (stream
-:data:`STREAM_SIM_ENCODERS`), so two instances of one scenario produce identical samples.
+The backend's time is virtual (:attr:`SimHal.virtual_time`): it may run lock-step, and it
+drives no hardware. The world around the plant (pilot, e-stop buttons, fault injection) is
+:attr:`SimHal.world`, a :class:`hal.capabilities.SimulatedWorld` (:mod:`hal.sim.world`).
+
+Sim-only hooks for tests (not part of the Hal contract; the world uses them):
+:meth:`SimHal.set_external_torque`, :meth:`SimHal.press_estop`, :meth:`SimHal.inject_fault`,
+:meth:`SimHal.clear_faults`, :meth:`SimHal.truth`. Randomness comes only from the scenario seed
+(stream :data:`STREAM_SIM_ENCODERS`), so two instances of one scenario produce identical samples.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hal.errors import DescriptionError, HalError, InputError, ShapeError
+from hal.capabilities import FAULT_KINDS, FaultKind
+from hal.errors import DescriptionError, HalError, HalNotOpenError, InputError, ShapeError
 from hal.interface import Command, DriveState, Hal, HalFaultError, Sample
-from hal.robot import N_JOINTS, FloatArray, RobotDescription
+from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 from hal.sim import dynamics
 from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.sensors import SECONDS_PER_MINUTE
 from hal.sim.static_dataset import stream
+
+if TYPE_CHECKING:
+    from hal.config import AnyHalConfig
+    from hal.sim.world import PlantWorld
+
+__all__ = ["DEFAULT_DRIVE_FAULT_CODE", "FAULT_KINDS", "STREAM_SIM_ENCODERS", "ExternalTorque", "FaultKind", "SimHal"]
 
 #: Random stream of the encoder noise; ids 1-5 belong to hal.sim.static_dataset.
 STREAM_SIM_ENCODERS = 6
@@ -50,8 +61,6 @@ _FLOAT64 = np.dtype(np.float64)
 _JOINT_SHAPE = (N_JOINTS,)
 _hal_tick = dynamics.hal_tick  # one attribute lookup less per tick  # q' in the plant state [q, theta, q', theta']
 
-FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus"]
-FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
 #: The pilot pushing: f(t_s, q_true_rad, dq_true_rad_s) -> (4,) external torque on the links, Nm.
 ExternalTorque = Callable[[float, FloatArray, FloatArray], FloatArray]
 
@@ -71,6 +80,8 @@ class SimHal(Hal):
     """
 
     kind = "sim"
+    virtual_time = True
+    drives_hardware = False
 
     def __init__(
         self,
@@ -126,14 +137,44 @@ class SimHal(Hal):
         self._enabled_drives = (DriveState.ENABLED,) * N_JOINTS
         self._no_fault_codes = (0,) * N_JOINTS
         self._is_open = False
+        self._world: PlantWorld | None = None
         self._reset_session()
         self._load_kernel()
+
+    @classmethod
+    def from_config(cls, config: AnyHalConfig) -> SimHal:
+        """The simulated plant of a ``sim`` configuration (:class:`hal.config.SimHalConfig`), not opened.
+
+        Raises:
+            HalConfigError: ``config`` is not a ``sim`` configuration.
+            DescriptionError: the scenario or the robot description cannot be loaded.
+            InputError: the rate is not positive and finite.
+        """
+        from hal.config import SimHalConfig
+        from hal.errors import HalConfigError
+
+        if not isinstance(config, SimHalConfig):
+            raise HalConfigError(f"the sim backend takes a sim configuration, not {config.backend!r}")
+        scenario = load_scenario(config.scenario)
+        if config.seed is not None:
+            scenario = scenario.model_copy(update={"seed": config.seed})
+        description = load_description(config.robot) if config.robot is not None else None
+        return cls(scenario, config.rate_hz, description)
 
     # --- Hal contract ---------------------------------------------------------------------------
 
     @property
     def rate_hz(self) -> float:
         return self._rate_hz
+
+    @property
+    def world(self) -> PlantWorld:
+        """The world around the plant (:class:`hal.sim.world.PlantWorld`): one per backend, no pilot until seated."""
+        if self._world is None:
+            from hal.sim.world import PlantWorld  # the pilot and the shoulder's kinematics: only when asked
+
+            self._world = PlantWorld(self)
+        return self._world
 
     def open(self) -> None:
         """Start a session: plant at rest in static equilibrium at the scenario's ``initial_q_deg``.
@@ -156,10 +197,10 @@ class SimHal(Hal):
 
         Raises:
             HalFaultError: a ``bus`` fault was injected since the previous read (raised once).
-            HalError: the backend is not open.
+            HalNotOpenError: the backend is not open.
         """
         if not self._is_open:
-            raise HalError("simulated HAL is not open; call open() first")
+            raise HalNotOpenError("simulated HAL is not open; call open() first")
         if self._bus_fault:
             self._bus_fault = False
             raise HalFaultError(f"simulated bus fault at t = {self._tick * self._dt:.6f} s (injected)")
@@ -172,15 +213,18 @@ class SimHal(Hal):
         """Apply ``command`` and advance the plant by one tick.
 
         Enabled commands act ``command_delay_ticks`` ticks later; a disabled command removes the
-        torque of every joint from this tick on and discards the commands still queued.
+        torque of every joint from this tick on and discards the commands still queued. The plant
+        saturates the motor torque at the drive train's ``max_motor_torque_nm``. After a refused
+        command the sample of the tick (same ``seq``) is built again: it shows the drives disabled.
 
         Raises:
-            HalError: the backend is not open; an enabled command with a non-finite torque (torque
-                is removed first and the tick does not advance); the plant diverged.
+            HalNotOpenError: the backend is not open.
+            HalError: an enabled command with a non-finite torque (torque is removed first and the
+                tick does not advance); the plant diverged (torque removed).
             ShapeError: an enabled command's torque is not of shape (4,) (torque removed first).
         """
         if not self._is_open:
-            raise HalError("simulated HAL is not open; call open() first")
+            raise HalNotOpenError("simulated HAL is not open; call open() first")
         if command.enable:
             torque = command.motor_torque_nm
             # The common case (a float64 (4,) array) passes two identity tests; anything else is
@@ -190,6 +234,7 @@ class SimHal(Hal):
             if torque.shape != _JOINT_SHAPE:
                 self._flush_commands()
                 self._drives = self._drive_states(False)
+                self._refused()
                 raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")
         else:
             torque = self._zero_torque  # torque off whatever the command carries
@@ -209,6 +254,7 @@ class SimHal(Hal):
             status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
         if status < 0:
             self._drives = self._drive_states(False)
+            self._refused()
             if status == dynamics.TICK_BAD_COMMAND:
                 raise HalError(f"motor_torque_nm = {torque.tolist()} is not finite; torque removed")
             raise HalError(
@@ -242,8 +288,13 @@ class SimHal(Hal):
 
     @property
     def applied_motor_torque_nm(self) -> FloatArray:
-        """Motor torque the simulated drives applied during the last tick (4,) Nm (tests only)."""
-        return self._drive_vector[dynamics.S_INPUTS : dynamics.S_INPUTS + N_JOINTS].copy()
+        """Motor torque the simulated drives applied during the last tick (4,) Nm (tests only).
+
+        The command that came out of the FIFO, saturated at the drive train's peak torque as the
+        plant applies it; zero for a disabled or faulted drive.
+        """
+        limit = self._plant.max_motor_torque_nm
+        return np.clip(self._drive_vector[dynamics.S_INPUTS : dynamics.S_INPUTS + N_JOINTS], -limit, limit)
 
     def truth(self) -> PlantTruth:
         """The true ``(q, dq, theta, dtheta, tau_spring)`` now (copies), for tests."""
@@ -297,11 +348,11 @@ class SimHal(Hal):
         * ``"bus"``: the next :meth:`read` raises :class:`HalFaultError`.
 
         Raises:
-            HalError: the backend is not open.
+            HalNotOpenError: the backend is not open.
             InputError: unknown kind, joint not 1-4, or a missing/invalid value.
         """
         if not self._is_open:
-            raise HalError("simulated HAL is not open; call open() first")
+            raise HalNotOpenError("simulated HAL is not open; call open() first")
         if kind not in FAULT_KINDS:
             raise InputError(f"fault kind {kind!r}; expected one of {', '.join(FAULT_KINDS)}")
         if joint is not None and (isinstance(joint, bool) or joint not in range(1, N_JOINTS + 1)):
@@ -353,10 +404,10 @@ class SimHal(Hal):
         """The current tick's sample without raising a pending bus fault (hooks and tests).
 
         Raises:
-            HalError: the backend is not open.
+            HalNotOpenError: the backend is not open.
         """
         if not self._is_open:
-            raise HalError("simulated HAL is not open; call open() first")
+            raise HalNotOpenError("simulated HAL is not open; call open() first")
         if self._sample is None:
             self._sample = self._build_sample()
         return self._sample
@@ -400,6 +451,12 @@ class SimHal(Hal):
 
     def _flush_commands(self) -> None:
         dynamics.flush_commands(self._drive_vector)
+
+    def _refused(self) -> None:
+        """A command was refused (torque removed): the tick's sample is built again with the drives' new state."""
+        if self._stale_left == 0:
+            self._readings = self._readings.copy()  # the old sample's arrays stay as they were (read-only)
+            self._sample = None
 
     def _drive_states(self, enabled: bool) -> tuple[DriveState, ...]:
         if not self._any_fault:

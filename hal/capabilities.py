@@ -1,0 +1,161 @@
+"""What a backend may offer besides the :class:`hal.interface.Hal` contract: the simulated world.
+
+A backend that simulates the robot (``sim``, later ``can-sim``) can also play the world around
+it: the pilot in the sleeve, the two e-stop buttons, faults to inject. The console and the demo
+use that world through :class:`SimulatedWorld` only, reached as :attr:`hal.interface.Hal.world`
+(``None`` on a backend that drives hardware), so they never import a backend or ask which one
+they have. None of it goes through the runtime: it acts on the simulation, as a person acts on
+the robot.
+
+Units: rad, rad/s, Nm, s; arrays are ``float64`` of shape (4,), joints 1-4 at indices 0-3.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal, Protocol, runtime_checkable
+
+from hal.robot import FloatArray
+
+__all__ = ["ESTOP_OPERATOR", "ESTOP_PILOT", "FAULT_KINDS", "FaultKind", "SimulatedWorld"]
+
+#: Index of the operator's e-stop in :attr:`hal.interface.Sample.estop`.
+ESTOP_OPERATOR = 0
+#: Index of the pilot's e-stop in :attr:`hal.interface.Sample.estop`.
+ESTOP_PILOT = 1
+
+FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus"]
+#: The faults a simulated world can inject (what each does: :meth:`SimulatedWorld.inject_fault`).
+FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
+
+
+@runtime_checkable
+class SimulatedWorld(Protocol):
+    """The world around a simulated robot: the pilot, the e-stop buttons and fault injection.
+
+    Every method acts from the next tick on (the next sample built, the next plant step). The
+    pilot's methods need a seated pilot (:meth:`seat_pilot`); without one they raise
+    :class:`hal.errors.HalError`. Reading a property never raises.
+    """
+
+    @property
+    def fault_kinds(self) -> tuple[str, ...]:
+        """The fault kinds :meth:`inject_fault` takes (a subset of :data:`FAULT_KINDS`)."""
+        ...
+
+    @property
+    def t_s(self) -> float:
+        """The world's time now: the robot time of the latest tick, s."""
+        ...
+
+    @property
+    def carries_dummy_arm(self) -> bool:
+        """True if the simulated robot carries the Dummy Arm (what the session settings should say)."""
+        ...
+
+    @property
+    def pilot_seated(self) -> bool:
+        """True once :meth:`seat_pilot` was called."""
+        ...
+
+    @property
+    def pilot_carried(self) -> float:
+        """The share, in [0, 1], of the arm's weight the pilot carries of what the robot does not (0 without a pilot)."""
+        ...
+
+    @property
+    def pilot_moving(self) -> bool:
+        """True while the pilot moves the arm (a move or sweep under way; False without a pilot)."""
+        ...
+
+    def press_estop(self, which: int, pressed: bool) -> None:
+        """Press (True) or release an e-stop: :data:`ESTOP_OPERATOR` or :data:`ESTOP_PILOT`.
+
+        The world only reports the input (``Sample.estop``, from the next sample); removing
+        torque is the runtime's job.
+
+        Raises:
+            InputError: ``which`` is not one of the two buttons.
+        """
+        ...
+
+    def inject_fault(self, kind: str, joint: int | None = None, value: float | None = None) -> None:
+        """Inject a fault, effective from the next sample or tick (``joint`` 1-4, None for all).
+
+        ``nan``: the next ``q`` reading is NaN. ``jump``: the ``q`` reading is offset by ``value``
+        rad from now on. ``stale``: the next ``value`` (default 1) samples repeat the latest one.
+        ``drive_fault``: the drive reports FAULT with code ``value`` (default 0x1000) and applies
+        no torque until :meth:`clear_faults`. ``bus``: the next ``read`` raises
+        :class:`hal.interface.HalFaultError`.
+
+        Raises:
+            InputError: an unknown kind, a joint not 1-4, or a missing/invalid value.
+            HalNotOpenError: the backend is not open.
+        """
+        ...
+
+    def clear_faults(self) -> None:
+        """Clear every injected fault; a drive whose fault is cleared reports DISABLED until enabled."""
+        ...
+
+    def seat_pilot(self) -> None:
+        """The pilot sits in the sleeve and holds the arm where it is now, carrying its weight.
+
+        From the next tick on the pilot's torque acts on the links. A second call seats a new
+        pilot in place of the first (at the arm's pose then).
+
+        Raises:
+            HalNotOpenError: the backend is not open.
+        """
+        ...
+
+    def pilot_carries(self, share: float) -> None:
+        """The share of the arm's weight the pilot carries (1 alone, 0 relaxed on the robot).
+
+        Raises:
+            InputError: ``share`` outside [0, 1].
+        """
+        ...
+
+    def pilot_stiffness(self, scale: float) -> None:
+        """Scale the pilot's arm stiffness (0: limp, the robot moves the arm freely; 1: a calm pilot).
+
+        Raises:
+            InputError: ``scale`` outside [0, 2].
+        """
+        ...
+
+    def pilot_hold_here(self) -> None:
+        """The pilot keeps the arm where it is now (any motion under way is dropped)."""
+        ...
+
+    def pilot_stop(self) -> None:
+        """The pilot stops moving: the motion under way is dropped where the pilot's target is now."""
+        ...
+
+    def pilot_move(self, q_rad: FloatArray, seconds: float | None = None) -> float:
+        """The pilot moves the arm to joint angles ``q_rad`` (replacing any motion); returns the end time, s.
+
+        ``seconds`` None: at the pilot's own pace.
+
+        Raises:
+            InputError: a duration that is not positive, or not four finite angles.
+        """
+        ...
+
+    def pilot_sweep_isb(self, poses_isb_rad: Sequence[FloatArray], seconds_per_move: float | None = None) -> float:
+        """The pilot moves the arm through ISB poses (elevation, plane, axial, elbow; rad) and back.
+
+        Replaces any motion under way; the arm returns to where it was at the end. Returns the
+        end time, s. ``seconds_per_move`` None: each move at the pilot's own pace.
+
+        Raises:
+            InputError: a duration that is not positive, or a pose that is not four finite angles.
+        """
+        ...
+
+    def support_torques(self) -> tuple[FloatArray, FloatArray]:
+        """``(holding, pilot)`` now, (4,) Nm each: the torque that holds the arm still where it truly is,
+        and the torque the pilot applies (the simulation's truth: for reports of what the robot carries).
+        """
+        ...

@@ -1,0 +1,353 @@
+"""HAL configurations (hal/config.py), the backend registry and ``open_hal`` (hal/interface.py), and the
+``daror console`` options that build a backend (``--hal``, ``--scenario``, ``--hal-config``)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daror_runtime.cli import main
+from daror_runtime.logs import configure_logging
+from hal.config import (
+    CAN_BITRATES,
+    CanHalConfig,
+    CanSimHalConfig,
+    SimHalConfig,
+    hal_config,
+    load_hal_config,
+)
+from hal.errors import BackendUnavailableError, HalConfigError, InputError
+from hal.interface import BACKENDS, Command, Hal, hal_class, open_hal, register_backend
+from hal.sim.backend import SimHal
+from tests.standin_drives import StandInDrives
+
+CANOPEN_BUILT = importlib.util.find_spec("hal.canopen") is not None
+
+
+@pytest.fixture(autouse=True)
+def default_logging() -> Iterator[None]:
+    """``main`` configures logging for the process; put the defaults back afterwards."""
+    yield
+    configure_logging()
+
+
+@pytest.fixture
+def registry() -> Iterator[dict[str, str]]:
+    """The backend registry, restored after the test."""
+    saved = dict(BACKENDS)
+    yield BACKENDS
+    BACKENDS.clear()
+    BACKENDS.update(saved)
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def one_line(err: str) -> str:
+    """The command's own line on stderr (exactly one, the last)."""
+    lines = err.rstrip("\n").split("\n")
+    own = [line for line in lines if line.startswith("daror console: ")]
+    assert own == lines[-1:], f"not one line of the command, at the end: {err!r}"
+    return own[0]
+
+
+# --- the variants ---------------------------------------------------------------------------------
+
+
+def test_each_backend_has_its_variant_with_defaults() -> None:
+    sim = hal_config("sim")
+    assert isinstance(sim, SimHalConfig)
+    assert (sim.scenario, sim.rate_hz, sim.seed, sim.robot) == ("exo_dummy_arm", 1000.0, None, None)
+    can = hal_config("can")
+    assert isinstance(can, CanHalConfig)
+    assert (can.interface, can.channel, can.bitrate, can.node_ids) == ("socketcan", "can0", 1_000_000, [1, 2, 3, 4])
+    assert (can.rate_hz, can.heartbeat_producer_ms, can.heartbeat_consumer_ms, can.eds) == (1000.0, 100, 250, None)
+    can_sim = hal_config("can-sim", scenario="exo")
+    assert isinstance(can_sim, CanSimHalConfig)
+    assert (can_sim.interface, can_sim.scenario) == ("virtual", "exo")
+    assert 1_000_000 in CAN_BITRATES
+
+
+@pytest.mark.parametrize(
+    ("backend", "fields", "problem"),
+    [
+        ("sim", {"rate_hz": -5.0}, "rate_hz: Input should be greater than 0"),
+        ("sim", {"rate_hz": True}, "rate_hz: Input should be a valid number"),
+        ("sim", {"seed": 1.5}, "seed: Input should be a valid integer"),
+        ("sim", {"interface": "pcan"}, "interface: the sim backend does not take it"),
+        ("can", {"scenario": "exo"}, "scenario: the can backend does not take it"),
+        ("can", {"bitrate": 999}, "bitrate: Input should be 10000, 20000"),
+        ("can", {"node_ids": [1, 2, 2, 4]}, "node_ids: Value error, [1, 2, 2, 4]: expected four different node ids"),
+        ("can", {"node_ids": [1, 2, 3]}, "node_ids: List should have at least 4 items"),
+        ("can", {"node_ids": [1, 2, 3, 128]}, "node_ids.3: Input should be less than or equal to 127"),
+        ("can", {"rate_hz": 5000.0}, "rate_hz: Input should be less than or equal to 2000"),
+        ("can", {"heartbeat_consumer_ms": 100}, "heartbeat_consumer_ms: Value error, 100 ms is not longer than"),
+        ("can-sim", {"channel": ""}, "channel: String should have at least 1 character"),
+    ],
+)
+def test_fields_are_strict(backend: str, fields: dict[str, object], problem: str) -> None:
+    with pytest.raises(HalConfigError) as caught:
+        hal_config(backend, source="flags", **fields)
+    message = str(caught.value)
+    assert message.startswith("flags: ")
+    assert problem in message
+    assert "\n" not in message
+
+
+def test_an_unknown_backend_is_named_with_the_choices() -> None:
+    with pytest.raises(HalConfigError, match=r"unknown backend 'canbus'; expected one of sim, can-sim, can"):
+        hal_config("canbus")
+
+
+# --- files ----------------------------------------------------------------------------------------
+
+
+def test_a_file_of_each_variant_loads(tmp_path: Path) -> None:
+    sim = load_hal_config(write(tmp_path / "sim.yaml", "backend: sim\nscenario: exo\nrate_hz: 500\nseed: 3\n"))
+    assert sim == SimHalConfig(scenario="exo", rate_hz=500.0, seed=3)
+    can = load_hal_config(
+        write(
+            tmp_path / "can.yaml",
+            "backend: can\n"
+            "interface: pcan\n"
+            "channel: PCAN_USBBUS1\n"
+            "bitrate: 500000\n"
+            "node_ids: [11, 12, 13, 14]\n"
+            "rate_hz: 500\n"
+            "heartbeat_producer_ms: 50\n"
+            "heartbeat_consumer_ms: 120\n"
+            "eds: drives/maxon.eds\n",
+        )
+    )
+    assert isinstance(can, CanHalConfig)
+    assert (can.interface, can.channel, can.bitrate, can.node_ids) == (
+        "pcan",
+        "PCAN_USBBUS1",
+        500_000,
+        [11, 12, 13, 14],
+    )
+    assert (can.heartbeat_producer_ms, can.heartbeat_consumer_ms) == (50, 120)
+    assert can.eds == str(tmp_path / "drives" / "maxon.eds")  # relative to the file, not to the cwd
+    can_sim = load_hal_config(write(tmp_path / "can_sim.yaml", "backend: can-sim\nscenario: plants/my.yaml\n"))
+    assert isinstance(can_sim, CanSimHalConfig)
+    assert can_sim.scenario == str(tmp_path / "plants" / "my.yaml")
+
+
+def test_a_shipped_scenario_name_stays_a_name_and_an_absolute_path_stays(tmp_path: Path) -> None:
+    scenario = tmp_path / "elsewhere.yaml"
+    config = load_hal_config(write(tmp_path / "hal.yaml", f"backend: sim\nscenario: {scenario}\n"))
+    assert config.scenario == str(scenario)  # type: ignore[union-attr]
+    config = load_hal_config(write(tmp_path / "hal.yaml", "backend: sim\nscenario: exo\n"))
+    assert config.scenario == "exo"  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("scenario: exo\n", "hal.yaml: field backend: missing; expected one of sim, can-sim, can"),
+        ("backend: canbus\n", "hal.yaml: line 1, field backend: unknown backend 'canbus'; expected one of sim"),
+        ("backend: 3\n", "hal.yaml: line 1, field backend: unknown backend 3 (int); expected one of"),
+        ("backend: sim\nrate_hz: true\n", "hal.yaml: line 2, field rate_hz: Input should be a valid number; got true"),
+        (
+            "backend: sim\nrate_hz: '500'\n",
+            "hal.yaml: line 2, field rate_hz: Input should be a valid number; got the text",
+        ),
+        ("backend: sim\nrate: 500\n", "hal.yaml: line 2, field rate: Extra inputs are not permitted"),
+        ("backend: can\nscenario: exo\n", "hal.yaml: line 2, field scenario: Extra inputs are not permitted"),
+        (
+            "backend: can\nheartbeat_producer_ms: 300\n",
+            "hal.yaml: line 1, field heartbeat_consumer_ms: Value error, 250 ms is not longer than",
+        ),
+        ("backend: can\nnode_ids: [1, 2, 3, 0]\n", "hal.yaml: line 2, field node_ids.3: Input should be greater than"),
+        ("- backend: sim\n", "hal.yaml: line 1: expected a YAML mapping with a backend: key; found a list"),
+        ("backend: sim\nbackend: can\n", "hal.yaml: line 2, field backend: key 'backend' is written twice"),
+    ],
+)
+def test_a_bad_file_is_one_line_naming_file_line_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    path = write(tmp_path / "hal.yaml", text)
+    with pytest.raises(HalConfigError) as caught:
+        load_hal_config(path)
+    message = str(caught.value)
+    assert message.startswith(str(path))
+    assert expected.replace("hal.yaml", str(path)) in message
+    assert "\n" not in message
+    assert isinstance(caught.value, InputError)
+
+
+def test_a_missing_file_is_named(tmp_path: Path) -> None:
+    with pytest.raises(HalConfigError, match=r"nowhere\.yaml"):
+        load_hal_config(tmp_path / "nowhere.yaml")
+
+
+# --- open_hal and the registry -------------------------------------------------------------------------
+
+
+def test_open_hal_builds_the_simulated_plant_from_its_configuration() -> None:
+    hal = open_hal(hal_config("sim", scenario="exo", rate_hz=500.0, seed=11))
+    assert isinstance(hal, SimHal)
+    assert (hal.kind, hal.rate_hz, hal.scenario.name, hal.scenario.seed) == ("sim", 500.0, "exo", 11)
+    assert hal.virtual_time
+    assert not hal.drives_hardware
+
+
+def test_the_seed_of_the_configuration_replaces_the_scenarios() -> None:
+    def readings(seed: int | None) -> np.ndarray:
+        hal = open_hal(hal_config("sim", seed=seed))
+        hal.open()
+        for _ in range(5):
+            hal.write(Command.torque_off())
+        return hal.read().q_rad.copy()
+
+    np.testing.assert_array_equal(readings(5), readings(5))
+    assert not np.array_equal(readings(5), readings(6))
+    np.testing.assert_array_equal(readings(None), readings(SimHal("exo_dummy_arm").scenario.seed))
+
+
+def test_a_scenario_that_cannot_be_loaded_is_an_input_error() -> None:
+    with pytest.raises(InputError, match="unknown scenario 'nowhere'"):
+        open_hal(hal_config("sim", scenario="nowhere"))
+
+
+def test_the_registry_imports_a_backend_only_when_asked(registry: dict[str, str]) -> None:
+    register_backend("later", "tests.never_imported_backend:Never")  # no such module: nothing happens yet
+    assert "tests.never_imported_backend" not in sys.modules
+    with pytest.raises(BackendUnavailableError) as caught:
+        hal_class("later")
+    message = str(caught.value)
+    assert (
+        message == "HAL backend 'later' is not built yet: this installation has no module tests.never_imported_backend"
+    )
+    assert "No module named" not in message
+
+
+def test_a_backend_whose_package_is_missing_names_the_package(
+    registry: dict[str, str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write(tmp_path / "needs_a_package.py", "import daror_no_such_package.bus\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    register_backend("needy", "needs_a_package:Backend")
+    with pytest.raises(BackendUnavailableError) as caught:
+        hal_class("needy")
+    assert str(caught.value) == (
+        "HAL backend 'needy' needs the Python package 'daror_no_such_package', which is not installed "
+        "(pip install daror_no_such_package)"
+    )
+
+
+@pytest.mark.skipif(importlib.util.find_spec("can") is not None, reason="python-can is installed here")
+def test_a_missing_python_can_is_named_by_its_package_name(
+    registry: dict[str, str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write(tmp_path / "needs_python_can.py", "import can\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    register_backend("bus", "needs_python_can:Backend")
+    with pytest.raises(BackendUnavailableError, match=r"needs the Python package 'python-can'.*pip install python-can"):
+        hal_class("bus")
+
+
+def test_a_registry_entry_that_is_not_a_hal_is_refused(registry: dict[str, str]) -> None:
+    register_backend("odd", "hal.robot:RobotDescription")
+    with pytest.raises(BackendUnavailableError, match=r"module hal\.robot has no Hal class RobotDescription"):
+        hal_class("odd")
+    with pytest.raises(HalConfigError, match="expected 'module:Class'"):
+        register_backend("bad", "hal.robot")
+    with pytest.raises(HalConfigError, match="unknown HAL backend 'none'"):
+        hal_class("none")
+
+
+@pytest.mark.skipif(CANOPEN_BUILT, reason="hal/canopen exists (issue 12)")
+@pytest.mark.parametrize("backend", ["can", "can-sim"])
+def test_the_can_backends_are_refused_until_they_are_built(backend: str) -> None:
+    with pytest.raises(BackendUnavailableError) as caught:
+        open_hal(hal_config(backend))
+    assert str(caught.value) == (
+        f"HAL backend {backend!r} is not built yet: this installation has no module hal.canopen.backend"
+    )
+
+
+# --- daror console: the HAL options ----------------------------------------------------------------------
+
+SCRIPT = "expect state startup\nwait 0.01\n"
+
+
+def console(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
+    capsys.readouterr()
+    code = main(["console", *map(str, argv)])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.mark.skipif(CANOPEN_BUILT, reason="hal/canopen exists (issue 12)")
+def test_console_on_a_backend_not_built_exits_2_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    script = write(tmp_path / "s.txt", SCRIPT)
+    out = tmp_path / "session"
+    code, _, err = console(capsys, "--hal", "can", "--script", script, "--out", out)
+    assert code == 2
+    assert one_line(err) == (
+        "daror console: error: HAL backend 'can' is not built yet: this installation has no module hal.canopen.backend"
+    )
+    assert not out.exists()
+
+
+def test_console_runs_on_a_hal_configuration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = write(tmp_path / "hal.yaml", "backend: sim\nscenario: exo\nrate_hz: 500\n")
+    script = write(tmp_path / "s.txt", SCRIPT)
+    out = tmp_path / "session"
+    code, printed, err = console(capsys, "--hal-config", config, "--script", script, "--out", out)
+    assert code == 0, err
+    assert "script done: 2 lines, state startup" in printed
+    assert (out / "session.json").is_file()
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (
+            ["--hal-config", "{config}", "--hal", "sim"],
+            "--hal-config names the backend and its scenario; leave out --hal",
+        ),
+        (["--hal-config", "{config}", "--scenario", "exo"], "leave out --scenario"),
+        (
+            ["--hal", "can", "--scenario", "exo"],
+            "--scenario names a simulated plant: it goes with --hal sim or can-sim",
+        ),
+        (["--hal-config", "{bad}"], "{bad}: line 2, field rate_hz: Input should be greater than 0"),
+        (["--scenario", "nowhere"], "unknown scenario 'nowhere'"),
+    ],
+)
+def test_console_hal_options_that_make_no_sense_exit_2_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], expected: str
+) -> None:
+    files = {
+        "config": write(tmp_path / "hal.yaml", "backend: sim\n"),
+        "bad": write(tmp_path / "bad.yaml", "backend: sim\nrate_hz: 0\n"),
+    }
+    script = write(tmp_path / "s.txt", SCRIPT)
+    out = tmp_path / "session"
+    argv = [a.format(**files) for a in argv]
+    code, _, err = console(capsys, *argv, "--script", script, "--out", out)
+    assert code == 2
+    assert expected.format(**files) in one_line(err)
+    assert not out.exists()
+
+
+def test_a_backend_without_from_config_is_refused_in_one_line(registry: dict[str, str]) -> None:
+    register_backend("can", "tests.test_hal_config:NoConfiguration")
+    with pytest.raises(BackendUnavailableError, match=r"^HAL backend 'bare' cannot be built from a configuration$"):
+        open_hal(hal_config("can"))
+
+
+class NoConfiguration(StandInDrives):
+    """A backend that does not say how to build it from a configuration (the ABC's default)."""
+
+    kind = "bare"
+    from_config = classmethod(Hal.from_config.__func__)  # type: ignore[assignment]  # the ABC's own

@@ -1,0 +1,73 @@
+"""Every HAL backend against the contract suite (tests/hal_contract.py), python-can's back-to-back style.
+
+The list :data:`BACKENDS_UNDER_TEST` is where a backend joins: ``sim`` (two scenarios and rates)
+now, ``can-sim`` and ``can`` (against a virtual bus) once ``hal/canopen`` exists (issue 12). The
+stand-in hardware backend (tests/standin_drives.py: wall-clock time, CiA 402 drives) runs the same
+checks; the ones about virtual time are skipped for it, as they will be for ``can``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from hal.config import hal_config
+from hal.interface import BACKENDS, hal_class, open_hal, register_backend
+from tests.hal_contract import BackendUnderTest, HalContract
+from tests.standin_drives import TARGET
+
+STANDIN = "stand-in"
+
+
+def _world(hal: Any) -> Any:
+    world = hal.world
+    assert world is not None
+    return world
+
+
+SIM = BackendUnderTest(
+    "sim",
+    make=lambda: open_hal(hal_config("sim")),
+    latch_fault=lambda hal: _world(hal).inject_fault("bus"),
+    fault_drive=lambda hal, joint: _world(hal).inject_fault("drive_fault", joint),
+    applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+)
+SIM_EXO_500HZ = BackendUnderTest(
+    "sim-exo-500Hz",
+    make=lambda: open_hal(hal_config("sim", scenario="exo", rate_hz=500.0, seed=7)),
+    latch_fault=lambda hal: _world(hal).inject_fault("bus"),
+    fault_drive=lambda hal, joint: _world(hal).inject_fault("drive_fault", joint, 0x2310),
+    applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+)
+STANDIN_DRIVES = BackendUnderTest(
+    STANDIN,
+    make=lambda: hal_class(STANDIN)(),  # through the registry, as the runtime would get it
+    latch_fault=lambda hal: hal.lose_heartbeat(2),
+    fault_drive=lambda hal, joint: hal.fault_drive(joint),
+    applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+)
+
+#: Every backend the contract runs against. The CANopen backends join here (issue 12).
+BACKENDS_UNDER_TEST = [SIM, SIM_EXO_500HZ, STANDIN_DRIVES]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def standin_registered() -> Iterator[None]:
+    """The stand-in hardware backend in the registry for this module only."""
+    previous = register_backend(STANDIN, TARGET)
+    yield
+    if previous is None:
+        del BACKENDS[STANDIN]
+    else:
+        BACKENDS[STANDIN] = previous
+
+
+@pytest.fixture(params=BACKENDS_UNDER_TEST, ids=lambda backend: backend.name)
+def backend(request: pytest.FixtureRequest) -> BackendUnderTest:
+    return request.param  # type: ignore[no-any-return]
+
+
+class TestHalContract(HalContract):
+    """The contract suite, once per backend under test."""
