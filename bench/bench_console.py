@@ -32,9 +32,9 @@ from daror_runtime.clocks import RealTimeClock
 from daror_runtime.console.guide import next_steps
 from daror_runtime.console.run import make_session
 from daror_runtime.console.view import render_status
+from daror_runtime.demo.rehearsal import session_script
 from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import Runtime
-from daror_runtime.session.rehearsal import session_script
 from hal.sim.backend import SimHal
 
 DAROR = Path(sys.executable).with_name("daror")
@@ -85,7 +85,7 @@ def _real_time_with_console(seconds: float, switch_interval_s: float, busy: bool
             time.sleep(seconds)
             stop.set()
             thread.join()
-            stats = runtime.loop.stats
+            stats = runtime._core.loop.stats
             runtime.shutdown("bench")
             runtime.close()
     finally:

@@ -28,12 +28,12 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from daror_runtime.bench import BenchFigure
+from daror_runtime.bench import command_in_child as run_command
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
 
@@ -53,16 +53,6 @@ data = load_stationary(sys.argv[1])
 done = time.perf_counter()
 print(json.dumps({"load_s": done - imported, "import_s": imported - start, "points": len(data),
                   "peak_mb": hwm_mb(), "baseline_mb": baseline}))
-"""
-
-_COMMAND_SCRIPT = """
-import json, sys
-from daror_runtime.cli import main
-code = main(sys.argv[2:])
-with open("/proc/self/status") as status:
-    peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:")) / 1024
-with open(sys.argv[1], "w") as out:
-    json.dump({"code": code, "peak_mb": peak}, out)
 """
 
 _folder: list[Path] = []
@@ -124,24 +114,15 @@ def load_in_child(path: Path, root: Path | None = None) -> dict[str, float]:
 
 
 def command_in_child(argv: list[str], root: Path | None = None) -> dict[str, float]:
-    """Run ``daror ARGV`` in a fresh interpreter: wall time from start to exit (s) and VmHWM (MB)."""
-    out = folder() / "command.json"
-    start = time.perf_counter()
-    run = subprocess.run(
-        [sys.executable, "-c", _COMMAND_SCRIPT, str(out), *argv],
-        capture_output=True,
-        text=True,
-        env=_env(root),
-        cwd=folder(),
-        check=False,
-    )
-    wall = time.perf_counter() - start
-    if run.returncode != 0:
-        raise RuntimeError(f"daror {' '.join(argv)} failed: {run.stderr.strip()[-2000:]}")
-    result = json.loads(out.read_text())
-    if result["code"] != 0:
-        raise RuntimeError(f"daror {' '.join(argv)}: exit code {result['code']}: {run.stderr.strip()[-2000:]}")
-    return {"wall_s": wall, "peak_mb": result["peak_mb"]}
+    """Run ``daror ARGV`` in a fresh interpreter: wall time from start to exit (s) and VmHWM (MB).
+
+    Raises:
+        RuntimeError: the command failed (its last error lines in the message).
+    """
+    run = run_command(argv, folder(), root)
+    if run.code != 0 or run.peak_mb is None:
+        raise RuntimeError(f"daror {' '.join(argv)}: exit code {run.code}: {run.stderr.strip()[-2000:]}")
+    return {"wall_s": run.wall_s, "peak_mb": run.peak_mb}
 
 
 def _load_figures(

@@ -39,7 +39,7 @@ def _session(directory: Path) -> tuple[Runtime, SimHal]:
     ) -> None:  # the pilot rests on the robot when it carries the arm
         pilot.carried = 0.0 if getattr(state, "mode", "") in ("compensation", "hold", "identification") else 1.0
 
-    runtime.supervisor.listeners.append(relax_when_supported)
+    runtime._core.supervisor.listeners.append(relax_when_supported)
     runtime.run_ticks(10)
     return runtime, hal
 
@@ -48,9 +48,9 @@ def bench_fsm_tick(quick: bool) -> BenchFigure:
     """``FsmSupervisor.on_tick`` with no request and no fault, in compensation (the common tick)."""
     with tempfile.TemporaryDirectory() as directory:
         runtime, _ = _session(Path(directory))
-        supervisor, monitor = runtime.supervisor, runtime.monitor
+        supervisor, monitor = runtime._core.supervisor, runtime._core.monitor
         _force_to(runtime, "compensation")
-        sample = runtime.signals.sample
+        sample = runtime._core.signals.sample
         no_faults: list = []
         repeats = 20 if quick else 200
         median, p90 = time_calls(
@@ -65,7 +65,7 @@ def bench_fsm_transition(quick: bool) -> BenchFigure:
     with tempfile.TemporaryDirectory() as directory:
         configure_logging("critical", json_path=Path(directory) / "audit.jsonl", json_level="info")
         runtime, hal = _session(Path(directory) / "session")
-        supervisor = runtime.supervisor
+        supervisor = runtime._core.supervisor
         rounds = 5 if quick else 40
         samples: list[float] = []
         worst = ("", 0.0)
@@ -114,12 +114,12 @@ def _force_guards(runtime: Runtime) -> None:
     """Every advance guard true (the session's evidence, set directly: the benchmark times transitions)."""
     from daror_runtime.fsm.signals import Checklist, EstopButton, SelectedModel
 
-    signals = runtime.signals
+    signals = runtime._core.signals
     signals.estop_tested.update(EstopButton)
     signals.confirmed.update(Checklist)
     signals.isb_limits = signals.isb_limits or IsbLimits()
     signals.model = SelectedModel("AP", "ap", None, 0.5, 1.5)
-    runtime.modes.compensation.model = runtime.a_priori  # what the runtime installs with an approved model
+    runtime._core.modes.compensation.model = runtime._core.a_priori  # what the runtime installs with an approved model
 
 
 def _settle(runtime: Runtime) -> None:
@@ -128,7 +128,7 @@ def _settle(runtime: Runtime) -> None:
 
 
 def _force_to(runtime: Runtime, name: str) -> None:
-    supervisor = runtime.supervisor
+    supervisor = runtime._core.supervisor
     while supervisor.state_name != name:
         _force_guards(runtime)
         _settle(runtime)
@@ -153,7 +153,7 @@ def bench_fsm_request_flood(quick: bool) -> list[BenchFigure]:
     with tempfile.TemporaryDirectory() as directory:
         configure_logging("critical", json_path=Path(directory) / "audit.jsonl", json_level="info")
         runtime, _ = _session(Path(directory) / "session")
-        supervisor, tick = runtime.supervisor, runtime.loop.tick
+        supervisor, tick = runtime._core.supervisor, runtime._core.loop.tick
         supervisor.post_event(Event.ADVANCE)
         for _ in range(200):
             tick()

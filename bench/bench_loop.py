@@ -1,11 +1,17 @@
-"""Benchmarks of the control loop (issue 3).
+"""Benchmarks of the control loop (issues 3 and 11).
 
-* The full identification protocol (training, ~12.5 min of robot time) in lock-step time on the
-  simulated plant, full tick (safety, controller, recorder): at least 50x faster than real time.
+* The whole ``daror identify --trajectory training`` command (752 s of robot time) in a fresh
+  interpreter, as a user runs it, from the process's start to its exit: at least 100x faster than
+  real time, and its own peak memory (the child's ``VmHWM``) below 400 MB (issue 11).
+* The identification loop alone (training, 752 s of robot time) in lock-step time on the
+  simulated plant, full tick (safety, controller, recorder): at least 200x faster than real time,
+  5 us a tick (issue 11; 50x in issue 3).
 * Real-time mode at 1 kHz for 30 s (the same tick, recorder on): tick lateness p50/p99/max (against
   the deadline each tick was due at, so a stall counts in full), overruns and missed deadlines
   (``ControlLoop.stats``), and the tick's own work (mean and worst); p99 below 200 us.
-* Peak memory of the protocol run (a fresh process): below 500 MB.
+* Peak memory of the protocol run (a fresh process): below 400 MB.
+
+``daror bench`` prints the load average beside every figure: these share a machine.
 """
 
 from __future__ import annotations
@@ -19,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from daror_runtime.bench import BenchFigure
+from daror_runtime.bench import BenchFigure, command_in_child
 from daror_runtime.clocks import RealTimeClock
 from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
+from daror_runtime.data.load import raw_log_path
 from daror_runtime.data.recorder import Recorder
 from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.identification.protocol import run_protocol
@@ -47,22 +54,72 @@ def _protocol_once(kind: str = "training") -> tuple[float, float, int]:
 
 
 def bench_identification_lock_step(quick: bool) -> list[BenchFigure]:
+    """The loop alone: ``run_protocol``'s wall time covers the ticks, not the planning or the data after."""
     runs = [_protocol_once() for _ in range(1 if quick else 3)]
     factors = np.array([r[0] for r in runs])
     ticks_us = np.array([r[1] for r in runs])
+    spread = ", ".join(f"{f:.0f}x" for f in sorted(factors))
     return [
         BenchFigure(
-            "identification protocol, lock-step (training, 752 s robot time)",
+            "identification loop alone, lock-step (training, 752 s robot time)",
             float(np.median(factors)),
             float(np.percentile(factors, 10)),
             "x real time",
             len(runs),
-            target=50.0,
+            target=200.0,
             at_least=True,
-            note="p90 column: the slowest-tenth figure",
+            note=f"p90 column: the slowest-tenth figure; runs {spread}",
         ),
         BenchFigure("  its full tick (safety, controller, recorder, plant)", float(np.median(ticks_us)),
-                    float(np.percentile(ticks_us, 90)), "us", len(runs)),
+                    float(np.percentile(ticks_us, 90)), "us", len(runs), target=5.0),
+    ]  # fmt: skip
+
+
+#: The command measured: what a user types (``--out`` added per run).
+IDENTIFY_ARGV = ("identify", "--scenario", "exo_dummy_arm", "--trajectory", "training")
+
+
+def bench_identify_command(quick: bool) -> list[BenchFigure]:
+    """The whole ``daror identify --trajectory training``: a fresh interpreter, start to exit.
+
+    Everything the command does is in the figure: interpreter start and imports, loading the
+    compiled kernels, planning the trajectory, the loop, reading the recording back, the stationary
+    reduction, writing the dataset and the raw log, and the interpreter's exit. Robot time is the
+    length of the raw log the command wrote (one sample a tick at 1 kHz).
+    """
+    runs: list[tuple[float, float, float]] = []  # robot s, wall s, peak MB
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for n in range(1 if quick else 3):
+            out = folder / f"train{n}.csv"
+            run = command_in_child([*IDENTIFY_ARGV, "--out", str(out)], folder)
+            if run.code != 0 or run.peak_mb is None:
+                raise RuntimeError(f"daror {' '.join(IDENTIFY_ARGV)}: exit code {run.code}: {run.stderr[-2000:]}")
+            with np.load(raw_log_path(out, ".npz")) as raw:
+                robot_s = raw["t"].size / 1000.0
+            runs.append((robot_s, run.wall_s, run.peak_mb))
+            for produced in folder.glob(f"train{n}*"):
+                produced.unlink()  # one run's outputs at a time on the disk
+    robot = runs[0][0]
+    walls = np.array([r[1] for r in runs])
+    factors = robot / walls
+    peaks = np.array([r[2] for r in runs])
+    walls_text = ", ".join(f"{w:.2f}" for w in sorted(walls))
+    return [
+        BenchFigure(
+            "daror identify --trajectory training, whole command (fresh process, start to exit)",
+            float(np.median(factors)),
+            float(np.percentile(factors, 10)),
+            "x real time",
+            len(runs),
+            target=100.0,
+            at_least=True,
+            note=f"{robot:.0f} s of robot time; wall {walls_text} s; p90 column: the slowest-tenth figure",
+        ),
+        BenchFigure("  its wall time, start to exit", float(np.median(walls)), float(np.percentile(walls, 90)), "s",
+                    len(runs), target=robot / 100.0),
+        BenchFigure("  its peak memory (the child's own VmHWM)", float(np.median(peaks)), float(peaks.max()), "MB",
+                    len(runs), target=400.0, note="p90 column: the largest of the runs"),
     ]  # fmt: skip
 
 
@@ -143,9 +200,9 @@ def bench_protocol_peak_memory(quick: bool) -> list[BenchFigure]:
     note = f"{second['ticks']:.0f} ticks, {time.perf_counter() - start:.0f} s for both runs"
     return [
         BenchFigure("identification protocol: peak memory (whole process)", second["peak_mb"], second["peak_mb"],
-                    "MB", 1, target=500.0, note=note),
+                    "MB", 1, target=400.0, note=note),
         BenchFigure("  the same, first run (may include JIT compilation)", first["peak_mb"], first["peak_mb"], "MB", 1),
     ]  # fmt: skip
 
 
-BENCHMARKS = [bench_identification_lock_step, bench_real_time_1khz, bench_protocol_peak_memory]
+BENCHMARKS = [bench_identify_command, bench_identification_lock_step, bench_real_time_1khz, bench_protocol_peak_memory]

@@ -24,16 +24,11 @@ from __future__ import annotations
 import argparse
 import atexit
 import json
-import os
-import resource
 import shutil
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from daror_runtime.bench import BenchFigure, time_calls, time_torque_one_q
+from daror_runtime.bench import BenchFigure, command_in_child, time_calls, time_torque_one_q
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.residual.diagnosis import closure, diagnose
@@ -128,16 +123,6 @@ def bench_data_efficiency_study(quick: bool) -> BenchFigure:
 BIG_SETS = {100_000: (800, 6), 1_000_000: (4000, 12)}
 BIG_SCENARIO = "residual_gravity_tilt"
 
-_COMMAND_SCRIPT = """
-import json, sys
-from daror_runtime.cli import main
-code = main(sys.argv[2:])
-with open("/proc/self/status") as status:
-    peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:")) / 1024
-with open(sys.argv[1], "w") as out:
-    json.dump({"code": code, "peak_mb": peak}, out)
-"""
-
 _folder: list[Path] = []
 
 
@@ -163,56 +148,19 @@ def big_files(points: int, scenario_name: str = BIG_SCENARIO) -> tuple[Path, Pat
     return train, validate, n_train
 
 
-def _vm_hwm_mb(pid: int) -> float:
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as status:
-            return next((int(line.split()[1]) / 1024 for line in status if line.startswith("VmHWM:")), 0.0)
-    except OSError:
-        return 0.0
-
-
 def residual_command_in_child(
     train: Path, validate: Path, root: Path | None = None, memory_limit_mb: float | None = None
 ) -> dict[str, object]:
     """``daror residual`` in a fresh interpreter: wall time start to exit (s), VmHWM (MB), what it found."""
     out = _big_folder() / f"report_{train.stem}"
-    result = _big_folder() / "command.json"
-    result.unlink(missing_ok=True)
-    env = dict(os.environ)
-    env.pop("PYTHONPATH", None)
-    if root is not None:
-        env["PYTHONPATH"] = str(root)
-
-    def limit() -> None:  # pragma: no cover - runs in the child
-        if memory_limit_mb is not None:
-            size = int(memory_limit_mb * 1024 * 1024)
-            resource.setrlimit(resource.RLIMIT_AS, (size, size))
-
     argv = ["residual", "--train", str(train), "--validate", str(validate), "--out", str(out)]
-    log = _big_folder() / "command.stderr"
-    start = time.perf_counter()
-    with open(log, "w", encoding="utf-8") as errors:
-        child = subprocess.Popen(
-            [sys.executable, "-c", _COMMAND_SCRIPT, str(result), *argv],
-            stdout=subprocess.DEVNULL,
-            stderr=errors,
-            env=env,
-            cwd=_big_folder(),  # not the source tree: '' comes first on sys.path
-            preexec_fn=limit,
-        )
-        polled = 0.0  # the child's VmHWM as last seen: the figure of a run that dies before reporting it
-        while child.poll() is None:
-            polled = max(polled, _vm_hwm_mb(child.pid))
-            time.sleep(0.2)
-    wall = time.perf_counter() - start
-    stderr = log.read_text(encoding="utf-8", errors="replace")
-    if child.returncode != 0 or not result.exists():
-        last = stderr.strip().splitlines()[-1:] or ["(no output)"]
-        return {"wall_s": wall, "peak_mb": polled or None, "failed": last[0][-300:]}
-    peak = json.loads(result.read_text())["peak_mb"]
+    run = command_in_child(argv, _big_folder(), root, memory_limit_mb)
+    if run.code != 0:
+        last = run.stderr.strip().splitlines()[-1:] or ["(no output)"]
+        return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "failed": last[0][-300:]}
     summary = json.loads((out / "summary.json").read_text())
     found = ", ".join(e["name"] for e in summary["effects"]) or "nothing"
-    return {"wall_s": wall, "peak_mb": peak, "found": found, "rmse_after": summary["rmse_after"]}
+    return {"wall_s": run.wall_s, "peak_mb": run.peak_mb, "found": found, "rmse_after": summary["rmse_after"]}
 
 
 def _big_figures(

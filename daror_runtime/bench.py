@@ -15,7 +15,7 @@ import os
 import platform
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -42,6 +42,18 @@ class BenchFigure:
     thesis: str | None = None
     note: str = ""
     at_least: bool = False
+    #: The 1, 5 and 15 min load averages (``os.getloadavg()``) when its benchmark started and when it
+    #: ended: a figure measured while the other core was busy says so beside it (filled in by
+    #: :func:`run_benchmarks` when the benchmark did not).
+    load_start: tuple[float, float, float] | None = None
+    load_end: tuple[float, float, float] | None = None
+
+    @property
+    def load(self) -> str:
+        """The 1 min load average at the start and the end of the measurement, ``"0.71-1.02"``."""
+        if self.load_start is None or self.load_end is None:
+            return "-"
+        return f"{self.load_start[0]:.2f}-{self.load_end[0]:.2f}"
 
     @property
     def met(self) -> bool | None:
@@ -91,6 +103,85 @@ def high_water_mark_mb() -> float:
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024.0
     raise DarorError("no VmHWM in /proc/self/status: peak memory cannot be read on this system")
+
+
+_COMMAND_SCRIPT = """
+import json, sys
+from daror_runtime.bench import high_water_mark_mb
+from daror_runtime.cli import main
+code = main(sys.argv[2:])
+with open(sys.argv[1], "w") as out:
+    json.dump({"code": code, "peak_mb": high_water_mark_mb()}, out)
+"""
+
+
+@dataclass(frozen=True)
+class CommandRun:
+    """One ``daror`` command in a fresh interpreter: wall time start to exit (s), its own VmHWM (MB)."""
+
+    wall_s: float
+    peak_mb: float | None  # None: it died before reporting and was never seen running
+    code: int | None  # the command's exit code; None when the process died before reporting it
+    stderr: str
+
+
+def command_in_child(
+    argv: Sequence[str], workdir: Path, root: Path | None = None, memory_limit_mb: float | None = None
+) -> CommandRun:
+    """Run ``daror ARGV`` in a fresh interpreter in ``workdir``, as a user runs it, and measure it.
+
+    ``root``: a source tree to measure instead of the installed one (the child's ``PYTHONPATH``);
+    ``memory_limit_mb``: an address-space limit for the child. The child reports its own
+    ``VmHWM`` at exit; while it runs its ``VmHWM`` is polled too, so a run that dies of the memory
+    limit still has a figure.
+    """
+    import resource
+    import subprocess
+    import sys
+
+    result = workdir / f".command-{os.getpid()}.json"
+    result.unlink(missing_ok=True)
+    log_path = workdir / f".command-{os.getpid()}.stderr"
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if root is not None:
+        env["PYTHONPATH"] = str(root)
+
+    def limit() -> None:  # pragma: no cover - runs in the child
+        if memory_limit_mb is not None:
+            size = int(memory_limit_mb * 1024 * 1024)
+            resource.setrlimit(resource.RLIMIT_AS, (size, size))
+
+    start = time.perf_counter()
+    with open(log_path, "w", encoding="utf-8") as errors:
+        child = subprocess.Popen(
+            [sys.executable, "-c", _COMMAND_SCRIPT, str(result), *argv],
+            stdout=subprocess.DEVNULL,
+            stderr=errors,
+            env=env,
+            cwd=workdir,  # not the source tree: '' comes first on sys.path
+            preexec_fn=limit,
+        )
+        polled = 0.0
+        while child.poll() is None:
+            polled = max(polled, _child_high_water_mark_mb(child.pid))
+            time.sleep(0.2)
+    wall = time.perf_counter() - start
+    stderr = log_path.read_text(encoding="utf-8", errors="replace")
+    log_path.unlink(missing_ok=True)
+    if not result.exists():
+        return CommandRun(wall, polled or None, None, stderr)
+    reported = json.loads(result.read_text())
+    result.unlink()
+    return CommandRun(wall, float(reported["peak_mb"]), int(reported["code"]), stderr)
+
+
+def _child_high_water_mark_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as status:
+            return next((int(line.split()[1]) / 1024 for line in status if line.startswith("VmHWM:")), 0.0)
+    except OSError:
+        return 0.0
 
 
 def machine() -> dict[str, Any]:
@@ -144,15 +235,20 @@ def run_benchmarks(
     figures: list[BenchFigure] = []
     for bench in selected:
         console.print(f"  running {bench.__name__} ...")
+        load_start = os.getloadavg()
         result = bench(quick)
-        figures.extend(result if isinstance(result, list) else [result])
-    table = Table(title="Benchmarks")
-    for header in ("Benchmark", "Median", "p90", "Target", "Met", "Thesis"):
+        load_end = os.getloadavg()
+        figures.extend(
+            f if f.load_start is not None else replace(f, load_start=load_start, load_end=load_end)
+            for f in (result if isinstance(result, list) else [result])
+        )
+    table = Table(title="Benchmarks (Load: the 1 min load average when the benchmark started and ended)")
+    for header in ("Benchmark", "Median", "p90", "Target", "Met", "Load", "Thesis"):
         table.add_column(header, justify="left" if header in ("Benchmark", "Thesis") else "right")
     for f in figures:
         target = "-" if f.target is None else f"{'>=' if f.at_least else '<'} {f.target:g} {f.unit}"
         met = "-" if f.met is None else ("yes" if f.met else "NO")
-        table.add_row(f.name, f"{f.median:.3g} {f.unit}", f"{f.p90:.3g} {f.unit}", target, met, f.thesis or "-")
+        table.add_row(f.name, f"{f.median:.3g} {f.unit}", f"{f.p90:.3g} {f.unit}", target, met, f.load, f.thesis or "-")
     console.print(table)
     for f in figures:  # what a figure needs beside it (dropped rows, runs, counts)
         if f.note:

@@ -2,19 +2,25 @@
 
 ::
 
-    DarorError                      root (hal.errors)
-    +-- InputError                  bad input from a person -> CLI exit code 2, nothing written
-    |   +-- DescriptionError        robot description / scenario file (hal.errors)
-    |   +-- DataError               a dataset file: missing column, NaN, degrees, empty, ...
-    |   +-- ModelFileError          a model JSON file: unreadable, corrupted, wrong version
-    |   +-- UnknownModelKindError   a model kind that is not registered
-    |   +-- IdentifiabilityError    data too poor for the model (rank below the model's rank)
-    |   +-- UsageError              a command-line value that makes no sense
-    +-- ShapeError                  an array of the wrong shape reached an API (a bug; hal.errors)
-    +-- ConfigurationError          the runtime was wired inconsistently (a bug or a bad configuration)
-    +-- HalError                    the hardware or its simulation failed (hal.errors)
-    |   +-- HalFaultError           a backend fault latched outside the tick (hal.interface)
-    +-- ExtraMissingError           an optional extra (e.g. ``nn``) is needed but not installed
+    DarorError                         root (hal.errors)
+    +-- InputError                     a person's input is wrong -> exit 2, nothing written
+    |   +-- DescriptionError           robot description / scenario YAML (hal.errors)
+    |   +-- HalConfigError             a HAL configuration file or flag (hal.errors)
+    |   +-- BackendUnavailableError    a HAL backend not built or not installed (hal.errors)
+    |   +-- DataError                  dataset file (names file, line/row, column)
+    |   +-- ModelFileError             model JSON (not JSON, wrong version, checksum mismatch, ...)
+    |   +-- UnknownModelKindError      a model kind that is not registered
+    |   +-- IdentifiabilityError       the data cannot identify the model (rank too low)
+    |   +-- UsageError                 a command-line value that makes no sense
+    |       +-- LockStepRefusedError   lock-step (virtual time) on a backend that drives hardware
+    |       +-- ModelOptionError       an option the model kind does not take
+    +-- ShapeError (also ValueError)   an array of the wrong shape reached an API: a bug (hal.errors)
+    +-- ConfigurationError             the runtime was wired inconsistently (a bug or a bad configuration)
+    +-- HalError                       the hardware or its simulation failed (hal.errors)
+    |   +-- HalNotOpenError            read or write before open or after close
+    |   +-- HalFaultError              a backend fault latched outside the tick (hal.interface)
+    +-- ModelKindPluginError           a registered model-kind plugin that cannot be loaded
+    +-- ExtraMissingError              an optional extra (nn) is needed but not installed
 """
 
 from __future__ import annotations

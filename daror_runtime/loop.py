@@ -1,6 +1,6 @@
 """The fixed-rate control loop: one tick is read, check, decide, update, filter, write, record.
 
-DESIGN.md section 3::
+docs/loop.md::
 
     sample = hal.read()                      # q, dq, motor angles, spring torque, e-stop, drives
     faults = safety.check(sample)            # limits, plausibility, staleness, e-stop, drives
@@ -29,16 +29,37 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 import structlog
+from numba import types
 
 from daror_runtime.clocks import Clock, TickTiming
-from daror_runtime.data.tick_row import N_RECORD_COLUMNS, fill_tick_row
+from daror_runtime.data.recorder import Recorder
+from daror_runtime.data.tick_row import N_RECORD_COLUMNS, fill_tick_row_at
 from daror_runtime.errors import ConfigurationError, DarorError
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.errors import HalError
-from hal.interface import TORQUE_OFF, Command, Hal, Sample
+from hal.interface import TORQUE_OFF, CheckedCommand, CheckedSample, Command, Hal, Sample
+from hal.kernels import SAMPLE_VECTOR, entry_point
 
 log = structlog.get_logger(__name__)
+
+_perf_counter = time.perf_counter
+_new_tuple = tuple.__new__
+_fill_tick_row_at = fill_tick_row_at
+
+#: What :func:`~daror_runtime.data.tick_row.fill_tick_row_at` is resolved for: a recorder's block
+#: (float64, C order: ``Recorder`` makes it so) and the row's index, the time, the sample's four
+#: arrays and the commanded torque (float64 vectors: :data:`hal.kernels.SAMPLE_VECTOR`), and
+#: enable, faulted and lateness.
+FILL_SIGNATURE = (
+    types.float64[:, ::1],
+    types.intp,
+    types.float64,
+    *(SAMPLE_VECTOR,) * 5,
+    types.float64,
+    types.float64,
+    types.float64,
+)
 
 #: Deadlines missed in a row that make a fault (a 1 kHz loop that misses 5 ms in a row is not in control).
 DEFAULT_OVERRUN_LIMIT = 5
@@ -95,7 +116,11 @@ class FixedSupervisor:
 
 
 class Recording(Protocol):
-    """What the loop needs of a recorder (``daror_runtime.data.recorder.Recorder``)."""
+    """What the loop needs of a recorder (``daror_runtime.data.recorder.Recorder``).
+
+    ``push(row)`` takes the loop's row; a recorder that also offers ``push_into(fill, n_values,
+    *args)`` (as ``Recorder`` does) gets the row written straight into its own memory instead.
+    """
 
     def push(self, row: np.ndarray) -> bool: ...
 
@@ -167,7 +192,7 @@ class ControlLoop:
         self.overrun_limit = overrun_limit
         self.max_stall_periods = max_stall_periods
         self.dt_s = clock.period_s
-        self._row = np.zeros(N_RECORD_COLUMNS)
+        self._rows = np.zeros((1, N_RECORD_COLUMNS))  # the row a recorder without push_into gets
         # The sample's part of the row in a tick without a reading; read-only like a HAL's arrays, so
         # the row kernel runs the variant the warm-up below loaded.
         self._no_reading = np.full(4, np.nan)
@@ -183,7 +208,8 @@ class ControlLoop:
             zeros = np.zeros(4)
             zeros.flags.writeable = not readonly
             for command_torque in (np.zeros(4), TORQUE_OFF.motor_torque_nm):
-                fill_tick_row(self._row, 0.0, zeros, zeros, zeros, zeros, command_torque, 0.0, 0.0, 0.0)
+                fill_tick_row_at(self._rows, 0, 0.0, zeros, zeros, zeros, zeros, command_torque, 0.0, 0.0, 0.0)
+        self._fill_checked = entry_point(fill_tick_row_at, FILL_SIGNATURE)
         self._ticks = 0
         self._work_total_s = 0.0
         self._work_worst_s = 0.0
@@ -214,11 +240,12 @@ class ControlLoop:
     def tick(self) -> TickResult:
         """One tick. Never raises for hardware, controller or recorder errors: they become faults."""
         timing = self.clock.wait()
-        began = time.perf_counter()
+        began = _perf_counter()
         monitor = self.monitor
         monitor.begin_tick()
+        hal = self.hal
         try:
-            sample: Sample | None = self.hal.read()
+            sample: Sample | None = hal.read()
         except HalError as exc:
             sample = None
             faults: list[Fault] = []
@@ -228,7 +255,8 @@ class ControlLoop:
             faults = monitor.check(sample)
         if timing.overrun:
             self._watchdog(faults, timing)
-        controller = self.supervisor.on_tick(sample, faults, monitor)
+        supervisor = self.supervisor
+        controller = supervisor.on_tick(sample, faults, monitor)
         decided = len(faults)  # the supervisor saw these; later ones are passed to it at the end of the tick
         command = TORQUE_OFF
         if sample is not None and controller is not None and not monitor.faulted:
@@ -243,7 +271,16 @@ class ControlLoop:
         recorder = self.recorder
         if recorder is not None:
             try:
-                if not recorder.push(self._fill_row(sample, command, timing)):
+                if type(recorder) is Recorder and type(sample) is CheckedSample and type(command) is CheckedCommand:
+                    # The common case, inline: every array of the type the fill's entry point takes.
+                    recorded = recorder.push_into(
+                        self._fill_checked, N_RECORD_COLUMNS, sample.t_s, sample.q_rad, sample.dq_rad_s,
+                        sample.tau_nm, sample.theta_rad, command.motor_torque_nm, 1.0 if command.enable else 0.0,
+                        1.0 if monitor.faulted else 0.0, timing.lateness_s,
+                    )  # fmt: skip
+                else:
+                    recorded = self._record(recorder, sample, command, timing)
+                if not recorded:
                     self.dropped_rows += 1
                     if self.dropped_rows == 1:  # a dropped row is data loss, not danger: say so once, count all
                         log.warning("recorder dropped a row: the disk cannot keep up", t_s=self._last_t_s)
@@ -251,18 +288,20 @@ class ControlLoop:
                 self._report(faults, FaultKind.SOFTWARE, f"recorder failed: {exc}")
                 command = TORQUE_OFF
         try:
-            self.hal.write(command)
+            hal.write(command)
         except HalError as exc:
             self._report(faults, FaultKind.HAL, f"writing the hardware failed: {exc}")
         if len(faults) > decided:
-            self.supervisor.on_late_faults(sample, faults[decided:])
+            supervisor.on_late_faults(sample, faults[decided:])
         self.last_command = command
-        work = time.perf_counter() - began
+        work = _perf_counter() - began
         self._ticks += 1
         self._work_total_s += work
         if work > self._work_worst_s:
             self._work_worst_s = work
-        return TickResult(timing, sample, command, faults)
+        # TickResult(timing, sample, command, faults), every field in order, without the NamedTuple's
+        # Python-level __new__ (this runs every tick).
+        return _new_tuple(TickResult, (timing, sample, command, faults))
 
     def run(
         self,
@@ -330,18 +369,32 @@ class ControlLoop:
         if fault is not None:
             faults.append(fault)
 
-    def _fill_row(self, sample: Sample | None, command: Command, timing: TickTiming) -> np.ndarray:
-        row = self._row
+    def _record(self, recorder: Recording, sample: Sample | None, command: Command, timing: TickTiming) -> bool:
+        """Record the tick's row (:data:`~daror_runtime.data.tick_row.RECORD_COLUMNS`); False if it was dropped.
+
+        A :class:`~daror_runtime.data.recorder.Recorder` has the row filled straight into its block
+        (``push_into``): by the fill's entry point when every array is of the type it was resolved
+        for (a :class:`~hal.interface.CheckedSample`'s or the loop's NaN row, and a
+        :class:`~hal.interface.CheckedCommand`'s torque), else through numba's dispatcher. Any
+        other recorder gets the loop's own row through ``push``.
+        """
         faulted = 1.0 if self.monitor.faulted else 0.0
         enable = 1.0 if command.enable else 0.0
+        torque = command.motor_torque_nm
         if sample is None:  # no reading this tick: NaN, which recording_to_raw_log(drop_nan_rows=True) skips
-            nan = self._no_reading
-            fill_tick_row(
-                row, self._last_t_s, nan, nan, nan, nan, command.motor_torque_nm, enable, faulted, timing.lateness_s
-            )
+            t_s = self._last_t_s
+            q = dq = tau = theta = self._no_reading
         else:
-            fill_tick_row(
-                row, sample.t_s, sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad,
-                command.motor_torque_nm, enable, faulted, timing.lateness_s,
-            )  # fmt: skip
-        return row
+            t_s, q, dq, tau, theta = sample.t_s, sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad
+        if type(recorder) is Recorder:
+            fill = (
+                self._fill_checked
+                if type(command) is CheckedCommand and (type(sample) is CheckedSample or sample is None)
+                else _fill_tick_row_at
+            )
+            return recorder.push_into(
+                fill, N_RECORD_COLUMNS, t_s, q, dq, tau, theta, torque, enable, faulted, timing.lateness_s
+            )
+        rows = self._rows
+        _fill_tick_row_at(rows, 0, t_s, q, dq, tau, theta, torque, enable, faulted, timing.lateness_s)
+        return recorder.push(rows[0])

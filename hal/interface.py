@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from hal.errors import BackendUnavailableError, HalConfigError, HalError
+from hal.errors import BackendUnavailableError, HalConfigError, HalError, ShapeError
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 if TYPE_CHECKING:
@@ -69,6 +69,48 @@ class Sample(NamedTuple):
         return True in self.estop
 
 
+#: The fields of a sample that hold arrays (float64, shape (4,)).
+SAMPLE_ARRAYS = ("q_rad", "dq_rad_s", "theta_rad", "tau_nm")
+
+
+class CheckedSample(Sample):
+    """A :class:`Sample` whose four arrays are known to be what the contract says: float64, shape (4,).
+
+    The tick's compiled kernels may then take them through an entry point resolved for exactly
+    that type (:mod:`hal.kernels`: no type dispatch, ~0.1-0.35 us a kernel call less); for any
+    other sample they go through numba's dispatcher, which checks every argument. A consumer
+    tests ``type(sample) is CheckedSample`` (an identity test; a subclass does not count).
+
+    Made by its constructor, which checks the arrays (:class:`~hal.errors.ShapeError` otherwise), or
+    by a backend whose arrays have that type by construction (``hal.sim.backend``, which builds it
+    with ``tuple.__new__``; ``tests/test_kernel_entry_points.py`` checks its samples). Otherwise it is a
+    ``Sample`` in every respect (equal to one with the same fields, ``isinstance`` of it).
+    Replacing a field (``_replace``) gives a plain :class:`Sample`: the new value is not checked.
+    """
+
+    __slots__ = ()
+
+    def __new__(cls, *args: object, **kwargs: object) -> CheckedSample:
+        sample = Sample(*args, **kwargs)  # type: ignore[arg-type]
+        for name in SAMPLE_ARRAYS:
+            array = getattr(sample, name)
+            if not (
+                type(array) is np.ndarray
+                and array.dtype == np.float64
+                and array.shape == (N_JOINTS,)
+                and array.flags.aligned
+            ):
+                shape = getattr(array, "shape", None)
+                dtype = getattr(array, "dtype", type(array).__name__)
+                raise ShapeError(f"{name}: expected a float64 array of shape ({N_JOINTS},), got {dtype} {shape}")
+        return tuple.__new__(cls, sample)
+
+    @classmethod
+    def _make(cls, iterable: object) -> Sample:  # type: ignore[override]
+        """A plain :class:`Sample` (``_replace`` builds through this: its new values are not checked)."""
+        return Sample._make(iterable)  # type: ignore[arg-type]
+
+
 class Command(NamedTuple):
     """What is written to the hardware in one tick (immutable).
 
@@ -85,14 +127,49 @@ class Command(NamedTuple):
         return TORQUE_OFF
 
 
+class CheckedCommand(Command):
+    """A :class:`Command` whose torque is known to be a float64 array of shape (4,), like :class:`CheckedSample`.
+
+    The safety filter, the recorder's row and the simulated drives then take the torque without
+    checking its type (``type(command) is CheckedCommand``, an identity test) and hand it to kernel
+    entry points resolved for that type (:mod:`hal.kernels`); any other command is checked, or
+    goes through numba's dispatcher, as before. Made by its constructor, which checks the torque
+    (:class:`~hal.errors.ShapeError` otherwise), or by a controller whose torque has that type by
+    construction (``daror_runtime.control.motor_position``, with ``tuple.__new__``;
+    ``tests/test_kernel_entry_points.py`` checks what reaches the kernels). :data:`TORQUE_OFF` is
+    one. ``_replace`` gives a plain :class:`Command`.
+    """
+
+    __slots__ = ()
+
+    def __new__(cls, *args: object, **kwargs: object) -> CheckedCommand:
+        command = Command(*args, **kwargs)  # type: ignore[arg-type]
+        torque = command.motor_torque_nm
+        if not (
+            type(torque) is np.ndarray
+            and torque.dtype == np.float64
+            and torque.shape == (N_JOINTS,)
+            and torque.flags.aligned
+        ):
+            shape = getattr(torque, "shape", None)
+            dtype = getattr(torque, "dtype", type(torque).__name__)
+            raise ShapeError(f"motor_torque_nm: expected a float64 array of shape ({N_JOINTS},), got {dtype} {shape}")
+        return tuple.__new__(cls, command)
+
+    @classmethod
+    def _make(cls, iterable: object) -> Command:  # type: ignore[override]
+        """A plain :class:`Command` (``_replace`` builds through this: its new values are not checked)."""
+        return Command._make(iterable)  # type: ignore[arg-type]
+
+
 def _read_only_zeros() -> FloatArray:
     zeros = np.zeros(N_JOINTS)
     zeros.flags.writeable = False
     return zeros
 
 
-#: Torque off: drives disabled, zero torque.
-TORQUE_OFF = Command(_read_only_zeros(), False)
+#: Torque off: drives disabled, zero torque (a :class:`CheckedCommand`).
+TORQUE_OFF = CheckedCommand(_read_only_zeros(), False)
 
 
 class HalFaultError(HalError):

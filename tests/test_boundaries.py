@@ -1,4 +1,4 @@
-"""Architecture rules of DESIGN.md section 2, enforced on the source tree."""
+"""Architecture rules of docs/architecture.md, enforced on the source tree."""
 
 from __future__ import annotations
 
@@ -372,7 +372,7 @@ def test_the_console_never_imports_the_simulator() -> None:
     """The console (and the rehearsal it drives) reach the simulated world through ``hal.world`` only."""
     offenders = [
         f"{p.relative_to(ROOT)}: {m}"
-        for p in [*sources("daror_runtime/console"), ROOT / "daror_runtime/session/rehearsal.py"]
+        for p in [*sources("daror_runtime/console"), ROOT / "daror_runtime/demo/rehearsal.py"]
         for m in sorted(imported_modules(p))
         if m == "hal.sim" or m.startswith("hal.sim.")
     ]
@@ -384,6 +384,83 @@ def test_backends_are_imported_only_through_the_registry() -> None:
     offenders = []
     for p in sources("daror_runtime"):
         for m in imported_modules(p):
-            if m.startswith(("hal.canopen", "hal.sim.backend")) and p.name not in {"cli.py"}:
+            if m.startswith(("hal.canopen", "hal.sim.backend")):
                 offenders.append(f"{p.relative_to(ROOT)}: {m}")
     assert offenders == []
+
+
+#: What the console may import from the project: the facade, the types it hands out, and the words
+#: an operator types (checklists, model kinds, guard descriptions, the spec's states), plus the
+#: readers of the files an operator names. Nothing of the loop, the safety monitor, the controllers,
+#: the session's internals or the simulator.
+CONSOLE_MAY_IMPORT = {
+    "daror_runtime.runtime",  # the facade
+    "daror_runtime.session.status",  # the typed status it returns
+    "daror_runtime.session.events",  # its announcements
+    "daror_runtime.session.settings",  # its settings (Runtime.settings)
+    "daror_runtime.fsm.supervisor",  # Ticket and Response, what a request returns
+    "daror_runtime.errors",
+    "daror_runtime.fsm.signals",  # the checklists' names
+    "daror_runtime.fsm.guards",  # the guards' descriptions (the guide)
+    "daror_runtime.fsm.spec",  # the states' names and modes (the grammar)
+    "daror_runtime.models.registry",  # the model kinds' names
+    "daror_runtime.identification.settings",  # the sweep's waypoint settings
+    "daror_runtime.identification.waypoints",  # the sweep's waypoints
+    "hal.capabilities",  # the simulated world's protocol, through Runtime.world
+    "hal.files",  # files the operator names: regular, bounded
+    "hal.isb",  # an ISB limits file the operator names
+    "daror_runtime.models.files",  # a model file the operator names, checked before a script runs
+    "hal.robot",  # types
+}
+
+
+def test_the_console_imports_only_the_facade_and_its_own_modules() -> None:
+    offenders = [
+        f"{p.relative_to(ROOT)}: {m}"
+        for p in sources("daror_runtime/console")
+        for m in sorted(imported_modules(p))
+        if m.split(".")[0] in {"daror_runtime", "hal"}
+        and not m.startswith("daror_runtime.console")
+        and m not in CONSOLE_MAY_IMPORT
+    ]
+    assert offenders == []
+
+
+def test_the_session_never_imports_the_console_or_the_runtime() -> None:
+    """``session/`` is what the runtime is made of; the facade and the console sit above it (the demo owns the rehearsal)."""
+    offenders = [
+        f"{p.relative_to(ROOT)}: {m}"
+        for p in sources("daror_runtime/session")
+        for m in sorted(imported_modules(p))
+        if m.startswith(("daror_runtime.console", "daror_runtime.runtime", "daror_runtime.demo"))
+    ]
+    assert offenders == []
+
+
+#: The facade: the operator's requests, the typed status, the loop's lifecycle, read-only facts.
+FACADE = {
+    # what the session is
+    "session_id", "session_dir", "settings", "spec", "description", "rate_hz", "lock_step", "world",
+    "state_name", "last_sample", "model_in_use", "drain_announcements", "on_transition",
+    # lifecycle and driving the loop
+    "open", "shutdown", "close", "run_ticks", "run_until", "pass_time", "background", "busy",
+    "jobs_pending", "at_rest", "wait", "start_background", "stop_background",
+    # the operator's requests
+    "request", "advance", "revert", "reset", "acknowledge", "confirm", "set_support", "rom_start",
+    "rom_stop", "set_isb_limits", "identify", "stop_identification", "train", "select_model",
+    # what the operator sees
+    "status", "snapshot",
+}  # fmt: skip
+
+
+def test_the_runtime_exposes_only_its_facade(tmp_path: Path) -> None:
+    """Everything else (supervisor, monitor, loop, controllers, jobs) is private to the session."""
+    from daror_runtime.runtime import Runtime
+    from hal.config import SimHalConfig
+    from hal.interface import open_hal
+
+    public_class = {n for n in vars(Runtime) if not n.startswith("_")}
+    runtime = Runtime(open_hal(SimHalConfig()), tmp_path / "session")
+    public_instance = {n for n in vars(runtime) if not n.startswith("_")}
+    assert public_class == FACADE
+    assert public_instance == {"ended"}  # how the session ended (None while it runs)

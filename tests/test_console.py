@@ -25,10 +25,10 @@ from daror_runtime.console.grammar import COMMANDS, check_lines
 from daror_runtime.console.guide import unguided_steps_cover_every_guard
 from daror_runtime.console.run import read_script, run_piped, run_script
 from daror_runtime.console.world import SimWorld
+from daror_runtime.demo.rehearsal import rehearse
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH
 from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import RequestRefusedError, Runtime
-from daror_runtime.session.rehearsal import rehearse
 from hal.sim.backend import SimHal
 
 #: startup -> safety_check (both e-stops tested) -> settings, with checks on the way.
@@ -249,7 +249,7 @@ class Lines:
         self.runtime.open()
         self.buffer = io.StringIO()
         out = Console(file=self.buffer, width=400, highlight=False, color_system=None)
-        self.session = ConsoleSession(self.runtime, out, SimWorld(self.hal) if world else None)
+        self.session = ConsoleSession(self.runtime, out, SimWorld(self.hal.world) if world else None)
 
     def run(self, *lines: str) -> str:
         """Execute ``lines``; what they printed."""
@@ -299,7 +299,7 @@ def test_a_refused_request_is_answered_with_its_reason(lines: Lines) -> None:
     lines.run("expect refused")
     with pytest.raises(ScriptCheckError, match="expected 'advance' to be accepted; it was refused"):
         lines.run("expect accepted")
-    assert lines.runtime.supervisor.state_name == "settings"
+    assert lines.runtime._core.supervisor.state_name == "settings"
     printed = lines.run("confirm settings", "expect accepted", "advance", "expect state pilot_installation")
     assert "advance: accepted, state pilot_installation" in printed
 
@@ -310,7 +310,7 @@ def test_a_checklist_of_another_state_is_refused(lines: Lines) -> None:
     assert not lines.last.accepted
     assert lines.last.reason == "state settings has no installation checklist"
     assert "confirm installation: refused (state settings has no installation checklist)" in printed
-    assert lines.runtime.signals.confirmed == set()
+    assert lines.runtime._core.signals.confirmed == set()
     with pytest.raises(CommandError, match="'straps' is not one of settings, installation"):
         lines.run("confirm straps")
     with pytest.raises(CommandError, match="usage: confirm CHECKLIST"):
@@ -333,24 +333,24 @@ def test_lines_that_are_not_commands(lines: Lines) -> None:
     with pytest.raises(CommandError, match="'nan' is not a finite number"):
         lines.run("support nan")
     assert lines.run("   ", "# only a comment") == ""
-    assert lines.runtime.supervisor.state_name == "startup"
-    assert lines.runtime.supervisor.transitions == 0
+    assert lines.runtime._core.supervisor.state_name == "startup"
+    assert lines.runtime._core.supervisor.transitions == 0
 
 
 def test_wait_until_a_state_that_does_not_come_fails_the_check(lines: Lines) -> None:
     with pytest.raises(ScriptCheckError, match=r"'wait until state settings' did not happen within 0\.05 s"):
         lines.run("wait until state settings timeout 0.05")
-    assert lines.runtime.signals.sample.t_s == pytest.approx(0.05, abs=2e-3)  # the time passed, lock-step
+    assert lines.runtime._core.signals.sample.t_s == pytest.approx(0.05, abs=2e-3)  # the time passed, lock-step
 
 
 def test_the_simulated_world_acts_on_the_plant(lines: Lines) -> None:
     lines.run("wait 0.2", "advance", "sim estop pilot on", "wait 0.05")
-    sample = lines.runtime.signals.sample
+    sample = lines.runtime._core.signals.sample
     assert sample.estop == (False, True)
-    assert lines.runtime.monitor.faulted  # an e-stop test: torque off while pressed
+    assert lines.runtime._core.monitor.faulted  # an e-stop test: torque off while pressed
     assert lines.hal.applied_motor_torque_nm.tolist() == [0.0] * 4
     lines.run("sim estop pilot off", "wait 0.05", "sim pilot carry 0.25")
-    assert not lines.runtime.monitor.faulted
+    assert not lines.runtime._core.monitor.faulted
     assert lines.session.world is not None
     assert lines.session.world.pilot_carried == 0.25
     with pytest.raises(CommandError, match="sim estop: 'maybe' is not one of on, off"):
@@ -386,8 +386,8 @@ def test_piped_lines_are_echoed_answered_and_the_session_goes_on(lines: Lines) -
     code = run_piped(lines.session, piped)
     printed = lines.buffer.getvalue()
     assert code == 2  # a line was not a command
-    assert lines.runtime.supervisor.state_name == "safety_check"
-    assert lines.runtime.supervisor.transitions == 1
+    assert lines.runtime._core.supervisor.state_name == "safety_check"
+    assert lines.runtime._core.supervisor.transitions == 1
     assert piped.read() == "advance\n"  # the line after quit was not consumed
     for line in ("status", "wait 0.2", "advanse", "identify training", "advance", "quit"):
         assert f"> {line}\n" in printed  # every command echoed
@@ -430,7 +430,7 @@ def test_run_script_counts_the_lines_it_ran(tmp_path: Path, lines: Lines) -> Non
     checked = check_lines(read_script(script), str(script), lines.session.context)
     result = run_script(lines.session, script, checked)
     assert (result.lines_run, result.state) == (17, "settings")
-    assert lines.runtime.supervisor.state_name == "settings"
+    assert lines.runtime._core.supervisor.state_name == "settings"
 
 
 def test_every_guard_a_spec_may_name_has_a_next_step() -> None:

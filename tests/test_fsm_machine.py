@@ -1,6 +1,6 @@
 """The safety machine against an oracle written here from the rules, for every state, event and guard outcome.
 
-Rules (DESIGN.md section 6): advance goes to state number + 1 when every advance guard of the
+Rules (docs/fsm.md): advance goes to state number + 1 when every advance guard of the
 state holds; revert to number - 1 with the state's revert guards (none from state 1); reset to the
 first state from every state, FAIL included, with that state's reset guards; fail to FAIL only from
 a state with fail_on_fault; acknowledge, guarded by fault_latched, only in FAIL and the test states,

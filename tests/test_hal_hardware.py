@@ -15,7 +15,7 @@ import pytest
 from daror_runtime.cli import main
 from daror_runtime.clocks import LockStepClock, LockStepRefusedError, RealTimeClock, check_clock, clock_for
 from daror_runtime.console.commands import CommandError
-from daror_runtime.console.run import hal_has_world, make_session, world_for
+from daror_runtime.console.run import make_session, world_for
 from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import InputError, UsageError
 from daror_runtime.logs import configure_logging
@@ -108,10 +108,10 @@ def test_the_runtime_refuses_lock_step_on_hardware_before_anything_is_written(tm
 
 def test_the_runtime_runs_a_backend_on_its_own_time_by_default(tmp_path: Path) -> None:
     on_hardware = Runtime(StandInDrives(), tmp_path / "a")
-    assert isinstance(on_hardware.clock, RealTimeClock)
+    assert isinstance(on_hardware._core.clock, RealTimeClock)
     assert not on_hardware.lock_step
     simulated = Runtime(SimHal("exo"), tmp_path / "b")
-    assert isinstance(simulated.clock, LockStepClock)
+    assert isinstance(simulated._core.clock, LockStepClock)
     assert simulated.lock_step
     realtime = Runtime(SimHal("exo"), tmp_path / "c", clock=RealTimeClock(1e-3))
     assert not realtime.lock_step
@@ -123,9 +123,9 @@ def test_the_runtime_runs_a_backend_on_its_own_time_by_default(tmp_path: Path) -
 def test_there_is_no_simulated_world_on_hardware(tmp_path: Path) -> None:
     drives = StandInDrives()
     drives.open()
-    assert not hal_has_world(drives)
-    with pytest.raises(UsageError, match="the stand-in HAL backend has no simulated world"):
-        SimWorld(drives)
+    assert drives.world is None
+    with pytest.raises(UsageError, match="drives hardware and has no simulated world"):
+        SimWorld(drives.world)
     runtime = Runtime(StandInDrives(), tmp_path / "session")
     runtime.open()
     try:
@@ -144,7 +144,7 @@ def test_there_is_no_simulated_world_on_hardware(tmp_path: Path) -> None:
 
 def test_the_simulated_world_needs_an_open_backend() -> None:
     with pytest.raises(HalNotOpenError):
-        SimWorld(SimHal("exo"))
+        SimWorld(SimHal("exo").world)
 
 
 def test_console_script_on_hardware_exits_2_with_one_line(

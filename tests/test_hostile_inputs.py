@@ -184,7 +184,7 @@ def _model_inputs() -> list[Case]:
 
 
 def _yaml_inputs() -> list[Case]:
-    """Where a YAML or text file is read: fsm check, console --spec/--settings/--script, identify --isb-limits/--waypoints/--scenario."""
+    """Where a YAML or text file is read: fsm check, console --spec/--settings/--script/--hal-config, identify --isb-limits/--waypoints/--scenario/--settings."""
     commands: list[tuple[str, Callable[[Files, str], list[str]]]] = [
         ("fsm check", lambda f, bad: ["fsm", "check", bad]),
         (
@@ -196,6 +196,24 @@ def _yaml_inputs() -> list[Case]:
             lambda f, bad: ["console", "--settings", bad, "--script", str(f.script), "--out", str(f.folder / "c")],
         ),
         ("console script", lambda f, bad: ["console", "--script", bad, "--out", str(f.folder / "c")]),
+        (
+            "console hal config",
+            lambda f, bad: ["console", "--hal-config", bad, "--script", str(f.script), "--out", str(f.folder / "c")],
+        ),
+        (
+            "identify settings",
+            lambda f, bad: [
+                "identify",
+                "--scenario",
+                "exo",
+                "--trajectory",
+                "validation",
+                "--settings",
+                bad,
+                "--out",
+                str(f.folder / "i.csv"),
+            ],
+        ),
         (
             "identify isb limits",
             lambda f, bad: [

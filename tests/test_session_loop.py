@@ -178,20 +178,22 @@ class Session:
         self.hal = SimHal(SCENARIO)
         self.runtime = Runtime(self.hal, directory, settings=SessionSettings(dummy_arm=True), clock=self.clock)
         self.visited: list[str] = []
-        self.runtime.supervisor.listeners.append(lambda state, outcome: self.visited.append(state.name))
+        self.runtime._core.supervisor.listeners.append(lambda state, outcome: self.visited.append(state.name))
         self.runtime.open()
-        self.world = SimWorld(self.hal)  # its pilot carries what the robot does not: relaxes onto support
+        self.world = SimWorld(self.hal.world)  # its pilot carries what the robot does not: relaxes onto support
         self.healthy = True
         runtime = self.runtime
         runtime.run_ticks(1)
         runtime.select_model(model.model, model.validation)
-        assert runtime.run_until(lambda: runtime.signals.model is not None and not runtime.jobs.pending, 1.0)
-        assert runtime.signals.model is not None
-        assert runtime.signals.model.validated
+        assert runtime.run_until(
+            lambda: runtime._core.signals.model is not None and not runtime._core.jobs.pending, 1.0
+        )
+        assert runtime._core.signals.model is not None
+        assert runtime._core.signals.model.validated
 
     @property
     def state(self) -> str:
-        return self.runtime.supervisor.state_name
+        return self.runtime._core.supervisor.state_name
 
     def tick(self, n: int = 1, keep: Callable[[], None] | None = None) -> TickResult:
         result = None
@@ -241,7 +243,7 @@ class Session:
                 continue
             accepted(self.answer(runtime.advance()))
             self.tick(settle_ticks)
-        assert not runtime.monitor.faulted, runtime.monitor.latched
+        assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
 
     def _advance_at_rest(self, settle_ticks: int = 150) -> None:
         """Advance out of ``identification``, which needs the robot at rest in the tick that decides.
@@ -310,7 +312,7 @@ class NarrowedLimit(Condition):
         self.narrowed: SafetyLimits | None = None
 
     def _narrow(self, limits: SafetyLimits) -> SafetyLimits:
-        sample = self.s.runtime.signals.sample
+        sample = self.s.runtime._core.signals.sample
         assert sample is not None
         if self.kind == FaultKind.JOINT_LIMIT:
             upper = np.array(limits.joint_upper_rad, dtype=float)
@@ -328,7 +330,7 @@ class NarrowedLimit(Condition):
         return dataclasses.replace(limits, max_deflection_rad=BELOW_ANY_READING)
 
     def _apply(self) -> None:
-        monitor = self.s.runtime.monitor
+        monitor = self.s.runtime._core.monitor
         self.base = monitor.limits
         self.narrowed = self._narrow(self.base)
         monitor.set_limits(self.narrowed)
@@ -337,11 +339,11 @@ class NarrowedLimit(Condition):
         self._apply()
 
     def keep(self) -> None:
-        if self.s.runtime.monitor.limits is not self.narrowed:  # a state change replaced them
+        if self.s.runtime._core.monitor.limits is not self.narrowed:  # a state change replaced them
             self._apply()
 
     def clear(self) -> None:
-        monitor = self.s.runtime.monitor
+        monitor = self.s.runtime._core.monitor
         if monitor.limits is self.narrowed and self.base is not None:
             monitor.set_limits(self.base)
 
@@ -438,13 +440,13 @@ class SoftwareFault(Condition):
         self.patched: Any = None
 
     def start(self) -> None:
-        controller = self.s.runtime.supervisor.controller
+        controller = self.s.runtime._core.supervisor.controller
         if controller is None:
 
             def buggy(supervisor: FsmSupervisor) -> Response:
                 raise ZeroDivisionError("division by zero in a request")
 
-            self.s.runtime.supervisor.post("buggy request", buggy)
+            self.s.runtime._core.supervisor.post("buggy request", buggy)
             return
 
         def update(sample: Any, dt_s: float) -> Any:
@@ -506,7 +508,7 @@ def test_the_fault_classes_left_out_cannot_occur_there(sessions: Callable[[str],
     left_out = [(s.name, k) for s in SPEC.states for k in FaultKind if not_applicable(s, k)]
     assert left_out == [(s.name, FaultKind.ISB_LIMIT) for s in SPEC.states if not s.enforce_isb]
     for name, _ in left_out:
-        assert sessions(name).runtime.monitor.limits.isb is None, f"{name} enforces ISB limits after all"
+        assert sessions(name).runtime._core.monitor.limits.isb is None, f"{name} enforces ISB limits after all"
 
 
 @pytest.fixture(scope="module")
@@ -540,7 +542,7 @@ def provoke(session: Session, condition: Condition, max_ticks: int = 20) -> tupl
     (:func:`test_a_fault_reported_inside_the_supervisor_is_in_the_tick_result`), so the monitor is asked too.
     """
     condition.start()
-    monitor = session.runtime.monitor
+    monitor = session.runtime._core.monitor
     for _ in range(max_ticks):
         result = session.tick(1, condition.keep)
         if result.faults or monitor.faulted:
@@ -549,7 +551,7 @@ def provoke(session: Session, condition: Condition, max_ticks: int = 20) -> tupl
 
 
 def settle_until_clearable(session: Session, max_ticks: int = 200) -> None:
-    monitor = session.runtime.monitor
+    monitor = session.runtime._core.monitor
     for _ in range(max_ticks):
         session.tick()
         if monitor.clearable:
@@ -571,10 +573,10 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
     def record(state: Any, outcome: Outcome) -> None:
         visited.append((outcome.event.value, state.name))
 
-    runtime.supervisor.listeners.append(record)
+    runtime._core.supervisor.listeners.append(record)
     # Every tick of the session: whenever an e-stop is pressed, no torque is written or applied.
     pressed_ticks: list[tuple[float, bool]] = []
-    tick = runtime.loop.tick
+    tick = runtime._core.loop.tick
 
     def observed_tick() -> TickResult:
         result = tick()
@@ -582,7 +584,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
             pressed_ticks.append((result.sample.t_s, torque_off(result, hal)))
         return result
 
-    monkeypatch.setattr(runtime.loop, "tick", observed_tick)
+    monkeypatch.setattr(runtime._core.loop, "tick", observed_tick)
 
     def ok(ticket: Ticket) -> Response:
         return accepted(runtime.wait(ticket))
@@ -595,7 +597,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
 
     runtime.open()
     try:
-        world = SimWorld(hal)
+        world = SimWorld(hal.world)
         # 1 startup
         runtime.pass_time(0.2)
         ok(runtime.advance())
@@ -605,7 +607,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         assert refused.unmet == ("estop_operator_tested", "estop_pilot_tested")
         press("operator")
         press("pilot")
-        assert runtime.signals.estop_tested == {EstopButton.OPERATOR, EstopButton.PILOT}
+        assert runtime._core.signals.estop_tested == {EstopButton.OPERATOR, EstopButton.PILOT}
         ok(runtime.advance())
         # 3 settings, 4 pilot_installation
         ok(runtime.confirm("settings"))
@@ -615,7 +617,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         ok(runtime.advance())
         # 5 safety_experience: the pilot's e-stop
         press("pilot")
-        assert runtime.signals.estop_tested == {EstopButton.PILOT}
+        assert runtime._core.signals.estop_tested == {EstopButton.PILOT}
         ok(runtime.confirm("safety_experience"))
         ok(runtime.advance())
         # 6 rom_limits: the default limits contain every shipped waypoint; no validated model yet, so
@@ -629,7 +631,7 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         world.pilot_carries(0.0)
         runtime.pass_time(2.0)
         press("operator")
-        assert runtime.signals.estop_tested == {EstopButton.OPERATOR}
+        assert runtime._core.signals.estop_tested == {EstopButton.OPERATOR}
         runtime.pass_time(1.0)
         ok(runtime.advance())
         # 8 identification: the pilot goes limp, the protocol runs inside the limits
@@ -638,20 +640,22 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         for kind in ("training", "validation"):
             ok(runtime.identify(kind))
             assert runtime.run_until(lambda: not runtime.busy, 600.0), f"the {kind} run did not finish"
-            assert runtime.progress.last_error is None, runtime.progress.last_error
-            last = runtime.progress.last_identification
+            assert runtime._core.progress.last_error is None, runtime._core.progress.last_error
+            last = runtime._core.progress.last_identification
             assert last is not None
             assert last["kind"] == kind
             points[kind] = last["points"]
         ok(runtime.advance())
         # 9 training: PLF+ on this session's data
         runtime.train()
-        assert runtime.run_until(lambda: runtime.signals.model is not None and not runtime.jobs.pending, 60.0)
+        assert runtime.run_until(
+            lambda: runtime._core.signals.model is not None and not runtime._core.jobs.pending, 60.0
+        )
         ok(runtime.advance())
         # 10 compensation: the support ramps to the operator's level
         world.pilot_stiffness(1.0)
         world.pilot_hold_here()
-        compensation = runtime.modes.compensation
+        compensation = runtime._core.modes.compensation
         for level in (0.6, 1.0):
             ok(runtime.set_support(level))
             assert runtime.run_until(lambda: compensation.delivered_support_level == level, 3.0), level  # noqa: B023
@@ -707,7 +711,7 @@ def support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) -> 
         return False
 
     assert world.pilot_carried == 0.0
-    runtime.run_ticks(round(seconds * runtime.hal.rate_hz), stop=sample)
+    runtime.run_ticks(round(seconds * runtime._core.hal.rate_hz), stop=sample)
     return np.mean(holding, axis=0), np.sqrt(np.mean(np.square(pilot), axis=0))
 
 
@@ -762,14 +766,14 @@ def _fault_fails_the_state(
         assert not refusal.accepted
         assert refusal.unmet == ("faults_cleared", "fault_acknowledged")
         accepted(session.answer(runtime.acknowledge(), condition.keep))
-        assert kind in runtime.monitor.conditions_present()
+        assert kind in runtime._core.monitor.conditions_present()
         refusal = session.answer(runtime.reset(), condition.keep)
         assert not refusal.accepted
         assert refusal.unmet == ("faults_cleared",)
         assert session.state == FAIL
         condition.clear()
         settle_until_clearable(session)
-        assert runtime.signals.fault_acknowledged, "a new fault appeared while the condition was cleared"
+        assert runtime._core.signals.fault_acknowledged, "a new fault appeared while the condition was cleared"
     else:
         # a one-sample fault (cleared above): the condition is gone, the acknowledgement is missing
         settle_until_clearable(session)
@@ -783,12 +787,12 @@ def _fault_fails_the_state(
         assert session.state == FAIL
         accepted(session.answer(runtime.acknowledge()))
     assert session.state == FAIL
-    assert runtime.monitor.faulted
+    assert runtime._core.monitor.faulted
     # both done: reset leaves FAIL for startup, with nothing latched
     back = accepted(session.answer(runtime.reset()))
     assert back.state == "startup" == session.state
     assert session.visited[-2:] == [FAIL, "startup"]
-    assert not runtime.monitor.faulted
+    assert not runtime._core.monitor.faulted
     assert torque_off(session.tick(), session.hal)  # startup: drives off
     events = audit.since(mark, runtime.session_id)
     refused = [e["unmet"] for e in named(events, "refused", request="reset")]
@@ -815,7 +819,7 @@ def _fault_in_a_test_state(
     if kind == FaultKind.ESTOP:
         tests = named(events, "e-stop test", state=state.name)
         assert [e["buttons"] for e in tests] == [["operator"]]
-        assert EstopButton.OPERATOR in runtime.signals.estop_tested
+        assert EstopButton.OPERATOR in runtime._core.signals.estop_tested
     else:
         warnings = named(events, TEST_STATE_WARNING, state=state.name)
         assert kind.value in [e["fault"]["kind"] for e in warnings], warnings
@@ -829,13 +833,13 @@ def _fault_in_a_test_state(
         # the press was the test: released, the latch clears by itself and torque returns
         condition.clear()
         back = session.tick(2)
-        assert not runtime.monitor.faulted
+        assert not runtime._core.monitor.faulted
         assert back.command.enable
         assert session.state == state.name
         return
     if condition.persists:
         accepted(session.answer(runtime.acknowledge(), condition.keep))
-        assert kind in {f.kind for f in runtime.monitor.latched}, "acknowledged away while the condition persists"
+        assert kind in {f.kind for f in runtime._core.monitor.latched}, "acknowledged away while the condition persists"
         assert torque_off(session.tick(1, condition.keep), session.hal)
     condition.clear()
     settle_until_clearable(session)
@@ -843,7 +847,7 @@ def _fault_in_a_test_state(
         assert torque_off(session.tick(), session.hal)
     accepted(session.answer(runtime.acknowledge()))
     back = session.tick()
-    assert not runtime.monitor.faulted
+    assert not runtime._core.monitor.faulted
     assert back.command.enable
     assert session.state == state.name
     assert named(audit.since(mark, runtime.session_id), "test fault acknowledged", state=state.name)
@@ -876,7 +880,7 @@ def test_fail_is_not_left_while_the_condition_persists(session_in_settings: Sess
         if result.faults:
             break
     assert session.state == FAIL
-    assert kind in {f.kind for f in runtime.monitor.latched}
+    assert kind in {f.kind for f in runtime._core.monitor.latched}
     accepted(session.answer(runtime.acknowledge(), keep))
     response = session.answer(runtime.reset(), keep)
     assert not response.accepted
@@ -913,8 +917,8 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
     session = Session(tmp_path / "session", model_files)
     runtime = session.runtime
     transitions: list[tuple[str, float]] = []
-    runtime.supervisor.listeners.append(
-        lambda state, outcome: transitions.append((state.name, runtime.signals.sample.t_s))
+    runtime._core.supervisor.listeners.append(
+        lambda state, outcome: transitions.append((state.name, runtime._core.signals.sample.t_s))
     )
     try:
         session.walk_to("settings")
@@ -922,16 +926,16 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
         confirm, advance = runtime.confirm("settings"), runtime.advance()
         assert not confirm.done
         assert not advance.done
-        assert runtime.supervisor.pending_requests
+        assert runtime._core.supervisor.pending_requests
         assert runtime.busy
         assert session.state == "settings"
-        assert runtime.signals.confirmed == set()
+        assert runtime._core.signals.confirmed == set()
         # one tick: both applied, in order (the confirmation lets the advance through)
         mark = audit.mark()
-        result = runtime.loop.tick()
+        result = runtime._core.loop.tick()
         assert confirm.done
         assert advance.done
-        assert not runtime.supervisor.pending_requests
+        assert not runtime._core.supervisor.pending_requests
         assert accepted(confirm.response).state == "settings"  # type: ignore[arg-type]
         assert accepted(advance.response).state == "pilot_installation"  # type: ignore[arg-type]
         assert transitions[-1] == ("pilot_installation", result.sample.t_s)
@@ -943,7 +947,7 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
         accepted(session.answer(runtime.revert()))
         assert session.state == "settings"
         advance, confirm = runtime.advance(), runtime.confirm("settings")
-        runtime.loop.tick()
+        runtime._core.loop.tick()
         refused = advance.response
         assert refused is not None
         assert not refused.accepted
@@ -1014,10 +1018,10 @@ def test_a_bad_spec_keeps_the_runtime_from_starting(
 def test_a_mode_without_a_controller_is_a_configuration_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     hal = SimHal(SCENARIO)
     runtime = Runtime(hal, tmp_path / "good")
-    controllers = runtime.modes.by_mode()
+    controllers = runtime._core.modes.by_mode()
     del controllers["hold"]
     with pytest.raises(ConfigurationError, match="hold"):
-        FsmSupervisor(SPEC, SafetyMonitor(runtime.monitor.limits), runtime.monitor.limits, controllers)
+        FsmSupervisor(SPEC, SafetyMonitor(runtime._core.monitor.limits), runtime._core.monitor.limits, controllers)
     # a mode the registry knows (so the spec loads) but the runtime builds no controller for
     monkeypatch.setitem(MODES, "assist", ModeInfo("assist", "a new mode", applies_torque=True, pilot_driven=True))
     doc = _spec_document()
@@ -1040,7 +1044,7 @@ def test_a_fault_reported_inside_the_supervisor_is_in_the_tick_result(tmp_path: 
         condition.start()  # startup runs no controller: a request raises
         result = session.tick()
         assert session.state == FAIL
-        assert [f.kind for f in session.runtime.monitor.latched] == [FaultKind.SOFTWARE]
+        assert [f.kind for f in session.runtime._core.monitor.latched] == [FaultKind.SOFTWARE]
         assert [f.kind for f in result.faults] == [FaultKind.SOFTWARE]
     finally:
         session.close()

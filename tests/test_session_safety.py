@@ -56,12 +56,12 @@ class Session:
         self.hal = SimHal(SCENARIO)
         self.runtime = Runtime(self.hal, directory, settings=settings or SessionSettings(dummy_arm=True))
         self.runtime.open()
-        self.world = SimWorld(self.hal)
+        self.world = SimWorld(self.hal.world)
         self.runtime.run_ticks(1)
 
     @property
     def state(self) -> str:
-        return self.runtime.supervisor.state_name
+        return self.runtime._core.supervisor.state_name
 
     def ok(self, ticket: Ticket) -> Response:
         response = self.runtime.wait(ticket)
@@ -90,7 +90,7 @@ class Session:
                 self.ok(runtime.confirm("safety_experience"))
             elif here == "rom_limits":
                 self.ok(runtime.set_isb_limits(IsbLimits()))
-                if a_priori and not (runtime.signals.model is not None and runtime.signals.model.validated):
+                if a_priori and not (runtime._core.signals.model is not None and runtime._core.signals.model.validated):
                     self.ok(runtime.confirm("a_priori_model"))
             elif here == "operative_check":
                 self.press("operator")
@@ -99,7 +99,7 @@ class Session:
                 continue
             self.ok(runtime.advance())
             runtime.pass_time(0.3)
-        assert not runtime.monitor.faulted, runtime.monitor.latched
+        assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
 
     def _advance_at_rest(self) -> None:
         """Advance out of identification, which needs the robot at rest in the tick that decides.
@@ -164,13 +164,13 @@ def test_a_model_that_fails_validation_is_refused_and_never_drives_the_arm(sessi
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.select(models.tripled, models.validation)
     # refused: not the session's model, not the compensation controller's, announced with the reason
-    assert runtime.signals.model is None
-    assert runtime.modes.compensation.model is None
-    refused = runtime.progress.last_model_refused
+    assert runtime._core.signals.model is None
+    assert runtime._core.modes.compensation.model is None
+    refused = runtime._core.progress.last_model_refused
     assert refused is not None
     assert refused["validated"] is False
     assert refused["validation_rmse_nm"] > SessionSettings().max_validation_rmse_nm
-    said = [a for a in runtime.announcements.drain() if a.kind == AnnouncementKind.MODEL]
+    said = [a for a in runtime._core.announcements.drain() if a.kind == AnnouncementKind.MODEL]
     assert said
     assert "failed validation" in said[-1].text
     assert "never drives the arm" in said[-1].text
@@ -180,17 +180,17 @@ def test_a_model_that_fails_validation_is_refused_and_never_drives_the_arm(sessi
     assert response.unmet == ("compensation_model_approved",)
     # with the A Priori model confirmed by the operator it is, and the A Priori model drives it
     session.ok(runtime.confirm("a_priori_model"))
-    assert runtime.modes.compensation.model is runtime.a_priori
+    assert runtime._core.modes.compensation.model is runtime._core.a_priori
     session.ok(runtime.advance())
     assert session.state == "operative_check"
     session.world.pilot_carries(0.0)  # the pilot relaxes onto the support
     poses, _, _ = watch(session, 5.0)
-    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
     # what the robot delivers is the A Priori model's torque, not the refused model's (3 x the arm's)
     q = poses[-1]
-    delivered = runtime.modes.compensation.last_reference_nm
+    delivered = runtime._core.modes.compensation.last_reference_nm
     tripled = load_model(models.tripled)[0].torque(q)
-    a_priori = runtime.a_priori.torque(q)
+    a_priori = runtime._core.a_priori.torque(q)
     assert np.linalg.norm(delivered - a_priori) < 0.1 * np.linalg.norm(tripled - a_priori)
 
 
@@ -199,10 +199,10 @@ def test_a_validated_model_is_used_and_approves_operative_check(session: Session
     session.walk_to("rom_limits", a_priori=False)
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.select(models.good, models.validation)
-    assert runtime.signals.model is not None
-    assert runtime.signals.model.validated
-    assert runtime.modes.compensation.model is not None
-    assert runtime.modes.compensation.model.kind == "plf+"
+    assert runtime._core.signals.model is not None
+    assert runtime._core.signals.model.validated
+    assert runtime._core.modes.compensation.model is not None
+    assert runtime._core.modes.compensation.model.kind == "plf+"
     # the A Priori model is not needed (and not installed over the validated one)
     refused = runtime.wait(runtime.confirm("a_priori_model"))
     assert not refused.accepted
@@ -214,7 +214,7 @@ def test_a_validated_model_is_used_and_approves_operative_check(session: Session
 def test_a_model_validated_on_its_own_training_data_is_refused_when_named(session: Session, models: Models) -> None:
     with pytest.raises(NotHeldOutError, match=r"this is the data .* was trained on"):
         session.runtime.select_model(models.good, models.training)
-    assert not session.runtime.jobs.pending  # nothing was queued
+    assert not session.runtime._core.jobs.pending  # nothing was queued
 
 
 def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensation(
@@ -223,13 +223,13 @@ def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensat
     """Entering training with no validated model, a model that fails never unlocks compensation."""
     runtime = session.runtime
     session.walk_to("identification")
-    runtime.signals.identification_saved.update(training=models.training, validation=models.validation)
+    runtime._core.signals.identification_saved.update(training=models.training, validation=models.validation)
     session.ok(runtime.advance())
     session.select(models.tripled, models.validation)
     response = runtime.wait(runtime.advance())
     assert not response.accepted
     assert response.unmet == ("model_trained_and_validated",)
-    assert runtime.modes.compensation.model is runtime.a_priori  # what operative_check was approved with
+    assert runtime._core.modes.compensation.model is runtime._core.a_priori  # what operative_check was approved with
 
 
 @pytest.mark.parametrize(
@@ -279,7 +279,7 @@ def _held_and_watched(
 
 
 def _assert_bumpless(session: Session, poses: FloatArray, springs: FloatArray, held: FloatArray) -> None:
-    assert not session.runtime.monitor.faulted, session.runtime.monitor.latched
+    assert not session.runtime._core.monitor.faulted, session.runtime._core.monitor.latched
     moved_deg = np.degrees(np.abs(poses - poses[0]).max(axis=0))
     assert np.all(moved_deg < 1.0), moved_deg
     # the support never falls below what held the arm (in the direction it held it)
@@ -319,9 +319,9 @@ def test_entering_a_position_mode_from_compensation_holds_a_limp_arm(
     runtime.pass_time(2.0)
     session.relax_completely()
     runtime.pass_time(3.0)  # the relaxed arm settles on the compensation
-    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
     poses, springs, held = _held_and_watched(session, lambda: runtime.request(event))
-    assert runtime.supervisor.state.mode in ("identification", "hold")
+    assert runtime._core.supervisor.state.mode in ("identification", "hold")
     _assert_bumpless(session, poses, springs, held)
 
 
@@ -334,7 +334,7 @@ def test_entering_operative_check_with_the_pilot_carrying_ramps_the_support_in(s
     runtime.pass_time(2.0)
     session.ok(runtime.advance())
     poses, springs, _ = watch(session, 5.0)
-    assert not runtime.monitor.faulted
+    assert not runtime._core.monitor.faulted
     # the pilot lets go of what the robot takes over, 0.3 s behind it: a transient lift, then back
     assert np.degrees(np.abs(poses - poses[0]).max()) < 3.0
     assert np.degrees(np.abs(poses[-1] - poses[0]).max()) < 0.5
@@ -358,7 +358,7 @@ def test_a_pilot_relaxing_is_caught(session: Session, models: Models, after_s: f
     runtime.pass_time(after_s)
     session.world.pilot_carries(0.0)  # sim pilot carry 0: the tester's line
     poses, _, speeds = watch(session, 5.0)
-    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
     limit = SPEC.state(state).limits.velocity_rad_s
     assert np.abs(speeds).max() < 0.5 * limit  # far from the velocity fault the tester saw (1.545 rad/s)
     moved = np.degrees(np.abs(poses - poses[0]).max())
@@ -374,7 +374,7 @@ def test_the_default_sweep_stays_inside_the_velocity_limit_with_margin(session: 
     session.ok(runtime.rom_start())
     end = session.world.pilot_sweep(runtime.settings.identification)
     _, _, speeds = watch(session, end - session.hal.time_s + 1.0)
-    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
     peak = np.abs(speeds).max()
     assert peak < 0.6 * SPEC.state("rom_limits").limits.velocity_rad_s, peak
     assert peak < 1.3 * DEFAULT_PEAK_SPEED_RAD_S  # the pilot's impedance lags the target a little
@@ -401,7 +401,7 @@ def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: st
         assert not world.pilot_moving
     # past the first sweep's end: no fault anywhere, and the arm is where the new command put it
     _, _, speeds = watch(session, first_end - session.hal.time_s + 2.0)
-    assert not runtime.monitor.faulted, runtime.monitor.latched
+    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
     assert np.abs(speeds[-1000:]).max() < 0.05  # at rest for the last second: nothing resumed
 
 
@@ -416,20 +416,20 @@ def kernels_loaded_in_ticks(directory: Path, model: Path, validation: Path) -> l
     with event.install_recorder("numba:compiler_lock") as recorder:
         hal = SimHal(SCENARIO)
         runtime = Runtime(hal, directory, settings=SessionSettings(dummy_arm=True))
-        tick = runtime.loop.tick
+        tick = runtime._core.loop.tick
 
         def watched_tick():  # type: ignore[no-untyped-def]
             before = len(recorder.buffer)
             result = tick()
             if len(recorder.buffer) > before:
-                sample = runtime.signals.sample
-                loads.append(f"{runtime.supervisor.state_name} t={sample.t_s if sample else None}")
+                sample = runtime._core.signals.sample
+                loads.append(f"{runtime._core.supervisor.state_name} t={sample.t_s if sample else None}")
             return result
 
-        runtime.loop.tick = watched_tick  # type: ignore[method-assign]
+        runtime._core.loop.tick = watched_tick  # type: ignore[method-assign]
         runtime.open()
         session = Session.__new__(Session)
-        session.hal, session.runtime, session.world = hal, runtime, SimWorld(hal)
+        session.hal, session.runtime, session.world = hal, runtime, SimWorld(hal.world)
         session.walk_to("rom_limits")
         session.ok(runtime.rom_start())
         end = session.world.pilot_sweep(runtime.settings.identification)

@@ -1,6 +1,6 @@
 """The simulator's own gravity path (CoM Jacobians) and its agreement with the PLF regressor.
 
-DESIGN.md section 2: the plant computes gravity from link CoM Jacobians, not from the regressor,
+docs/architecture.md: the plant computes gravity from link CoM Jacobians, not from the regressor,
 and a test checks the two agree on noise-free data (thesis Sec. 3.4 / 4.4.2).
 """
 

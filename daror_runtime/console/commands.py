@@ -130,7 +130,7 @@ class ConsoleSession:
 
     def show_announcements(self) -> None:
         """Print what the runtime announced since the last call, one line each."""
-        for item in self.runtime.announcements.drain():
+        for item in self.runtime.drain_announcements():
             self.say(announcement_line(item))
 
     def say(self, text: str) -> None:
@@ -213,14 +213,14 @@ class ConsoleSession:
 
             return still
         if what == "model":
-            return lambda: runtime.signals.model is not None and not runtime.jobs.pending
-        return lambda: runtime.supervisor.state_name == name
+            return lambda: runtime.model_in_use is not None and not runtime.jobs_pending
+        return lambda: runtime.state_name == name
 
     # --- checks ---------------------------------------------------------------------------
 
     def _expect(self, args: tuple) -> None:  # type: ignore[type-arg]
         if args[0] == "state":
-            state = self.runtime.supervisor.state_name
+            state = self.runtime.state_name
             if state != args[1]:
                 raise ScriptCheckError(f"expected state {args[1]}, the robot is in {state}")
         else:
@@ -272,7 +272,7 @@ class ConsoleSession:
     # --- internals ------------------------------------------------------------------------
 
     def _t(self) -> float | None:
-        sample = self.runtime.signals.sample
+        sample = self.runtime.last_sample
         return sample.t_s if sample is not None else None
 
     def _answer(self, ticket: Ticket) -> None:

@@ -31,7 +31,6 @@ from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import DarorError, InputError, UsageError
 from daror_runtime.runtime import Runtime
 from hal.files import YAML_MAX_BYTES, read_text_bounded
-from hal.interface import Hal
 
 
 class ScriptError(UsageError):
@@ -73,13 +72,13 @@ def run_script(session: ConsoleSession, path: Path | str, checked: Sequence[tupl
         try:
             session.run(parsed)
         except QuitRequested:
-            return ScriptResult(count + 1, session.runtime.supervisor.state_name, quit=True)
+            return ScriptResult(count + 1, session.runtime.state_name, quit=True)
         except ScriptCheckError as exc:
             raise ScriptCheckError(f"{path}: line {number}: {exc}") from None
         except InputError as exc:  # checked words, but the runtime refused now (no data yet, ...)
             raise ScriptCheckError(f"{path}: line {number}: refused: {exc}") from None
         count += 1
-    return ScriptResult(count, session.runtime.supervisor.state_name)
+    return ScriptResult(count, session.runtime.state_name)
 
 
 def run_piped(session: ConsoleSession, stream: TextIO) -> int:
@@ -157,7 +156,7 @@ def run_interactive(
         try:
             while True:
                 try:
-                    line = prompt.prompt(f"[{runtime.supervisor.state_name}] > ")
+                    line = prompt.prompt(f"[{runtime.state_name}] > ")
                 except EOFError:
                     return
                 try:
@@ -183,14 +182,10 @@ def stdin_is_terminal() -> bool:
     return sys.stdin.isatty()
 
 
-def hal_has_world(hal: Hal) -> bool:
-    """True when the backend offers a simulated world (the console plays the world around the robot)."""
-    return hal.world is not None
-
-
 def world_for(runtime: Runtime) -> SimWorld | None:
     """The simulated world around the runtime's (opened) HAL, its pilot seated; None on hardware."""
-    return SimWorld(runtime.hal) if hal_has_world(runtime.hal) else None
+    world = runtime.world
+    return SimWorld(world) if world is not None else None
 
 
 def make_session(runtime: Runtime, out: object | None = None) -> ConsoleSession:

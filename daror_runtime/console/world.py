@@ -19,7 +19,6 @@ from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.session.settings import SessionSettings
 from hal.capabilities import ESTOP_OPERATOR, ESTOP_PILOT, FAULT_KINDS, SimulatedWorld
-from hal.interface import Hal
 from hal.robot import FloatArray
 
 #: The console's names of the e-stop buttons -> the world's button.
@@ -42,14 +41,12 @@ class SimWorld:
     #: The fault kinds a simulated world offers (``sim fault KIND``).
     fault_kinds: tuple[str, ...] = FAULT_KINDS
 
-    def __init__(self, hal: Hal) -> None:
-        world = hal.world
+    def __init__(self, world: SimulatedWorld | None) -> None:
         if world is None:
             raise UsageError(
-                f"the {hal.kind or type(hal).__name__} HAL backend has no simulated world: "
+                "this HAL backend drives hardware and has no simulated world: "
                 "there is no simulated pilot, e-stop or fault to act on"
             )
-        self.hal = hal
         self.simulated: SimulatedWorld = world
         self.fault_kinds = world.fault_kinds
         world.seat_pilot()

@@ -1,6 +1,6 @@
 """The controller contract: small objects that turn a sample into a command, nothing else.
 
-A controller does no I/O, owns no thread and never blocks (DESIGN.md Sec. 2-3). The FSM decides
+A controller does no I/O, owns no thread and never blocks (docs/architecture.md, docs/loop.md). The FSM decides
 which controller runs; the controller obeys: it computes the motor torque of its mode and returns
 a :class:`hal.interface.Command` with ``enable=True``. Limits per state and the e-stop are applied
 after it by the safety filter, which may lower or remove any torque a controller asks for.

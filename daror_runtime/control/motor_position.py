@@ -31,14 +31,17 @@ import math
 
 import numpy as np
 import scipy.linalg
-from numba import njit
+from numba import njit, types
 
 from daror_runtime.control.base import ControlDesignError, ControlError, ControlSettingError
 from daror_runtime.control.position import LinkBounds, Reference
 from daror_runtime.models.base import Feedforward
 from daror_runtime.models.regressor import linear_torque
-from hal.interface import Command, Sample
+from hal.interface import CheckedCommand, CheckedSample, Command, Sample
+from hal.kernels import SAMPLE_VECTOR, entry_point
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
+
+_new_tuple = tuple.__new__
 
 #: The thesis's proportional gain (Sec. 2.2.4), Nm/rad, here on the motor angle.
 DEFAULT_KP_NM_PER_RAD = 700.0
@@ -121,6 +124,23 @@ def _motor_pd_table(
     else:
         scratch[8:12] = 0.0
     _motor_pd(scratch[0:4], scratch[4:8], scratch[8:12], theta, state, gains, out)
+
+
+#: What :func:`_motor_pd_table` is resolved for: the time, the reference table (its knots and
+#: coefficients), the controller's own arrays (cursor, state, gains, model, scratch, output), all
+#: float64 arrays it makes itself, and a checked sample's theta (:data:`hal.kernels.SAMPLE_VECTOR`).
+TABLE_SIGNATURE = (
+    types.float64,
+    types.float64[::1],
+    types.float64[:, :, ::1],
+    types.float64[::1],
+    SAMPLE_VECTOR,
+    types.float64[:, ::1],
+    types.float64[:, ::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+)
 
 
 def motor_loop_spectral_radius(
@@ -283,8 +303,18 @@ class MotorPositionPD:
         self._linear = kernel.parameters if kernel is not None and kernel.function is linear_torque else None
         table = getattr(reference, "piecewise_table", None)
         # The compiled path needs the feed-forward compiled too: none, or a model offering linear_torque.
-        self._table = table if (feedforward is None or self._linear is not None) else None
-        self._model_or_empty = self._linear if self._linear is not None else np.zeros(0)
+        # Its arrays as float64 C-contiguous arrays (no copy when they are already: the types the
+        # kernel's entry point is resolved for).
+        self._table = (
+            (np.ascontiguousarray(table[0], dtype=np.float64), np.ascontiguousarray(table[1], dtype=np.float64))
+            if table is not None and (feedforward is None or self._linear is not None)
+            else None
+        )
+        self._model_or_empty = (
+            np.ascontiguousarray(self._linear, dtype=np.float64) if self._linear is not None else np.zeros(0)
+        )
+        # A CheckedSample's theta goes to this entry point (no type dispatch); any other through the dispatcher.
+        self._table_checked = entry_point(_motor_pd_table, TABLE_SIGNATURE) if self._table is not None else None
         self._cursor = np.zeros(1)
         self._scratch = np.zeros(3 * N_JOINTS)
         self._t0_s = 0.0
@@ -309,14 +339,14 @@ class MotorPositionPD:
         self._cursor[0] = 0.0
 
     def update(self, sample: Sample, dt_s: float) -> Command:
-        out = np.empty(N_JOINTS)
-        if self._table is not None:  # a piecewise-cubic reference: one compiled call does everything
-            starts, coefficients = self._table
-            _motor_pd_table(
-                sample.t_s - self._t0_s, starts, coefficients, self._cursor, sample.theta_rad, self._state,
+        out = np.empty(N_JOINTS)  # a new array each tick: a command is a record, nobody changes it later
+        table = self._table
+        if table is not None:  # a piecewise-cubic reference: one compiled call does everything
+            (self._table_checked if type(sample) is CheckedSample else _motor_pd_table)(
+                sample.t_s - self._t0_s, table[0], table[1], self._cursor, sample.theta_rad, self._state,
                 self._gains, self._model_or_empty, self._scratch, out,
             )  # fmt: skip
-            return Command(out, True)
+            return _new_tuple(CheckedCommand, (out, True))  # out: float64 (4,), so a CheckedCommand as it is
         q_ref, dq_ref = self.reference(sample.t_s - self._t0_s)
         if self._linear is not None:  # AP, PLF, PLF+: the model runs inside the compiled controller
             _motor_pd_linear_feedforward(
@@ -325,4 +355,4 @@ class MotorPositionPD:
         else:
             feedforward = self._zero if self.feedforward is None else self.feedforward.torque(q_ref)
             _motor_pd(q_ref, dq_ref, feedforward, sample.theta_rad, self._state, self._gains, out)
-        return Command(out, True)
+        return _new_tuple(CheckedCommand, (out, True))

@@ -1,4 +1,4 @@
-"""Read and write datasets, checking every contract of DESIGN.md section 5 on the way in.
+"""Read and write datasets, checking every contract of docs/data.md on the way in.
 
 Every command that takes data accepts a stationary dataset or a raw log; a raw log (it has ``t``
 and ``dq1..dq4``, or ``t`` and joints that move between samples: docs/data.md) is reduced to
@@ -209,7 +209,7 @@ def check_time(t: np.ndarray, where: Locator, raw_log: bool, source: str) -> Non
 
 
 def check_raw_log(raw: RawLog, where: Locator) -> None:
-    """Every raw-log contract check (DESIGN.md section 5) on arrays already assembled.
+    """Every raw-log contract check (docs/data.md) on arrays already assembled.
 
     Raises:
         DataError: a non-finite value, time not increasing or not at a loop's rate, or a value

@@ -36,7 +36,7 @@ import os
 import queue
 import threading
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import BinaryIO
@@ -265,6 +265,44 @@ class Recorder:
             self._hand_over()
         return True
 
+    def push_into(self, fill: Callable[..., None], n_values: int, *args: object) -> bool:
+        """Record one row that ``fill(block, index, *args)`` writes into row ``index`` of ``block``.
+
+        :meth:`push` for a row that is computed rather than held: ``fill`` (typically compiled, e.g.
+        :func:`daror_runtime.data.tick_row.fill_tick_row_at`) writes the row's ``n_values`` values
+        straight into the recorder's current block, so nothing is copied twice and no row array
+        exists. The same guarantees as :meth:`push` (O(1), no I/O, no waiting, no allocation; a row
+        is dropped and counted when every block is full). ``fill`` must write row ``index`` and
+        nothing else; an error it raises leaves the slot to the next row.
+
+        Returns:
+            True if the row was recorded, False if it was dropped.
+
+        Raises:
+            RecorderError: the writer failed (latched), or the recorder is not started or closed.
+            ShapeError: ``n_values`` is not ``len(columns)`` (nothing is written).
+        """
+        if self._error is not None:
+            raise self._latched()
+        if self._refusal is not None:
+            raise RecorderError(f"{self._path}: {self._refusal}")
+        if n_values != self._n_columns:
+            # Checked before fill runs: a compiled fill checks no bounds.
+            raise ShapeError(f"{self._path}: a row of {n_values} values; the recording has {self._n_columns} columns")
+        index = self._fill
+        if index == self._block_rows:
+            if not self._hand_over():
+                self._dropped_rows += 1
+                return False
+            index = 0
+        fill(self._block, index, *args)
+        index += 1
+        self._fill = index
+        self._rows_accepted += 1
+        if index == self._block_rows:
+            self._hand_over()  # as in push: the full block goes to the writer now
+        return True
+
     def flush(self) -> bool:
         """Hand the partly filled block to the writer (no I/O, no waiting).
 
@@ -304,6 +342,10 @@ class Recorder:
             self._fill = 0
         self._queue.put(None)
         self._thread.join()
+        # Every block is written (or the writer failed): the memory goes back now, not with the object.
+        self._pool = np.empty((0, self._block_rows, self._n_columns))
+        self._block = np.empty((0, self._n_columns))
+        self._free.clear()
         if self._error is not None:
             raise self._latched()
 

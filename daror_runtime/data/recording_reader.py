@@ -23,7 +23,7 @@ from daror_runtime.data.schema import DQ_COLUMNS, Q_COLUMNS, TAU_CMD_COLUMNS, TA
 from daror_runtime.errors import DataError
 
 #: Rows read at a time when a recording is converted (bounds the extra memory to ~20 MB).
-_CHUNK_ROWS = 100_000
+_CHUNK_ROWS = 20_000  # 3.8 MB of a loop recording per read
 #: A header line longer than this is not a recording header (guards against reading a whole
 #: binary file looking for a newline).
 MAX_HEADER_BYTES = 1 << 20
@@ -128,10 +128,21 @@ def read_recording(path: Path | str, mmap: bool = False) -> tuple[tuple[str, ...
     return info.columns, flat[:whole].reshape(-1, n_columns).astype(np.float64, copy=False)
 
 
+def _read_into(handle: BinaryIO, view: memoryview) -> int:
+    """Fill ``view`` from ``handle``; the bytes read (fewer only at the end of the file)."""
+    done = 0
+    while done < len(view):
+        n = handle.readinto(view[done:])  # type: ignore[attr-defined]
+        if not n:
+            break
+        done += n
+    return done
+
+
 def recording_to_raw_log(
     path: Path | str, mapping: Mapping[str, str] | None = None, drop_nan_rows: bool = False
 ) -> RawLog:
-    """A recording as a raw log (DESIGN.md section 5), checked like a raw-log file.
+    """A recording as a raw log (docs/data.md), checked like a raw-log file.
 
     ``mapping`` names, for a raw-log column (``t``, ``q1``, ...), the recording column that holds
     it when the names differ (``{"t": "time_s"}``); other columns are looked up by their own name.
@@ -178,17 +189,24 @@ def recording_to_raw_log(
     # Stream the rows in chunks into one array per group: only what the raw log keeps is ever
     # held (a 15-minute run at 1 kHz is ~150 MB of recording, ~125 MB of raw log).
     arrays = {group: np.empty((info.n_rows, len(cols))) for group, cols in sources.items()}
+    # A group in consecutive columns (the loop's recordings: every group) is copied as a slice, in
+    # one pass and without the temporary a list index makes.
+    selectors = {
+        group: slice(cols[0], cols[0] + len(cols)) if cols == list(range(cols[0], cols[0] + len(cols))) else cols
+        for group, cols in sources.items()
+    }
     with open(info.path, "rb") as handle:
         handle.seek(info.data_offset)
         n_columns = len(info.columns)
+        chunk = np.empty(_CHUNK_ROWS * n_columns, dtype=DTYPE)  # one buffer, read into chunk after chunk
         for start in range(0, info.n_rows, _CHUNK_ROWS):
             count = min(_CHUNK_ROWS, info.n_rows - start)
-            chunk = np.fromfile(handle, dtype=DTYPE, count=count * n_columns)
-            if chunk.size != count * n_columns:
+            wanted_bytes = count * n_columns * VALUE_BYTES
+            if _read_into(handle, memoryview(chunk).cast("B")[:wanted_bytes]) != wanted_bytes:
                 raise DataError(f"{path}: the recording shrank while it was read")
-            chunk = chunk.reshape(count, n_columns)
-            for group, cols in sources.items():
-                arrays[group][start : start + count] = chunk[:, cols]
+            rows_of_chunk = chunk[: count * n_columns].reshape(count, n_columns)
+            for group, selector in selectors.items():
+                arrays[group][start : start + count] = rows_of_chunk[:, selector]
     rows = np.arange(1, info.n_rows + 1)
     if drop_nan_rows:
         keep = np.ones(info.n_rows, dtype=bool)

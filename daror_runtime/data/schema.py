@@ -1,4 +1,4 @@
-"""Dataset contracts (DESIGN.md section 5). SI units: rad, rad/s, Nm, s. Joints numbered 1-4.
+"""Dataset contracts (docs/data.md). SI units: rad, rad/s, Nm, s. Joints numbered 1-4.
 
 * Raw log: ``t, q1..q4, dq1..dq4, tau1..tau4`` (+ optional ``theta1..4``, ``tau_cmd1..4``); without
   ``dq`` when the data show a log (the velocity is then derived from ``t`` and ``q``).

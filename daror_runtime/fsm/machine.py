@@ -1,6 +1,6 @@
 """The safety machine: a ``transitions`` hierarchical state machine built from an :class:`FsmSpec`.
 
-Events (Appendix A of the thesis; DESIGN.md section 6):
+Events (Appendix A of the thesis; docs/fsm.md):
 
 * ``advance``: to the next state, when the operator asks and every advance guard of the state holds;
 * ``revert``: to the previous state, with the state's revert guards;

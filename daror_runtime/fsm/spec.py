@@ -49,7 +49,7 @@ __all__ = [
     "spec_json_schema",
 ]
 
-#: The spec at the repository root (DESIGN.md section 2).
+#: The spec at the repository root (docs/fsm.md).
 DEFAULT_SPEC_PATH = Path(__file__).resolve().parents[2] / "fsm_spec.yaml"
 SCHEMA_PATH = DEFAULT_SPEC_PATH.with_name("fsm_spec.schema.json")
 

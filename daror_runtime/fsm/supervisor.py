@@ -1,6 +1,6 @@
 """The FSM inside the tick: requests, faults and e-stops in; the controller and the limits out.
 
-Per tick (DESIGN.md section 3), after the safety monitor checked the sample::
+Per tick (docs/loop.md), after the safety monitor checked the sample::
 
     on_tick(sample, faults, monitor):
         faults of this tick  -> fail (same tick), or, in an e-stop test state, recorded as the test

@@ -1,6 +1,6 @@
 """Compare models: the Table III (errors) and Table IV (closed-path energy) of the thesis.
 
-Computes, renders (rich tables for people) and serialises (the JSON of DESIGN.md section 5 for
+Computes, renders (rich tables for people) and serialises (the JSON of docs/models.md for
 machines). ``daror evaluate``, ``daror cvf`` and the demo all go through here.
 """
 
@@ -50,7 +50,7 @@ def evaluate_models(models: Sequence[CompensationModel], data: StationaryDataset
 
 
 def evaluation_document(evaluations: Sequence[Evaluation]) -> dict[str, Any]:
-    """``{"models": [{"name", "kind", "rmse", "nrmse", "rmse_per_joint": [4]}]}`` (DESIGN.md section 5)."""
+    """``{"models": [{"name", "kind", "rmse", "nrmse", "rmse_per_joint": [4]}]}`` (docs/models.md)."""
     return {
         "models": [
             {

@@ -1,4 +1,4 @@
-"""Model files: self-describing JSON (DESIGN.md section 5), written atomically, checked on load.
+"""Model files: self-describing JSON (docs/data.md, "Model files"), written atomically, checked on load.
 
 A model file holds everything needed to run the model without anything else: its kind, the
 format version, its parameters, the full robot description it was fitted for (the regressor

@@ -10,5 +10,5 @@ package turns that list into a tool:
 * :mod:`.diagnosis`: rank the candidates, add the best while the evidence holds, and say what
   structure remains that no family explains;
 * :mod:`.model`: the augmented model, an ordinary model file the runtime can run in the loop;
-* :mod:`.report`: ``summary.json`` (DESIGN.md section 5), a readable report and its plots.
+* :mod:`.report`: ``summary.json`` (docs/residual.md), a readable report and its plots.
 """

@@ -1,6 +1,6 @@
 """What ``daror residual`` writes into its output folder.
 
-* ``summary.json``: exactly the document of DESIGN.md section 5 (other code reads it);
+* ``summary.json``: exactly the document of docs/residual.md, "summary.json" (other code reads it);
 * ``diagnosis.json``: everything behind it (every round's candidates and their evidence, the
   residual's correlates, the settings), for a person who wants to check the decision;
 * ``report.md``: the readable report: before/after RMSE and nRMSE per joint on the
@@ -49,7 +49,7 @@ SUMMARY_KEYS = (
 
 
 def summary_document(diagnosis: Diagnosis, result: Closure) -> dict[str, Any]:
-    """``DIR/summary.json`` as DESIGN.md section 5 specifies; all RMSE figures on the validation file."""
+    """``DIR/summary.json`` as docs/residual.md specifies; all RMSE figures on the validation file."""
     return {
         "base_model": diagnosis.base_kind,
         "rmse_before": result.before.rmse_nm,

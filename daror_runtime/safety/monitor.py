@@ -1,6 +1,6 @@
 """The safety monitor: checks every sample, latches faults, and filters every command.
 
-Per tick (DESIGN.md section 3)::
+Per tick (docs/loop.md)::
 
     faults = monitor.check(sample)          # new faults of this tick (also latched)
     ...                                     # the FSM routes faults to FAIL (issue 4)
@@ -22,12 +22,14 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import structlog
+from numba import types
 
 from daror_runtime.errors import ConfigurationError
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.kernels import command_status, signals_in_bounds
 from daror_runtime.safety.limits import SafetyLimits
-from hal.interface import Command, DriveState, Sample
+from hal.interface import TORQUE_OFF, CheckedCommand, CheckedSample, Command, DriveState, Sample
+from hal.kernels import SAMPLE_VECTOR, entry_point
 from hal.robot import N_JOINTS, FloatArray
 
 log = structlog.get_logger(__name__)
@@ -35,6 +37,12 @@ log = structlog.get_logger(__name__)
 IsbFunction = Callable[[FloatArray], FloatArray]
 #: New fault occurrences kept in :attr:`SafetyMonitor.recent` for whoever announces them.
 RECENT_FAULTS = 64
+
+#: What :func:`signals_in_bounds` is resolved for: a checked sample's q, dq, tau, theta, then the
+#: monitor's own memory and bounds (float64 vectors it makes itself).
+IN_BOUNDS_SIGNATURE = (SAMPLE_VECTOR,) * 4 + (types.float64[::1],) * 3
+#: What :func:`command_status` is resolved for: a checked command's torque, the monitor's own limit.
+STATUS_SIGNATURE = (SAMPLE_VECTOR, types.float64[::1])
 
 #: Order of the signal groups in the vector the fast path checks.
 _GROUPS = (
@@ -66,6 +74,7 @@ class SafetyMonitor:
         self._previous = np.zeros(2 * (N_JOINTS + 1))  # last finite q (4), a "seen one" flag, and their values before
         self._previous_seq: int | None = None
         self._same_seq = 0
+        self._fault_free_drives: tuple[DriveState, ...] | None = None
         #: Every new fault occurrence since the monitor was made: a count and the latest ones (for
         #: announcing them outside the tick; the tick only appends).
         self.occurrences = 0
@@ -74,6 +83,10 @@ class SafetyMonitor:
         # Load the compiled kernels now: the first enabled command would otherwise load one inside
         # a tick (4 ms measured: the first tick of a torque mode missed its deadlines).
         command_status(np.zeros(N_JOINTS), np.ones(N_JOINTS))
+        # A CheckedSample's arrays go to this entry point (no type dispatch); any other sample's
+        # through the dispatcher, which checks and, for a new type, compiles.
+        self._in_bounds_checked = entry_point(signals_in_bounds, IN_BOUNDS_SIGNATURE)
+        self._status_checked = entry_point(command_status, STATUS_SIGNATURE)  # a CheckedCommand's torque
         for readonly in (True, False):  # numba compiles per array type: a HAL's read-only arrays and plain ones
             zeros = np.zeros(N_JOINTS)
             zeros.flags.writeable = not readonly
@@ -86,6 +99,10 @@ class SafetyMonitor:
         if isb_angles is not None:
             self._isb_angles = isb_angles
         self.limits = limits
+        # Read every tick: kept as plain attributes (replaced only here, between ticks).
+        self._isb_on = limits.isb is not None
+        self._command_limit = np.ascontiguousarray(limits.command_limit_nm, dtype=np.float64)
+        # float64 vectors made here: the types the kernel's entry point was resolved for.
         self._lower = np.concatenate(
             [
                 limits.joint_lower_rad,
@@ -93,7 +110,8 @@ class SafetyMonitor:
                 -limits.max_spring_torque_nm,
                 np.full(N_JOINTS, -limits.max_deflection_rad),
                 np.full(N_JOINTS, -limits.max_jump_rad),
-            ]
+            ],
+            dtype=np.float64,
         )
         self._upper = np.concatenate(
             [
@@ -102,7 +120,8 @@ class SafetyMonitor:
                 limits.max_spring_torque_nm,
                 np.full(N_JOINTS, limits.max_deflection_rad),
                 np.full(N_JOINTS, limits.max_jump_rad),
-            ]
+            ],
+            dtype=np.float64,
         )
         if limits.isb is not None:
             if self._isb_angles is None:
@@ -169,11 +188,28 @@ class SafetyMonitor:
 
     def check(self, sample: Sample) -> list[Fault]:
         """Check one sample; returns the faults that appeared with it (already latched)."""
-        found: dict[tuple[FaultKind, int | None], Fault] = {}
         previous = self._previous  # the kernel updates it: the angles of the last finite sample
-        in_bounds = signals_in_bounds(
+        in_bounds = (self._in_bounds_checked if type(sample) is CheckedSample else signals_in_bounds)(
             sample.q_rad, sample.dq_rad_s, sample.tau_nm, sample.theta_rad, previous, self._lower, self._upper
         )
+        seq = sample.seq
+        drives = sample.drives
+        if (
+            in_bounds
+            and not self._isb_on
+            and seq != self._previous_seq
+            and not self._present
+            and True not in sample.estop
+            and (drives is self._fault_free_drives or self._drives_fault_free(drives))
+        ):
+            # The common case, decided without building anything: every signal in bounds, no ISB
+            # limits to check, a fresh sample, no e-stop, no drive fault, and no condition held at
+            # the previous check (so nothing to latch or to clear). The same outcome as the full
+            # path below: the stale count restarts and no fault appears.
+            self._same_seq = 0
+            self._previous_seq = seq
+            return []  # a fresh list: the loop appends the tick's other faults to it
+        found: dict[tuple[FaultKind, int | None], Fault] = {}
         if not in_bounds:
             self._diagnose(sample, found, previous[5:9] if previous[9] > 0.0 else None)
         elif self.limits.isb is not None:
@@ -201,22 +237,34 @@ class SafetyMonitor:
                         FaultKind.DRIVE, sample.t_s, f"drive {j} reports a fault (code 0x{code:04x})", joint=j
                     )
         self._previous_seq = sample.seq
-        if not found and not self._present:  # the common case: nothing to latch or clear
+        if not found and not self._present:  # nothing to latch or clear
             return []  # a fresh list: the loop appends the tick's other faults to it
         return self._raise_edge(found)
+
+    def _drives_fault_free(self, drives: tuple[DriveState, ...]) -> bool:
+        """True if no drive reports FAULT; remembers the last fault-free tuple, so a backend that
+        hands out the same tuple every tick (an immutable one: only a ``tuple`` is remembered) is
+        checked by identity."""
+        if drives is self._fault_free_drives:
+            return True
+        if DriveState.FAULT in drives:
+            return False
+        if type(drives) is tuple:
+            self._fault_free_drives = drives
+        return True
 
     def filter(self, command: Command, sample: Sample | None) -> Command:
         """The command that may reach the drives: off while faulted or an e-stop is pressed, else clipped."""
         if self._latched or sample is None or True in sample.estop or not command.enable:
-            return Command.torque_off()
+            return TORQUE_OFF
         torque = command.motor_torque_nm
-        limit = self.limits.command_limit_nm
-        status = command_status(torque, limit)
+        limit = self._command_limit
+        status = (self._status_checked if type(command) is CheckedCommand else command_status)(torque, limit)
         if status == 0:  # the common case: the controller's own command, untouched
             return command
         if status < 0:
             self.report(FaultKind.SOFTWARE, sample.t_s, f"controller produced a non-finite torque {torque.tolist()}")
-            return Command.torque_off()
+            return TORQUE_OFF
         return Command(np.clip(torque, -limit, limit), True)
 
     # --- internals ------------------------------------------------------------------------

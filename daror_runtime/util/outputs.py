@@ -67,6 +67,22 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
+def _stat(path: Path, expected: str) -> os.stat_result | None:
+    """``path``'s status, None when it does not exist or a parent is the problem (named by the caller).
+
+    Raises:
+        OutputPathError: ``path`` is a symbolic link loop.
+    """
+    try:
+        return path.stat()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise OutputPathError(f"{path}: a symbolic link loop; expected {expected}") from None
+        return None  # a parent problem: named by the caller
+
+
 def check_output_file(path: Path | str, *inputs: Path | str | None) -> Path:
     """``path`` if a file can be written there (atomically: temp file, then rename); nothing is created.
 
@@ -77,14 +93,7 @@ def check_output_file(path: Path | str, *inputs: Path | str | None) -> Path:
     path = Path(path)
     if path.name in ("", ".", ".."):
         raise OutputPathError(f"{path}: not a file name; expected a path to a file")
-    try:
-        info = path.stat()
-    except FileNotFoundError:
-        info = None
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise OutputPathError(f"{path}: a symbolic link loop; expected a path to a file") from None
-        info = None  # a parent problem: named below
+    info = _stat(path, "a path to a file")
     if info is not None and stat.S_ISDIR(info.st_mode):
         raise OutputPathError(f"{path}: is a directory; expected a path to a file")
     if info is not None and not stat.S_ISREG(info.st_mode):
@@ -107,14 +116,7 @@ def check_output_dir(path: Path | str, *inputs: Path | str | None) -> Path:
             command writes is the command's own business (checked by it).
     """
     path = Path(path)
-    try:
-        info = path.stat()
-    except FileNotFoundError:
-        info = None
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise OutputPathError(f"{path}: a symbolic link loop; expected a folder") from None
-        info = None
+    info = _stat(path, "a folder")
     if info is not None:
         if not stat.S_ISDIR(info.st_mode):
             raise OutputPathError(f"{path}: is a file; expected a folder")

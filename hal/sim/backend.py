@@ -37,7 +37,7 @@ import numpy as np
 
 from hal.capabilities import FAULT_KINDS, FaultKind
 from hal.errors import DescriptionError, HalError, HalNotOpenError, InputError, ShapeError
-from hal.interface import Command, DriveState, Hal, HalFaultError, Sample
+from hal.interface import CheckedCommand, CheckedSample, Command, DriveState, Hal, HalFaultError, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 from hal.sim import dynamics
 from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
@@ -56,10 +56,13 @@ STREAM_SIM_ENCODERS = 6
 #: Fault code a drive reports for an injected ``drive_fault`` without a value (CiA 301 "generic error").
 DEFAULT_DRIVE_FAULT_CODE = 0x1000
 
-_DQ = slice(2 * N_JOINTS, 3 * N_JOINTS)
+_DQ = slice(2 * N_JOINTS, 3 * N_JOINTS)  # q' in the plant state [q, theta, q', theta']
 _FLOAT64 = np.dtype(np.float64)
 _JOINT_SHAPE = (N_JOINTS,)
-_hal_tick = dynamics.hal_tick  # one attribute lookup less per tick  # q' in the plant state [q, theta, q', theta']
+#: Ticks of readings per block (:meth:`SimHal._new_block`): 256 ticks of 4 x 4 float64 are 32 kB.
+_BLOCK_TICKS = 256
+_BLOCK_ROWS = 4 * _BLOCK_TICKS
+_new_tuple = tuple.__new__  # builds the Sample without the NamedTuple's Python-level __new__ (every tick)
 
 #: The pilot pushing: f(t_s, q_true_rad, dq_true_rad_s) -> (4,) external torque on the links, Nm.
 ExternalTorque = Callable[[float, FloatArray, FloatArray], FloatArray]
@@ -138,6 +141,9 @@ class SimHal(Hal):
         self._no_fault_codes = (0,) * N_JOINTS
         self._is_open = False
         self._world: PlantWorld | None = None
+        # The plant's own arrays, which the tick kernel integrates in place (DynamicPlant never replaces them).
+        self._x, self._p, self._work = self._plant.state, self._plant.params, self._plant.work
+        self._tick_kernel = dynamics.hal_tick_entry()
         self._reset_session()
         self._load_kernel()
 
@@ -225,48 +231,44 @@ class SimHal(Hal):
         """
         if not self._is_open:
             raise HalNotOpenError("simulated HAL is not open; call open() first")
-        if command.enable:
+        enable = command.enable is True or bool(command.enable)
+        if enable:
             torque = command.motor_torque_nm
-            # The common case (a float64 (4,) array) passes two identity tests; anything else is
-            # converted, and a wrong shape refused, before it reaches the compiled kernel.
-            if type(torque) is not np.ndarray or torque.dtype is not _FLOAT64:
-                torque = np.ascontiguousarray(torque, dtype=np.float64)
-            if torque.shape != _JOINT_SHAPE:
-                self._flush_commands()
-                self._drives = self._drive_states(False)
-                self._refused()
-                raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")
+            # A CheckedCommand's torque is a float64 ndarray of shape (4,); any other torque is
+            # converted, and a wrong shape refused, before it reaches the compiled kernel. After these
+            # lines the torque is of the type the kernel's entry point was resolved for
+            # (dynamics.HAL_TICK_SIGNATURE; the entry point checks no types itself).
+            if type(command) is not CheckedCommand:
+                torque = self._checked_torque(torque)
         else:
             torque = self._zero_torque  # torque off whatever the command carries
-        external = self._external
-        if external is not None and callable(external):
-            state = self._plant.state
-            value = external(self._tick * self._dt, state[:N_JOINTS].copy(), state[_DQ].copy())
-            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = joint_vector(
-                value, "external torque"
-            )
-        readings = np.empty((4, N_JOINTS))
-        plant = self._plant
-        enable = command.enable is True or bool(command.enable)
-        status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
-        if status == dynamics.TICK_NO_NOISE:  # every NOISE_BLOCK_TICKS ticks
-            self._refill_noise()
-            status = _hal_tick(plant.state, plant.params, plant.work, self._drive_vector, torque, enable, readings)
+        if self._external is not None:
+            self._external_inputs()
+        row = self._row + 4  # this tick's readings go to the next four rows of the block
+        if row == _BLOCK_ROWS:
+            row = self._new_block()
+        status = self._tick_kernel(self._x, self._p, self._work, self._drive_vector, torque, enable, self._out, row)
         if status < 0:
-            self._drives = self._drive_states(False)
-            self._refused()
-            if status == dynamics.TICK_BAD_COMMAND:
-                raise HalError(f"motor_torque_nm = {torque.tolist()} is not finite; torque removed")
-            raise HalError(
-                f"simulated plant diverged at t = {self._tick * self._dt:.6f} s (scenario {self.scenario.name!r}); "
-                "torque removed"
-            )
+            if status == dynamics.TICK_NO_NOISE:  # every NOISE_BLOCK_TICKS ticks
+                self._refill_noise()
+                status = self._tick_kernel(
+                    self._x, self._p, self._work, self._drive_vector, torque, enable, self._out, row
+                )
+            if status < 0:
+                self._drives = self._drive_states(False)
+                self._refused()
+                if status == dynamics.TICK_BAD_COMMAND:
+                    raise HalError(f"motor_torque_nm = {torque.tolist()} is not finite; torque removed")
+                raise HalError(
+                    f"simulated plant diverged at t = {self._tick * self._dt:.6f} s "
+                    f"(scenario {self.scenario.name!r}); torque removed"
+                )
         if self._any_fault:
             self._drives = self._drive_states(status == dynamics.TICK_ENABLED)
         else:
             self._drives = self._enabled_drives if status == dynamics.TICK_ENABLED else self._disabled_drives
         self._tick += 1
-        self._readings = readings
+        self._row = row
         if self._stale_left > 0:
             self._stale_left -= 1
             self._sample = self._stale_sample
@@ -430,18 +432,62 @@ class SimHal(Hal):
         self._stale_sample: Sample | None = None
         self._bus_fault = False
         self._refill_noise()
-        self._readings = np.empty((4, N_JOINTS))
-        dynamics.sense(self._plant.state, self._drive_vector, self._readings)
+        self._new_block()
+        dynamics.sense(self._plant.state, self._drive_vector, self._out, 0)
         self._sample: Sample | None = None
 
+    def _new_block(self) -> int:
+        """Start a new block of readings; returns the first row free for a tick's readings.
+
+        The tick kernel writes each tick's four rows (q, dq, theta, tau) into the next free rows of a
+        block that only this backend can write (``_out``); a sample's arrays are rows of a read-only
+        view of the same memory (``_view``, over a read-only buffer, so they cannot be made writable
+        either). Rows are never written again once a sample may show them: the samples stay records,
+        with no array allocated and no flag changed per tick. The newest readings (rows
+        ``_row.._row + 3``, those of the current sample) are copied to rows 0-3 of the new block, so
+        they are always at ``_row`` of ``_out``.
+        """
+        out = np.empty((_BLOCK_ROWS, N_JOINTS))
+        previous = getattr(self, "_out", None)
+        if previous is not None:
+            out[0:4] = previous[self._row : self._row + 4]
+        self._out = out
+        self._view = np.frombuffer(memoryview(out).toreadonly(), dtype=np.float64).reshape(out.shape)
+        self._row = 0
+        return 4
+
     def _load_kernel(self) -> None:
-        """Run the tick kernel once on copies (numba loads a compiled kernel at its first call: 13 ms,
-        which must not happen inside the loop's first tick)."""
-        plant = self._plant
-        _hal_tick(
-            plant.state.copy(), plant.params, dynamics.new_work(), self._drive_vector.copy(),
-            np.zeros(N_JOINTS), True, np.empty((4, N_JOINTS)),
+        """Run the tick kernel once on copies (the entry point is resolved in ``__init__``; this
+        first call touches the compiled code and its data, so the loop's first tick does not)."""
+        self._tick_kernel(
+            self._x.copy(), self._p, dynamics.new_work(), self._drive_vector.copy(), np.zeros(N_JOINTS), True,
+            np.empty((4, N_JOINTS)), 0,
         )  # fmt: skip
+
+    def _checked_torque(self, torque: object) -> FloatArray:
+        """An enabled command's torque as a float64 ndarray of shape (4,), or refused (torque removed first).
+
+        Raises:
+            ShapeError: the torque is not of shape (4,).
+        """
+        if type(torque) is not np.ndarray or torque.dtype is not _FLOAT64:  # type: ignore[attr-defined]
+            torque = np.ascontiguousarray(torque, dtype=np.float64)
+        if torque.shape != _JOINT_SHAPE:  # type: ignore[attr-defined]
+            self._flush_commands()
+            self._drives = self._drive_states(False)
+            self._refused()
+            raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {torque.shape}")  # type: ignore[attr-defined]
+        return torque  # type: ignore[return-value]
+
+    def _external_inputs(self) -> None:
+        """Evaluate a callable external torque (the pilot) for this tick into the drive vector."""
+        external = self._external
+        if callable(external):
+            state = self._plant.state
+            value = external(self._tick * self._dt, state[:N_JOINTS].copy(), state[_DQ].copy())
+            self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = joint_vector(
+                value, "external torque"
+            )
 
     def _refill_noise(self) -> None:
         # Sequential blocks of one generator: the numbers do not depend on the block size.
@@ -453,9 +499,17 @@ class SimHal(Hal):
         dynamics.flush_commands(self._drive_vector)
 
     def _refused(self) -> None:
-        """A command was refused (torque removed): the tick's sample is built again with the drives' new state."""
+        """A command was refused (torque removed): the tick's sample is built again with the drives' new state.
+
+        The new sample shows the same readings from rows of its own (a pending NaN is written into
+        them), so the old sample's arrays stay as they were.
+        """
         if self._stale_left == 0:
-            self._readings = self._readings.copy()  # the old sample's arrays stay as they were (read-only)
+            row = self._row + 4
+            if row == _BLOCK_ROWS:
+                row = self._new_block()
+            self._out[row : row + 4] = self._out[self._row : self._row + 4]
+            self._row = row
             self._sample = None
 
     def _drive_states(self, enabled: bool) -> tuple[DriveState, ...]:
@@ -468,16 +522,21 @@ class SimHal(Hal):
         )
 
     def _build_sample(self) -> Sample:
-        readings = self._readings
-        if self._nan_pending:
-            readings[0, self._nan_pending] = np.nan
+        row = self._row
+        if self._nan_pending:  # written before any sample shows these rows
+            self._out[row, self._nan_pending] = np.nan
             self._nan_pending = []
-        readings.flags.writeable = False  # a sample is a record: nobody may change it afterwards
-        q, dq, theta, tau = readings[0], readings[1], readings[2], readings[3]  # indexing beats unpacking here
-        # Positional: Sample(seq, t_s, q, dq, theta, tau, estop, drives, fault codes); this runs every tick.
-        return Sample(
-            self._tick, self._tick * self._dt, q, dq, theta, tau, self._estop, self._drives, self._fault_codes
-        )
+        view = self._view  # read-only: a sample is a record, nobody may change it afterwards
+        tick = self._tick
+        # Sample(seq, t_s, q, dq, theta, tau, estop, drives, fault codes), every field given, in order;
+        # tuple.__new__ because this runs every tick (the NamedTuple's __new__ is a Python function). A
+        # CheckedSample without its check: its arrays are rows of a float64 (n, 4) array, so they are
+        # float64 vectors of 4 by construction (tests/test_kernel_entry_points.py checks every kind of sample).
+        return _new_tuple(
+            CheckedSample,
+            (tick, tick * self._dt, view[row], view[row + 1], view[row + 2], view[row + 3], self._estop,
+             self._drives, self._fault_codes),
+        )  # fmt: skip
 
 
 def _number(value: object) -> float | None:

@@ -36,9 +36,10 @@ Units: rad, rad/s, Nm, kg, m, kg m^2, s.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 from hal.errors import DescriptionError, ShapeError
 from hal.robot import N_JOINTS, FloatArray
@@ -691,10 +692,11 @@ def noise_left(s: FloatArray) -> bool:
 
 
 @_kernel
-def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
+def sense(x: FloatArray, s: FloatArray, out: FloatArray, row: int) -> bool:
     """Read both encoders of every joint; update the drives' state in ``s``; readings into ``out``.
 
-    ``out`` (4, 4): rows q, velocity estimate, theta, measured torque. Uses the next
+    ``out[row:row + 4]`` (4 rows of 4): q, velocity estimate, theta, measured torque (``out`` is
+    a block of readings, so the backend needs no new array per tick). Uses the next
     NOISE_PER_TICK numbers of the noise block; returns False (nothing read) if it is used up.
     The reading is taken at robot time ``s[S_TICK] * s[S_DT]`` (the torque drift grows with it).
 
@@ -742,10 +744,10 @@ def sense(x: FloatArray, s: FloatArray, out: FloatArray) -> bool:
         if offset != 0.0:
             q += offset
             theta += offset
-        out[0, j] = q
-        out[1, j] = s[S_VELOCITY + j]
-        out[2, j] = theta
-        out[3, j] = tau
+        out[row, j] = q
+        out[row + 1, j] = s[S_VELOCITY + j]
+        out[row + 2, j] = theta
+        out[row + 3, j] = tau
     s[S_STARTED] = 1.0
     s[S_NOISE_INDEX] += NOISE_PER_TICK
     return True
@@ -764,9 +766,16 @@ def flush_commands(s: FloatArray) -> None:
 
 @_kernel
 def hal_tick(
-    x: FloatArray, p: FloatArray, work: FloatArray, s: FloatArray, torque: FloatArray, enable: bool, out: FloatArray
+    x: FloatArray,
+    p: FloatArray,
+    work: FloatArray,
+    s: FloatArray,
+    torque: FloatArray,
+    enable: bool,
+    out: FloatArray,
+    row: int,
 ) -> int:
-    """One tick of the drives and the plant; readings of the new plant time into ``out``.
+    """One tick of the drives and the plant; readings of the new plant time into ``out[row:row + 4]``.
 
     Queues the command (an enabled one acts ``fifo length - 1`` ticks later; a disabled one
     empties the FIFO and acts now), removes the torque of faulted drives, integrates one RK4
@@ -807,5 +816,34 @@ def hal_tick(
     # Counted before reading: the reading belongs to the new plant time, tick + 1 ticks in
     # (sense takes its time stamp from S_TICK; the backend's sample says t_s = (tick + 1) dt).
     s[S_TICK] = tick + 1
-    sense(x, s, out)
+    sense(x, s, out, row)
     return TICK_ENABLED if on else TICK_DISABLED
+
+
+#: The numba types :func:`hal_tick` is resolved for (:func:`hal_tick_entry`): the plant's and the
+#: drives' own arrays (float64, 1-D, C order, written by the kernel), the commanded torque as any
+#: read-only float64 vector (the kernel never writes it: a read-only view of any 1-D float64 array,
+#: whatever its strides, is an instance of this type), the enable flag, the block of readings and
+#: the first row of this tick's four.
+HAL_TICK_SIGNATURE = (
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.Array(types.float64, 1, "A", readonly=True),
+    types.boolean,
+    types.float64[:, ::1],
+    types.intp,
+)
+
+
+def hal_tick_entry() -> Callable[..., int]:
+    """:func:`hal_tick`'s compiled entry point for :data:`HAL_TICK_SIGNATURE` (loaded or compiled once).
+
+    Calling the entry point skips the dispatcher's type resolution (7 arrays: ~0.25 us a tick) and,
+    unlike the dispatcher, checks no argument type: numba only checks that each array argument is
+    an ndarray of 8-byte items. The caller therefore guarantees the types: its own arrays are
+    made with them, and the commanded torque is checked to be a float64 ndarray of shape (4,)
+    before the call (``hal.sim.backend.SimHal.write``; ``tests/test_kernel_entry_points.py`` checks both).
+    """
+    return hal_tick.compile(HAL_TICK_SIGNATURE)

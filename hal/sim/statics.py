@@ -1,6 +1,6 @@
 """Static physics of the simulated plant: potential energy and holding torque.
 
-This is the simulator's own code path (DESIGN.md section 2): gravity comes from the world
+This is the simulator's own code path (docs/architecture.md, "Three implementations of gravity"): gravity comes from the world
 positions of point masses and their geometric Jacobians, never from the PLF regressor of the
 modelling code. A test checks that the two agree on noise-free data (thesis Sec. 3.4 / 4.4.2).
 

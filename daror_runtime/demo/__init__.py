@@ -1,6 +1,6 @@
 """``daror demo``: a full simulated session, then the modelling pipeline, with a report.
 
-Part 1 (:mod:`daror_runtime.session.rehearsal`): a session on the simulated plant with the Dummy
+Part 1 (:mod:`daror_runtime.demo.rehearsal`): a session on the simulated plant with the Dummy
 Arm, start to compensation through every state of ``fsm_spec.yaml``, driven by the packaged
 console script; the report lists the transitions, the identification, the model's validation and
 what the robot carries once the pilot relaxes.
@@ -27,6 +27,7 @@ from rich.table import Table
 
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.demo.rehearsal import SessionReport
 from daror_runtime.errors import DarorError
 from daror_runtime.models.compare import (
     THESIS_TABLE_III,
@@ -40,7 +41,6 @@ from daror_runtime.models.compare import (
 )
 from daror_runtime.models.files import save_model, training_summary
 from daror_runtime.models.registry import fit_model, installation_options
-from daror_runtime.session.rehearsal import SessionReport
 from daror_runtime.util.atomic import write_text_atomic
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
@@ -191,7 +191,7 @@ def _close_the_loop(session: SessionReport, out: Path, console: Console) -> str:
 
 def run_demo(out: Path, console: Console) -> dict[str, Any]:
     """Run the demo into ``out``; returns the summary written to ``out/summary.json``."""
-    from daror_runtime.session.rehearsal import rehearse
+    from daror_runtime.demo.rehearsal import rehearse
 
     out.mkdir(parents=True, exist_ok=True)
     log.info("demo started", out=str(out))

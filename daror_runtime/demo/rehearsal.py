@@ -75,7 +75,7 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
     transitions: list[dict[str, Any]] = []
 
     def record(state: Any, outcome: Outcome) -> None:
-        sample = runtime.signals.sample
+        sample = runtime.last_sample
         transitions.append(
             {
                 "t_s": round(sample.t_s, 3) if sample is not None else None,
@@ -85,17 +85,17 @@ def rehearse(directory: Path, console: Console, scenario_name: str = "exo_dummy_
             }
         )
 
-    runtime.supervisor.listeners.append(record)
+    runtime.on_transition(record)
     runtime.open()
     try:
-        world = SimWorld(hal)
+        world = SimWorld(runtime.world)
         session = ConsoleSession(runtime, console, world)
         script = session_script()
         run_script(session, script, check_lines(read_script(script), str(script), session.context))
         holding, unsupported = _support_figures(runtime, world)
         report = SessionReport(
             runtime.session_id,
-            runtime.supervisor.state_name,
+            runtime.state_name,
             transitions,
             runtime.status(),
             holding,
@@ -121,7 +121,7 @@ def _support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) ->
         pilot.append(pilot_nm)
         return False
 
-    runtime.run_ticks(round(seconds * runtime.hal.rate_hz), stop=sample)
+    runtime.run_ticks(round(seconds * runtime.rate_hz), stop=sample)
     return (
         [float(v) for v in np.mean(holding, axis=0)],
         [float(v) for v in np.sqrt(np.mean(np.square(pilot), axis=0))],

@@ -1,0 +1,181 @@
+"""What a session is made of: the parts behind :class:`daror_runtime.runtime.Runtime`, wired once.
+
+The runtime is a narrow facade (the operator's requests, a typed status, the loop's lifecycle);
+everything it drives lives here, in one :class:`SessionCore` that the request handlers
+(:mod:`.requests`) and the status (:mod:`.snapshot`) work on. Nothing outside ``session/`` and the
+runtime reaches into it: the console talks to the facade only (tests/test_boundaries.py).
+
+Threads: the core's parts are changed by the tick (the supervisor, the monitor, the signals, the
+modes) and, between ticks, by request handlers that the supervisor applies at a tick boundary;
+jobs (:mod:`.jobs`) hand their results back through such requests. Nothing here blocks the tick.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from daror_runtime.clocks import Clock, check_clock, clock_for
+from daror_runtime.errors import InputError
+from daror_runtime.fsm.signals import SessionSignals
+from daror_runtime.fsm.spec import FsmSpec, load_fsm_spec
+from daror_runtime.fsm.supervisor import FsmSupervisor, Response
+from daror_runtime.loop import ControlLoop
+from daror_runtime.models.linear import APModel
+from daror_runtime.safety.limits import SafetyLimits
+from daror_runtime.safety.monitor import SafetyMonitor
+from daror_runtime.session.controllers import ModeControllers, build_mode_controllers
+from daror_runtime.session.events import AnnouncementKind, Announcements
+from daror_runtime.session.identification import abandon_run
+from daror_runtime.session.jobs import Jobs
+from daror_runtime.session.rom import RomEnvelope
+from daror_runtime.session.settings import SessionSettings
+from hal.interface import Hal
+from hal.isb import Shoulder, monitor_isb_function
+from hal.robot import RobotDescription
+
+log = structlog.get_logger(__name__)
+
+
+class RequestRefusedError(InputError):
+    """A request the runtime refuses before queueing it (wrong state, missing data); the message says why."""
+
+
+@dataclass
+class Progress:
+    """What the operator sees of background work (written by jobs and request handlers)."""
+
+    last_error: str | None = None
+    last_identification: dict[str, Any] | None = None
+    last_model: dict[str, Any] | None = None
+    last_model_refused: dict[str, Any] | None = None
+
+
+class SessionCore:
+    """One session's parts on one HAL: FSM, safety monitor, controllers, loop, jobs, announcements.
+
+    Args:
+        hal: the backend (not opened yet).
+        session_dir: where the session's data, models and summary go.
+        spec: the FSM spec (default: ``fsm_spec.yaml``, loaded and checked).
+        settings: session settings.
+        clock: default lock-step at the HAL's rate on a backend that owns its time
+            (``hal.virtual_time``), real time otherwise.
+        session_id: tags every log event of the session (default: a new random id).
+
+    Raises:
+        LockStepRefusedError: a virtual clock on a backend that does not own its time (hardware).
+        FsmSpecError: the default spec does not load.
+        ConfigurationError: the spec names a mode that has no controller.
+    """
+
+    def __init__(
+        self,
+        hal: Hal,
+        session_dir: Path | str,
+        spec: FsmSpec | None = None,
+        settings: SessionSettings | None = None,
+        clock: Clock | None = None,
+        session_id: str | None = None,
+    ) -> None:
+        self.spec = spec if spec is not None else load_fsm_spec()
+        self.settings = settings or SessionSettings()
+        self.hal = hal
+        self.session_dir = Path(session_dir)
+        self.session_id = session_id or uuid.uuid4().hex[:12]
+        self.dt_s = 1.0 / hal.rate_hz
+        self.clock = clock if clock is not None else clock_for(hal, self.dt_s)
+        check_clock(self.clock, hal)  # lock-step only on a backend that owns its time
+        self.lock_step = self.clock.virtual
+        description: RobotDescription = hal.description
+        self.description = description
+        self.shoulder = Shoulder.from_description(description)
+        for readonly in (True, False):  # loaded now, not in the tick that first records or checks ISB angles
+            q = np.zeros(4)
+            q.flags.writeable = not readonly
+            self.shoulder.isb_single(q)
+        self.a_priori = APModel.from_description(description, self.settings.dummy_arm, self.settings.dummy_arm)
+        self.modes: ModeControllers = build_mode_controllers(
+            description,
+            feedforward=self.a_priori,
+            compensation_model=None,  # none until one is approved for this pilot
+            dt_s=self.dt_s,
+            support_level=self.settings.support_level,
+            support_ramp_per_s=self.settings.support_ramp_per_s,
+            handover_tolerance_nm=self.settings.handover_tolerance_nm,
+        )
+        device = SafetyLimits.from_description(description)
+        self.monitor = SafetyMonitor(device.for_state(0.0, float(device.max_velocity_rad_s.max())))
+        self.signals = SessionSignals(at_rest_rad_s=self.settings.at_rest_rad_s)
+        self.supervisor = FsmSupervisor(
+            self.spec,
+            self.monitor,
+            device,
+            self.modes.by_mode(),
+            self.signals,
+            isb_function=lambda limits: monitor_isb_function(self.shoulder, limits),
+            isb_margin_rad=float(np.deg2rad(self.settings.isb_margin_deg)),
+        )
+        self.loop = ControlLoop(hal, self.monitor, self.supervisor, self.clock)
+        self.announcements = Announcements()
+        self.jobs = Jobs(threaded=not self.lock_step, on_failure=self.job_failed)
+        self.progress = Progress()
+        self.rom: RomEnvelope | None = None  # the range of motion being recorded
+        self.collecting = False  # a finished identification run's data are being saved
+        self.faults_announced = 0  # fault occurrences announced so far
+        self.supervisor.listeners.append(self.state_changed)
+
+    def t_s(self) -> float | None:
+        """Robot time of the last sample (s), None before the first."""
+        sample = self.signals.sample
+        return sample.t_s if sample is not None else None
+
+    def refuse(self, request: str, reason: str) -> Response:
+        """A logged refusal of ``request`` at a tick boundary."""
+        log.warning("refused", request=request, state=self.supervisor.state_name, reason=reason, t_s=self.t_s())
+        return Response(request, False, self.supervisor.state_name, reason)
+
+    def job_failed(self, name: str, exc: BaseException) -> None:
+        self.announcements.announce(AnnouncementKind.JOB_FAILED, f"{name} failed: {exc}", self.t_s())
+
+    def announce_new_faults(self) -> None:
+        """Between ticks: announce the fault occurrences the monitor latched since the last call."""
+        monitor = self.monitor
+        new = monitor.occurrences - self.faults_announced
+        if new <= 0:
+            return
+        self.faults_announced = monitor.occurrences
+        for fault in list(monitor.recent)[-min(new, len(monitor.recent)) :]:
+            self.announcements.announce(AnnouncementKind.FAULT, f"{fault.kind.value}: {fault.message}", fault.t_s)
+
+    def state_changed(self, state: Any, outcome: Any) -> None:
+        """In the tick (a transition): announce it, stop what belonged to the state left; never blocks."""
+        if state.name == self.spec.fail.name:
+            text = f"{outcome.source} -> {state.name}: torque off ({outcome.event.value})"
+        else:
+            text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
+        self.announcements.announce(AnnouncementKind.TRANSITION, text, self.t_s())
+        run = self.modes.identification.run
+        if run is not None and state.mode != "identification":
+            self.abandon_run(f"{outcome.event.value} to {state.name}")
+        if self.rom is not None:
+            if self.loop.recorder is self.rom:
+                self.loop.recorder = None
+            self.rom = None
+            log.warning("range of motion recording discarded", reason=f"{outcome.event.value} to {state.name}")
+
+    def abandon_run(self, reason: str) -> None:
+        """The identification run under way (if any) ends without data: its recording is closed and kept, in a job."""
+        mode = self.modes.identification
+        run = mode.run
+        if run is None:
+            return
+        mode.run = None
+        if self.loop.recorder is run.recorder:
+            self.loop.recorder = None
+        self.jobs.submit("abandon identification", lambda: abandon_run(run, reason))

@@ -1,0 +1,448 @@
+"""The operator's requests, as the session applies them (the facade :class:`~daror_runtime.runtime.Runtime` calls these).
+
+Every request follows one pattern: what may take long or may fail on the operator's input is
+done and checked here, in the caller's thread (a :class:`~daror_runtime.session.core.RequestRefusedError`
+or an input error comes back at once); what changes the robot is an ``apply`` function the
+supervisor runs at the next tick boundary, where the FSM decides, returning a
+:class:`~daror_runtime.fsm.supervisor.Response` (accepted, or refused with the reason, logged).
+Slow work (saving identification data, fitting, validating) runs as a job and hands its result
+back through another such request.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from daror_runtime.control.base import ControlError, ControlSettingError
+from daror_runtime.data.recorder import Recorder
+from daror_runtime.errors import DarorError, InputError
+from daror_runtime.fsm.guards import GUARDS
+from daror_runtime.fsm.machine import Event
+from daror_runtime.fsm.signals import Checklist
+from daror_runtime.fsm.spec import StateSpec
+from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
+from daror_runtime.identification.protocol import IdentificationRun, let_the_writer_catch_up
+from daror_runtime.models.registry import kind_entry, kind_names
+from daror_runtime.session.core import RequestRefusedError, SessionCore
+from daror_runtime.session.events import AnnouncementKind
+from daror_runtime.session.identification import abandon_run, finish_run, prepare_run, session_waypoints
+from daror_runtime.session.rom import RomEnvelope
+from daror_runtime.session.training import TrainedModel, read_model_candidate, train_model, validate_candidate
+from hal.isb import IsbLimits
+
+log = structlog.get_logger(__name__)
+
+# --- the FSM's events and checklists ---------------------------------------------------------
+
+
+def request_event(core: SessionCore, event: Event | str) -> Ticket:
+    """advance, revert, reset or acknowledge (the operator's buttons).
+
+    Raises:
+        ValueError: not an event name.
+        RequestRefusedError: ``fail`` (faults and e-stops fail the robot, never the operator).
+    """
+    event = Event(event)
+    if event == Event.FAIL:
+        raise RequestRefusedError("fail is not an operator request: faults and e-stops fail the robot")
+    return core.supervisor.post_event(event, "operator")
+
+
+def confirm(core: SessionCore, checklist: Checklist | str) -> Ticket:
+    """The operator confirms a checklist of the current state (settings, installation, safety_experience, ...).
+
+    Raises:
+        RequestRefusedError: not a checklist name.
+    """
+    try:
+        item = Checklist(checklist)
+    except ValueError:
+        raise RequestRefusedError(
+            f"unknown checklist {checklist!r}; expected one of {', '.join(c.value for c in Checklist)}"
+        ) from None
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        state = supervisor.state
+        needed = isinstance(state, StateSpec) and any(
+            GUARDS[g].checklist == item for g in (*state.guards.advance, *state.guards.revert) if g in GUARDS
+        )
+        if not needed:
+            return core.refuse(f"confirm {item.value}", f"state {state.name} has no {item.value} checklist")
+        if item == Checklist.A_PRIORI_MODEL:
+            refusal = _use_a_priori(core, supervisor)
+            if refusal is not None:
+                return refusal
+        supervisor.signals.confirmed.add(item)
+        log.info("checklist confirmed", checklist=item.value, state=state.name, t_s=core.t_s())
+        return Response(f"confirm {item.value}", True, state.name)
+
+    log.info("request", request=f"confirm {item.value}", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post(f"confirm {item.value}", apply)
+
+
+def _use_a_priori(core: SessionCore, supervisor: FsmSupervisor) -> Response | None:
+    """At a tick boundary: the operator approved the A Priori model; compensation uses it unless a validated model is in use."""
+    selected = supervisor.signals.model
+    if selected is not None and selected.validated:
+        return core.refuse(
+            f"confirm {Checklist.A_PRIORI_MODEL.value}",
+            f"the validated model {selected.name} ({selected.kind}) is in use; the A Priori model is not needed",
+        )
+    core.modes.compensation.model = core.a_priori
+    core.progress.last_model = a_priori_summary(core)
+    log.info("model in use", **core.progress.last_model, state=supervisor.state_name, t_s=core.t_s())
+    return None
+
+
+def a_priori_summary(core: SessionCore) -> dict[str, Any]:
+    """The A Priori model as the status shows a model in use."""
+    return {
+        "name": core.a_priori.name,
+        "kind": core.a_priori.kind,
+        "path": None,
+        "validation_rmse_nm": None,
+        "validation_rmse_per_joint_nm": None,
+        "validated": False,
+        "approved_by": "operator (A Priori model confirmed)",
+        "includes_dummy_arm": core.settings.dummy_arm,
+    }
+
+
+def set_support(core: SessionCore, level: float) -> Ticket:
+    """Set the compensation support level in [0, 1] (the delivered level ramps to it)."""
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        try:
+            core.modes.compensation.support_level = level
+        except ControlSettingError as exc:
+            return core.refuse(f"support {level}", str(exc))
+        log.info("support level set", level=level, state=supervisor.state_name, t_s=core.t_s())
+        return Response(f"support {level}", True, supervisor.state_name)
+
+    log.info("request", request=f"support {level}", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post(f"support {level}", apply)
+
+
+# --- the pilot's range of motion ---------------------------------------------------------------
+
+
+def rom_start(core: SessionCore) -> Ticket:
+    """Start recording the pilot's range of motion (in a state that needs the ISB limits recorded)."""
+    envelope = RomEnvelope(core.shoulder, IsbLimits().horizontal_free_below_rad)
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        refusal = _rom_state_refusal(core, "rom start")
+        if refusal is not None:
+            return refusal
+        if core.loop.recorder is not None:
+            return core.refuse("rom start", "a recording is already running")
+        core.rom = envelope
+        core.loop.recorder = envelope
+        log.info("range of motion recording started", state=supervisor.state_name, t_s=core.t_s())
+        return Response("rom start", True, supervisor.state_name)
+
+    log.info("request", request="rom start", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post("rom start", apply)
+
+
+def rom_stop(core: SessionCore) -> Ticket:
+    """Stop the recording; the recorded range becomes the pilot's ISB limits (or is refused as too small)."""
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        envelope = core.rom
+        if envelope is None:
+            return core.refuse("rom stop", "no range of motion is being recorded")
+        core.rom = None
+        if core.loop.recorder is envelope:
+            core.loop.recorder = None
+        try:
+            limits = envelope.limits(IsbLimits(), core.settings.rom_min_range_deg)
+        except InputError as exc:
+            return core.refuse("rom stop", str(exc))
+        return _set_isb_limits(core, supervisor, limits, f"recorded over {envelope.samples} ticks")
+
+    log.info("request", request="rom stop", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post("rom stop", apply)
+
+
+def set_isb_limits(core: SessionCore, limits: IsbLimits, source: str = "entered") -> Ticket:
+    """Use ``limits`` (e.g. from a clinical assessment file) as the pilot's ISB limits."""
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        refusal = _rom_state_refusal(core, "isb limits")
+        return refusal if refusal is not None else _set_isb_limits(core, supervisor, limits, source)
+
+    log.info("request", request="isb limits", origin="operator", state=core.supervisor.state_name, source=source)
+    return core.supervisor.post("isb limits", apply)
+
+
+def _rom_state_refusal(core: SessionCore, request: str) -> Response | None:
+    state = core.supervisor.state
+    if isinstance(state, StateSpec) and "isb_limits_recorded" in state.guards.advance:
+        return None
+    return core.refuse(
+        request, f"the pilot's ISB limits are recorded in a state that requires them, not in {state.name}"
+    )
+
+
+def _set_isb_limits(core: SessionCore, supervisor: FsmSupervisor, limits: IsbLimits, source: str) -> Response:
+    supervisor.signals.isb_limits = limits
+    supervisor.refresh_limits()
+    ranges = {
+        name: [round(r.lower_deg, 1), round(r.upper_deg, 1)]
+        for name, r in zip(("elevation", "horizontal", "axial", "elbow"), limits.ranges, strict=True)
+    }
+    log.info("ISB limits recorded", source=source, limits_deg=ranges, state=supervisor.state_name, t_s=core.t_s())
+    return Response("isb limits", True, supervisor.state_name, detail=limits)
+
+
+# --- identification ------------------------------------------------------------------------
+
+
+def identify(core: SessionCore, kind: str) -> Ticket:
+    """Start a training or validation run of the protocol (state with the identification mode).
+
+    The trajectory and its controller are built here, in the caller's thread.
+
+    Raises:
+        RequestRefusedError: not in an identification state, no ISB limits, a run already going.
+        TrajectoryError: the trajectory leaves the pilot's limits.
+    """
+    if kind not in ("training", "validation"):
+        raise RequestRefusedError(f"unknown identification run {kind!r}; expected training or validation")
+    state = core.supervisor.state
+    if not isinstance(state, StateSpec) or state.mode != "identification":
+        raise RequestRefusedError(
+            f"identification runs only in a state with the identification mode, not in {state.name}"
+        )
+    limits = core.signals.isb_limits
+    if limits is None:
+        raise RequestRefusedError("the pilot's ISB limits are not recorded")
+    if core.modes.identification.running or core.collecting:
+        raise RequestRefusedError("an identification run is already going; stop it or wait for it")
+    sample = core.signals.sample
+    if sample is None:
+        raise RequestRefusedError("no sample from the hardware yet")
+    waypoints, outside = session_waypoints(core.settings.identification, limits, core.description)
+    run = prepare_run(
+        kind, core.description, sample.q_rad, waypoints, limits, core.settings.identification,
+        core.a_priori, core.dt_s, core.session_dir,
+    )  # fmt: skip
+    # Load its compiled kernels here, not in the tick that starts the run (5 ms measured);
+    # the start resets it again from that tick's sample.
+    run.controller.reset(sample)
+    run.controller.update(sample, core.dt_s)
+    log.info("request", request=f"identify {kind}", origin="operator", waypoints=len(waypoints), outside_limits=outside)
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        now = supervisor.signals.sample
+        current = supervisor.state
+        reason = None
+        if not isinstance(current, StateSpec) or current.mode != "identification":
+            reason = f"the state changed to {current.name}"
+        elif core.monitor.faulted or now is None:
+            reason = "a fault is latched"
+        elif core.loop.recorder is not None:
+            reason = "a recording is already running"
+        if reason is None and now is not None:
+            try:
+                core.modes.identification.start(run, now)
+            except ControlError as exc:
+                reason = str(exc)
+        if reason is not None:
+            core.jobs.submit("abandon identification", lambda: abandon_run(run, reason))
+            return core.refuse(f"identify {kind}", reason)
+        core.loop.recorder = run.recorder
+        log.info("identification started", kind=kind, robot_s=round(run.duration_s, 1), t_s=core.t_s())
+        return Response(f"identify {kind}", True, supervisor.state_name, detail=run.duration_s)
+
+    return core.supervisor.post(f"identify {kind}", apply)
+
+
+def stop_identification(core: SessionCore) -> Ticket:
+    """Stop a run: the robot holds where it is; the recording is kept, no dataset is written."""
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        sample = supervisor.signals.sample
+        mode = core.modes.identification
+        if not mode.running or sample is None:
+            return core.refuse("stop identification", "no identification run is going")
+        run = mode.stop(sample)
+        core.loop.recorder = None
+        if run is not None:
+            core.jobs.submit("abandon identification", lambda: abandon_run(run, "stopped by the operator"))
+        return Response("stop identification", True, supervisor.state_name)
+
+    log.info("request", request="stop identification", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post("stop identification", apply)
+
+
+def collect_finished_run(core: SessionCore) -> None:
+    """Between ticks: a run whose trajectory ended is detached at a tick boundary and its data saved in a job."""
+    mode = core.modes.identification
+    finished = mode.finished_run
+    if finished is None or core.collecting:
+        return
+    mode.finished_run = None
+    core.collecting = True
+    core.supervisor.post("identification finished", lambda supervisor: _collect(core, finished), essential=True)
+
+
+def keep_up_with_the_recorder(core: SessionCore, n: int) -> None:
+    """Lock-step only, every 500 ticks: let the recorder's writer catch up (virtual time may wait; real time may not)."""
+    recorder = core.loop.recorder
+    if n % 500 == 0 and isinstance(recorder, Recorder):
+        let_the_writer_catch_up(recorder)
+
+
+def _collect(core: SessionCore, run: IdentificationRun) -> Response:
+    """At a tick boundary: detach the run's recorder and reduce its data in a job."""
+    if core.loop.recorder is run.recorder:
+        core.loop.recorder = None
+    log.info("identification trajectory finished", kind=run.kind, t_s=core.t_s())
+
+    def job() -> None:
+        try:
+            data = finish_run(run)
+        except DarorError as exc:
+            core.progress.last_error = f"identification {run.kind}: {exc}"
+            log.error("identification data not saved", kind=run.kind, reason=str(exc))
+            raise
+        finally:
+            core.collecting = False
+        core.progress.last_identification = {
+            "kind": data.kind,
+            "dataset": str(data.dataset_path),
+            "points": data.points,
+            "tracking_rms_mrad": [float(v * 1e3) for v in data.tracking_rms_rad],
+            "tracking_max_mrad": [float(v * 1e3) for v in data.tracking_max_rad],
+        }
+
+        def saved(supervisor: FsmSupervisor) -> Response:
+            supervisor.signals.identification_saved[data.kind] = data.dataset_path
+            core.announcements.announce(
+                AnnouncementKind.IDENTIFICATION,
+                f"identification {data.kind} done: {data.points} stationary points saved to {data.dataset_path}",
+                core.t_s(),
+            )
+            return Response("identification saved", True, supervisor.state_name, detail=data)
+
+        core.supervisor.post("identification saved", saved, essential=True)
+
+    core.jobs.submit(f"save identification {run.kind}", job)
+    return Response("identification finished", True, core.supervisor.state_name)
+
+
+# --- models ------------------------------------------------------------------------------------
+
+
+def train(core: SessionCore, kind: str | None = None) -> None:
+    """Train ``kind`` (default: the session's) on this session's identification data, as a job.
+
+    Raises:
+        UnknownModelKindError: ``kind`` is not a registered model kind.
+        RequestRefusedError: a kind a session does not train, or the training or validation data
+            are not saved yet.
+    """
+    kind = kind or core.settings.model_kind
+    kind_entry(kind)  # an unknown kind is refused now, not when the job runs
+    trainable = kind_names(lambda entry: entry.session_training)
+    if kind not in trainable:
+        raise RequestRefusedError(f"a session does not train {kind} models; expected one of {', '.join(trainable)}")
+    saved = core.signals.identification_saved
+    missing = [k for k in ("training", "validation") if k not in saved]
+    if missing:
+        raise RequestRefusedError(f"no {' or '.join(missing)} data saved in this session yet: run the protocol first")
+    training, validation = saved["training"], saved["validation"]
+    log.info("request", request=f"train {kind}", origin="operator", training=str(training), validation=str(validation))
+
+    def job() -> None:
+        try:
+            trained = train_model(
+                kind, training, validation, core.description, core.settings.dummy_arm,
+                core.settings.max_validation_rmse_nm, core.session_dir,
+            )  # fmt: skip
+        except DarorError as exc:
+            core.progress.last_error = f"train {kind}: {exc}"
+            raise
+        post_model(core, trained, f"train {kind}", {"training_data": str(training), "validation_data": str(validation)})
+
+    core.jobs.submit(f"train {kind}", job)
+
+
+def select_model(core: SessionCore, path: Path | str, validation: Path | str | None = None) -> None:
+    """Use an existing model file once it is validated on held-out data (default: this session's validation run).
+
+    The files are read and checked now (in the caller's thread); the validation runs as a job,
+    and the model reaches compensation only if it passes.
+
+    Raises:
+        RequestRefusedError: no validation data named and none recorded in this session.
+        ModelFileError, DataError, NotHeldOutError: a file that cannot be used (named in the message).
+    """
+    validation_path = (
+        Path(validation) if validation is not None else core.signals.identification_saved.get("validation")
+    )
+    if validation_path is None:
+        raise RequestRefusedError(
+            "a model is validated on held-out data of this pilot: name a validation file or run the validation "
+            "protocol first"
+        )
+    candidate = read_model_candidate(Path(path), validation_path, core.description)
+    log.info("request", request="select model", origin="operator", model=str(path), validation=str(validation_path))
+
+    def job() -> None:
+        trained = validate_candidate(candidate, core.settings.max_validation_rmse_nm)
+        post_model(core, trained, "select model")
+
+    core.jobs.submit("select model", job)
+
+
+def post_model(core: SessionCore, trained: TrainedModel, request: str, data: dict[str, str] | None = None) -> None:
+    """From a job: hand a validated model to compensation at a tick boundary; refuse one that failed.
+
+    Never while a compensation state delivers support (a model swap there is a torque step).
+    """
+    selected = trained.selected
+    summary = {
+        "name": selected.name,
+        "kind": selected.kind,
+        "path": str(selected.path),
+        "validation_rmse_nm": trained.validation.rmse_nm,
+        "validation_rmse_per_joint_nm": list(trained.validation.rmse_per_joint_nm),
+        "validated": selected.validated,
+        "max_validation_rmse_nm": selected.max_rmse_nm,
+        **(data or {}),
+    }
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        if not selected.validated:
+            core.progress.last_model_refused = summary
+            in_use = core.progress.last_model
+            reason = (
+                f"{selected.name} failed validation: RMSE {trained.validation.rmse_nm:.3g} Nm on held-out data, "
+                f"above the session's limit of {selected.max_rmse_nm:g} Nm; it never drives the arm "
+                f"(in use: {in_use['name'] if in_use else 'no model'})"
+            )
+            core.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", core.t_s())
+            return core.refuse(request, reason)
+        if supervisor.state.mode == "compensation":
+            reason = f"{supervisor.state.name} delivers compensation: change models from another state"
+            core.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", core.t_s())
+            return core.refuse(request, reason)
+        core.modes.compensation.model = trained.model
+        core.announcements.announce(
+            AnnouncementKind.MODEL,
+            f"{request} done: {selected.name} ({selected.kind}) validated, RMSE {trained.validation.rmse_nm:.3g} Nm "
+            f"<= {selected.max_rmse_nm:g} Nm on held-out data; it is the compensation model now",
+            core.t_s(),
+        )
+        supervisor.signals.model = selected
+        core.progress.last_model = {**summary, "approved_by": "validation on held-out data"}
+        log.info("model in use", **core.progress.last_model, state=supervisor.state_name, t_s=core.t_s())
+        return Response(request, True, supervisor.state_name, detail=selected)
+
+    core.supervisor.post(request, apply, essential=True)

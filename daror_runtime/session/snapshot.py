@@ -1,0 +1,129 @@
+"""Build the operator's :class:`~daror_runtime.session.status.RuntimeStatus` from a session's parts.
+
+Read from any thread, between ticks or while the loop runs (values may be one tick old).
+Collections the tick changes are copied first in one C-level call (atomic under the GIL), so a
+snapshot never iterates one the loop is changing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from daror_runtime.fsm.guards import GUARDS
+from daror_runtime.fsm.machine import OPERATOR_EVENTS
+from daror_runtime.fsm.signals import ESTOP_BUTTONS
+from daror_runtime.fsm.spec import StateSpec
+from daror_runtime.session.core import SessionCore
+from daror_runtime.session.status import (
+    EventGate,
+    GuardState,
+    JointReadings,
+    LoopStatus,
+    ModelStatus,
+    RuntimeStatus,
+)
+from hal.interface import Command, Sample
+from hal.isb import IsbLimits
+
+
+def snapshot(core: SessionCore) -> RuntimeStatus:
+    """What the operator sees of ``core`` now."""
+    supervisor = core.supervisor
+    state = supervisor.state
+    signals = core.signals
+    sample = signals.sample
+    machine = supervisor.machine
+    gates = {}
+    for event in OPERATOR_EVENTS:
+        transition = machine.table.get((state.name, event))
+        if transition is None:
+            gates[event.value] = EventGate(event.value, False, why_not=machine.why_not(event))
+            continue
+        guards = tuple(GuardState(g, GUARDS[g].description, bool(GUARDS[g].read(signals))) for g in transition.guards)
+        gates[event.value] = EventGate(event.value, True, guards)
+    run = core.modes.identification.run
+    compensation = core.modes.compensation
+    loop = core.loop
+    stats = loop.stats
+    progress = core.progress
+    return RuntimeStatus(
+        session_id=core.session_id,
+        t_s=sample.t_s if sample is not None else None,
+        state=state.name,
+        number=state.number if isinstance(state, StateSpec) else None,
+        superstate=state.superstate if isinstance(state, StateSpec) else None,
+        mode=state.mode,
+        description=state.description,
+        estop_test_state=isinstance(state, StateSpec) and not state.fail_on_fault,
+        gates=gates,
+        faults=[f.as_dict() for f in core.monitor.latched],
+        estop_pressed={
+            b.value: bool(sample is not None and len(sample.estop) > i and sample.estop[i])
+            for i, b in enumerate(ESTOP_BUTTONS)
+        },
+        estop_tested=sorted(b.value for b in set(signals.estop_tested)),  # copied at C level: the tick may add
+        confirmed=sorted(c.value for c in set(signals.confirmed)),
+        joints=None if sample is None else _joint_readings(sample, loop.last_command),
+        model=_model_status(core),
+        model_refused=progress.last_model_refused,
+        support_level=compensation.support_level,
+        delivered_support_level=compensation.delivered_support_level,
+        handover_nm=tuple(float(v) for v in compensation.handover.remaining_nm)
+        if compensation.handover.active
+        else (0.0,) * 4,
+        isb_limits_deg=None if signals.isb_limits is None else _isb_degrees(signals.isb_limits),
+        rom_recording=core.rom is not None,
+        identification_running=None
+        if run is None or sample is None
+        else {"kind": run.kind, "elapsed_s": sample.t_s - run.t0_s, "duration_s": run.duration_s},
+        identification_saved={k: str(v) for k, v in dict(signals.identification_saved).items()},
+        last_identification=progress.last_identification,
+        jobs_pending=core.jobs.pending,
+        last_error=progress.last_error,
+        loop=LoopStatus(
+            clock="lock-step" if core.lock_step else "real time",
+            rate_hz=core.hal.rate_hz,
+            ticks=stats.ticks,
+            overruns=stats.overruns,
+            missed_deadlines=stats.missed_deadlines,
+            worst_lateness_ms=stats.worst_lateness_s * 1e3,
+            tick_work_mean_us=stats.mean_work_s * 1e6,
+            tick_work_max_us=stats.worst_work_s * 1e6,
+            dropped_rows=loop.dropped_rows,
+        ),
+        transitions=supervisor.transitions,
+        a_priori_includes_dummy_arm=core.settings.dummy_arm,
+    )
+
+
+def _isb_degrees(limits: IsbLimits) -> dict[str, tuple[float, float]]:
+    names = ("elevation", "horizontal_rotation", "axial_rotation", "elbow")
+    return {name: (r.lower_deg, r.upper_deg) for name, r in zip(names, limits.ranges, strict=True)}
+
+
+def _joint_readings(sample: Sample, last_command: Command) -> JointReadings:
+    return JointReadings(
+        q_deg=tuple(float(np.degrees(v)) for v in sample.q_rad),
+        dq_deg_s=tuple(float(np.degrees(v)) for v in sample.dq_rad_s),
+        spring_torque_nm=tuple(float(v) for v in sample.tau_nm),
+        motor_command_nm=tuple(float(v) for v in last_command.motor_torque_nm),
+        drives=tuple(d.name.lower() for d in sample.drives),
+    )
+
+
+def _model_status(core: SessionCore) -> ModelStatus | None:
+    summary = core.progress.last_model
+    if summary is None or core.modes.compensation.model is None:
+        return None
+    per_joint = summary.get("validation_rmse_per_joint_nm")
+    return ModelStatus(
+        name=summary["name"],
+        kind=summary["kind"],
+        path=summary.get("path"),
+        validated=bool(summary["validated"]),
+        approved_by=summary.get("approved_by", ""),
+        validation_rmse_nm=summary.get("validation_rmse_nm"),
+        validation_rmse_per_joint_nm=None if per_joint is None else tuple(per_joint),
+        max_validation_rmse_nm=summary.get("max_validation_rmse_nm"),
+        includes_dummy_arm=summary.get("includes_dummy_arm"),
+    )
