@@ -73,6 +73,20 @@ class Sample(NamedTuple):
 SAMPLE_ARRAYS = ("q_rad", "dq_rad_s", "theta_rad", "tau_nm")
 
 
+def _require_joint_vector(name: str, array: object) -> None:
+    """Refuse anything but an aligned float64 ndarray of shape (4,): what the compiled kernels are resolved for.
+
+    Raises:
+        ShapeError: names the field, the dtype and the shape found.
+    """
+    if not (
+        type(array) is np.ndarray and array.dtype == np.float64 and array.shape == (N_JOINTS,) and array.flags.aligned
+    ):
+        shape = getattr(array, "shape", None)
+        dtype = getattr(array, "dtype", type(array).__name__)
+        raise ShapeError(f"{name}: expected a float64 array of shape ({N_JOINTS},), got {dtype} {shape}")
+
+
 class CheckedSample(Sample):
     """A :class:`Sample` whose four arrays are known to be what the contract says: float64, shape (4,).
 
@@ -93,16 +107,7 @@ class CheckedSample(Sample):
     def __new__(cls, *args: object, **kwargs: object) -> CheckedSample:
         sample = Sample(*args, **kwargs)  # type: ignore[arg-type]
         for name in SAMPLE_ARRAYS:
-            array = getattr(sample, name)
-            if not (
-                type(array) is np.ndarray
-                and array.dtype == np.float64
-                and array.shape == (N_JOINTS,)
-                and array.flags.aligned
-            ):
-                shape = getattr(array, "shape", None)
-                dtype = getattr(array, "dtype", type(array).__name__)
-                raise ShapeError(f"{name}: expected a float64 array of shape ({N_JOINTS},), got {dtype} {shape}")
+            _require_joint_vector(name, getattr(sample, name))
         return tuple.__new__(cls, sample)
 
     @classmethod
@@ -144,16 +149,7 @@ class CheckedCommand(Command):
 
     def __new__(cls, *args: object, **kwargs: object) -> CheckedCommand:
         command = Command(*args, **kwargs)  # type: ignore[arg-type]
-        torque = command.motor_torque_nm
-        if not (
-            type(torque) is np.ndarray
-            and torque.dtype == np.float64
-            and torque.shape == (N_JOINTS,)
-            and torque.flags.aligned
-        ):
-            shape = getattr(torque, "shape", None)
-            dtype = getattr(torque, "dtype", type(torque).__name__)
-            raise ShapeError(f"motor_torque_nm: expected a float64 array of shape ({N_JOINTS},), got {dtype} {shape}")
+        _require_joint_vector("motor_torque_nm", command.motor_torque_nm)
         return tuple.__new__(cls, command)
 
     @classmethod

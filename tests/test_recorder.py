@@ -33,7 +33,7 @@ from daror_runtime.data.recorder import FORMAT_NAME, VALUE_BYTES, Recorder, Reco
 from daror_runtime.data.recording_reader import inspect_recording, read_recording, recording_to_raw_log
 from daror_runtime.data.schema import RAW_REQUIRED, RawLog
 from daror_runtime.data.stationary import reduce_to_stationary
-from daror_runtime.data.tick_row import RECORD_COLUMNS, fill_tick_row
+from daror_runtime.data.tick_row import RECORD_COLUMNS, fill_tick_row_at
 from daror_runtime.errors import DataError, ShapeError, UsageError
 from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
 from hal.sim.scenario import Scenario
@@ -559,7 +559,7 @@ def test_the_tick_row_puts_every_value_under_its_name() -> None:
         assert columns[group] == tuple(f"{prefix}{j}" for j in range(1, 5))
     row = np.full(len(columns), -1.0)
     q, dq, tau, theta, tau_cmd = (np.array([k + 0.1, k + 0.2, k + 0.3, k + 0.4]) for k in range(5))
-    fill_tick_row(row, 2.5, q, dq, tau, theta, tau_cmd, 1.0, 0.0, 0.003)
+    fill_tick_row_at(row[None, :], 0, 2.5, q, dq, tau, theta, tau_cmd, 1.0, 0.0, 0.003)
     named = dict(zip(columns, row, strict=True))
     assert named["t"] == 2.5
     assert [named[f"q{j}"] for j in range(1, 5)] == [0.1, 0.2, 0.3, 0.4]
@@ -578,8 +578,9 @@ def test_a_recorded_raw_log_reduces_to_the_same_stationary_points(path: Path, ex
     with Recorder(path, RECORD_COLUMNS, block_rows=500, max_queued_blocks=len(log.t_s) // 500 + 2) as recorder:
         for i in range(len(log.t_s)):  # the loop's rows, as the loop fills them
             tau_cmd[i] = log.tau_nm[i] + 0.01 * i
-            fill_tick_row(
-                row,
+            fill_tick_row_at(
+                row[None, :],
+                0,
                 log.t_s[i],
                 log.q_rad[i],
                 log.dq_rad_s[i],

@@ -13,7 +13,7 @@ motor torque the controller asked for, whether or not the drives were enabled); 
 
 The loop fills a row with :func:`fill_tick_row_at` straight into the recorder's block
 (``Recorder.push_into``; compiled, no allocation, no copy) or, for a recorder without
-``push_into``, into a row of its own (:func:`fill_tick_row` fills a single row); code that reads a loop
+``push_into``, into a row of its own (a (1, N) view of it); code that reads a loop
 row in memory (a ``Recording`` that takes the recorder's place) uses the index constants here,
 never literal numbers. The constants are plain integers in this file on purpose: the compiled
 fill bakes them in when it is compiled, and numba's cache is refreshed only when this file
@@ -46,7 +46,6 @@ __all__ = [
     "THETA_INDEX",
     "THETA_SLICE",
     "T_INDEX",
-    "fill_tick_row",
     "fill_tick_row_at",
 ]
 
@@ -115,38 +114,6 @@ RECORD_COLUMNS: tuple[str, ...] = _record_columns()
 
 
 @njit(cache=True)
-def fill_tick_row(
-    row: FloatArray,
-    t_s: float,
-    q_rad: FloatArray,
-    dq_rad_s: FloatArray,
-    tau_nm: FloatArray,
-    theta_rad: FloatArray,
-    tau_cmd_nm: FloatArray,
-    enable: float,
-    faulted: float,
-    lateness_s: float,
-) -> None:  # pragma: no cover - compiled
-    """Write one tick into ``row`` (:data:`N_RECORD_COLUMNS`,) in :data:`RECORD_COLUMNS` order.
-
-    Compiled, no allocation: it runs every tick. The joint arrays are (4,) in rad, rad/s, Nm;
-    ``enable`` and ``faulted`` 0.0 or 1.0; ``lateness_s`` in s. A tick without a reading passes
-    NaN vectors for the sample's arrays. Nothing is checked (numba does not check bounds): the
-    loop owns ``row`` and the sample's arrays have one value per joint.
-    """
-    row[T_INDEX] = t_s
-    for j in range(4):
-        row[Q_INDEX + j] = q_rad[j]
-        row[DQ_INDEX + j] = dq_rad_s[j]
-        row[TAU_INDEX + j] = tau_nm[j]
-        row[THETA_INDEX + j] = theta_rad[j]
-        row[TAU_CMD_INDEX + j] = tau_cmd_nm[j]
-    row[ENABLE_INDEX] = enable
-    row[FAULTED_INDEX] = faulted
-    row[LATENESS_INDEX] = lateness_s
-
-
-@njit(cache=True)
 def fill_tick_row_at(
     rows: FloatArray,
     index: int,
@@ -160,9 +127,12 @@ def fill_tick_row_at(
     faulted: float,
     lateness_s: float,
 ) -> None:  # pragma: no cover - compiled
-    """:func:`fill_tick_row` into row ``index`` of ``rows`` (n, :data:`N_RECORD_COLUMNS`): a recorder's block.
+    """Write one tick into row ``index`` of ``rows`` (n, :data:`N_RECORD_COLUMNS`), in :data:`RECORD_COLUMNS` order.
 
-    The same values in the same places as :func:`fill_tick_row` (copies, no arithmetic). Nothing is
+    ``rows`` is a recorder's block (``Recorder.push_into``) or any 2-D array. Compiled, no
+    allocation, copies only (no arithmetic): it runs every tick. The joint arrays are (4,) in rad,
+    rad/s, Nm; ``enable`` and ``faulted`` 0.0 or 1.0; ``lateness_s`` in s; a tick without a
+    reading passes NaN vectors for the sample's arrays. Nothing is
     checked (numba does not check bounds): the caller guarantees ``0 <= index < n`` and that
     ``rows`` has :data:`N_RECORD_COLUMNS` columns (``Recorder.push_into`` checks the count).
     """
