@@ -127,7 +127,10 @@ def _spawn(tmp_path: Path, out: Path) -> pexpect.spawn:
     child = pexpect.spawn(
         str(DAROR), ["console", "--out", str(out)], env=env, encoding="utf-8", timeout=60, dimensions=(50, 160)
     )
-    child.expect(r"\[startup\] >")
+    # Any prompt first, then its state: a console that starts in another state (a fault at start-up)
+    # fails here with what it printed, not with a bare timeout.
+    child.expect(r"\[(\w+)\] >")
+    assert child.match.group(1) == "startup", f"the console started in {child.match.group(1)}: {child.before[-3000:]}"
     return child
 
 
