@@ -139,7 +139,7 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.models.linear import APModel
     from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.outputs import output_lock
-    from hal.config import SimHalConfig
+    from hal.config import hal_config
     from hal.interface import open_hal
     from hal.isb import IsbLimits, load_isb_limits
     from hal.sim.scenario import load_scenario
@@ -150,7 +150,7 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
     settings = load_session_settings(args.settings).identification
     waypoints = load_waypoints(args.waypoints or settings.waypoints_file)
     isb = load_isb_limits(args.isb_limits) if args.isb_limits is not None else None
-    hal = open_hal(SimHalConfig(scenario=args.scenario, rate_hz=args.rate_hz))
+    hal = open_hal(hal_config("sim", "--scenario/--rate-hz", scenario=args.scenario, rate_hz=args.rate_hz))
     if args.feedforward == "ap":
         feedforward = APModel.from_description(hal.description, args.dummy_arm, args.dummy_arm)
     elif args.feedforward == "none":

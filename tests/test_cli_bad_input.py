@@ -419,3 +419,13 @@ def test_simulate_writes_the_promised_sizes(files: Files) -> None:
     assert len(load_stationary(files.train)) == 1313
     assert len(load_stationary(files.validation)) == 165
     assert len(load_stationary(files.small)) == 153  # 20 waypoints, 3 sub-steps, there and back
+
+
+@pytest.mark.parametrize(("rate", "expected"), [("0", "greater than 0"), ("20000", "less than or equal to 10000")])
+def test_identify_refuses_an_impossible_loop_rate_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], rate: str, expected: str
+) -> None:
+    out = tmp_path / "identified.csv"
+    argv = ["identify", "--scenario", "exo", "--trajectory", "validation", "--rate-hz", rate, "--out", out]
+    line = refused(capsys, argv, "--rate-hz", out)
+    assert expected in line
