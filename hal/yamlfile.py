@@ -377,6 +377,10 @@ def read_yaml(
         if context and problem and context != problem:
             problem = f"{context}, {problem}"  # "while scanning a simple key, could not find expected ':'"
         problem = " ".join(str(problem or context or exc).split())
+        if "maximum nesting depth" in problem:
+            # PyYAML >= 6.0.4 bounds nesting in its own scanner, which may look ahead of our composer's
+            # depth bound: the same refusal, in the same words, whichever of the two finds it first.
+            raise error(f"{path}: {where}nested more than {MAX_DEPTH} levels deep; expected a shallow file") from None
         raise error(f"{path}: {where}not valid YAML ({problem})") from None
     except yaml.YAMLError as exc:
         raise error(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
