@@ -26,13 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from daror_runtime.bench import BenchFigure, command_in_child
-from daror_runtime.clocks import RealTimeClock
+from daror_runtime.clocks import LockStepClock, RealTimeClock
 from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.data.load import raw_log_path
 from daror_runtime.data.recorder import Recorder
 from daror_runtime.data.tick_row import RECORD_COLUMNS
-from daror_runtime.identification.protocol import run_protocol
+from daror_runtime.identification.protocol import let_the_writer_catch_up, plan_run, run_protocol
+from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory_planning import build_trajectory
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.loop import ControlLoop, FixedSupervisor
@@ -53,12 +54,46 @@ def _protocol_once(kind: str = "training") -> tuple[float, float, int]:
     return result.real_time_factor, result.wall_time_s / result.ticks * 1e6, result.ticks
 
 
+def _python_ticks_once(seconds: float) -> float:
+    """us per tick of the identification loop with every tick through ``ControlLoop.tick`` (no batches).
+
+    The path every tick takes in a session and in real time (the FSM's supervisor decides each
+    tick), measured on the same protocol as :func:`_protocol_once` for its first ``seconds``.
+    """
+    hal = SimHal("exo_dummy_arm")
+    hal.open()
+    trajectory = build_trajectory(load_waypoints(), "training")
+    feedforward = APModel.from_description(hal.description, dummy_arm=True, elbow_stiffness=True)
+    first = hal.read()
+    with tempfile.TemporaryDirectory() as tmp:
+        run = plan_run(trajectory, hal.description, first.q_rad, IdentificationSettings(), feedforward, 1e-3,
+                       Path(tmp) / "run.rec", Path(tmp) / "run.csv")  # fmt: skip
+        run.controller.reset(first)
+        monitor = SafetyMonitor(SafetyLimits.from_description(hal.description))
+        loop = ControlLoop(hal, monitor, FixedSupervisor(run.controller), LockStepClock(1e-3), run.recorder,
+                           compiled_batches=False)  # fmt: skip
+        chunks = int(seconds)
+        began = time.perf_counter()
+        for _ in range(chunks):
+            loop.run(1000, stop_on_fault=True)
+            let_the_writer_catch_up(run.recorder)
+        wall = time.perf_counter() - began
+        run.recorder.close()
+    return wall / (chunks * 1000) * 1e6
+
+
 def bench_identification_lock_step(quick: bool) -> list[BenchFigure]:
-    """The loop alone: ``run_protocol``'s wall time covers the ticks, not the planning or the data after."""
+    """The loop alone: ``run_protocol``'s wall time covers the ticks, not the planning or the data after.
+
+    ``run_protocol`` runs its ticks in compiled batches (daror_runtime/loop_batch.py); the last
+    figure is the same loop with every tick in Python, the path of a session and of real time.
+    """
     runs = [_protocol_once() for _ in range(1 if quick else 3)]
     factors = np.array([r[0] for r in runs])
     ticks_us = np.array([r[1] for r in runs])
     spread = ", ".join(f"{f:.0f}x" for f in sorted(factors))
+    seconds = 20.0 if quick else 100.0
+    python_us = np.array([_python_ticks_once(seconds) for _ in range(1 if quick else 3)])
     return [
         BenchFigure(
             "identification loop alone, lock-step (training, 752 s robot time)",
@@ -72,6 +107,9 @@ def bench_identification_lock_step(quick: bool) -> list[BenchFigure]:
         ),
         BenchFigure("  its full tick (safety, controller, recorder, plant)", float(np.median(ticks_us)),
                     float(np.percentile(ticks_us, 90)), "us", len(runs), target=5.0),
+        BenchFigure("  the same tick through ControlLoop.tick (no batches: sessions, real time)",
+                    float(np.median(python_us)), float(np.percentile(python_us, 90)), "us", len(python_us),
+                    note=f"first {seconds:g} s of the protocol per run"),
     ]  # fmt: skip
 
 

@@ -110,6 +110,14 @@ class Clock(ABC):
     def wait(self) -> TickTiming:
         """Return at the start of the next tick (a clock never started starts at its first wait)."""
 
+    def advance(self, ticks: int) -> None:
+        """Count ``ticks`` ticks that ran on their deadlines without :meth:`wait` (a lock-step batch).
+
+        Raises:
+            ConfigurationError: the clock is not virtual (a real-time tick cannot be skipped).
+        """
+        raise ConfigurationError(f"{type(self).__name__} is not virtual: ticks cannot run ahead of it")
+
     @property
     def stats(self) -> ClockStats:
         """The totals since :meth:`start` (built on each read; never touched by the tick)."""
@@ -135,6 +143,10 @@ class LockStepClock(Clock):
 
     def start(self) -> None:
         self._reset_totals()
+
+    def advance(self, ticks: int) -> None:
+        """``ticks`` ticks started exactly on their deadlines (a lock-step batch ran them)."""
+        self.ticks += ticks
 
     def wait(self) -> TickTiming:
         index = self.ticks

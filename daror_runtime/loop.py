@@ -35,6 +35,8 @@ from daror_runtime.clocks import Clock, TickTiming
 from daror_runtime.data.recorder import Recorder
 from daror_runtime.data.tick_row import N_RECORD_COLUMNS, fill_tick_row_at
 from daror_runtime.errors import ConfigurationError, DarorError
+from daror_runtime.loop_batch import MONITOR_MEMORY as _MONITOR_MEMORY
+from daror_runtime.loop_batch import STOP_BUDGET, STOP_MONITOR, run_ticks_entry
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.errors import HalError
@@ -95,6 +97,11 @@ class Supervisor(Protocol):
         """Faults found after :meth:`on_tick` in the same tick (controller, recorder, HAL write)."""
         ...
 
+    # Optional: ``batch_controller() -> TickController | None``, the controller every coming tick
+    # runs whatever happens (no request pending, nothing decided per tick), which lets a lock-step
+    # loop run ticks in compiled batches (daror_runtime/loop_batch.py). A supervisor without it
+    # (the FSM's: it applies requests at every tick boundary) always gets Python ticks.
+
 
 class FixedSupervisor:
     """One controller until told otherwise; changes take effect at the next tick boundary."""
@@ -105,6 +112,10 @@ class FixedSupervisor:
 
     def use(self, controller: TickController | None) -> None:
         self._pending.append(controller)
+
+    def batch_controller(self) -> TickController | None:
+        """The controller every coming tick runs, when no change is pending (lock-step batches may run it)."""
+        return None if self._pending else self._controller
 
     def on_tick(self, sample: Sample | None, faults: list[Fault], monitor: SafetyMonitor) -> TickController | None:
         while self._pending:
@@ -123,6 +134,18 @@ class Recording(Protocol):
     """
 
     def push(self, row: np.ndarray) -> bool: ...
+
+
+class _Batches:
+    """What a lock-step loop keeps for its compiled batches (:mod:`daror_runtime.loop_batch`)."""
+
+    def __init__(self) -> None:
+        self.run_ticks = run_ticks_entry()
+        self.torque = np.zeros(4)
+        self.backup = np.zeros(64)
+        self.outcome = np.zeros(2, dtype=np.intp)
+        # Rows a batch fills when the loop has no recorder (nobody reads them).
+        self.scratch_rows = np.zeros((256, N_RECORD_COLUMNS))
 
 
 class TickResult(NamedTuple):
@@ -165,6 +188,9 @@ class ControlLoop:
         overrun_limit: deadlines missed in a row that make an ``overrun`` fault (at least 1).
         max_stall_periods: deadlines one stall may miss; a stall that missed more is an
             ``overrun`` fault by itself (at least 0; see :data:`DEFAULT_MAX_STALL_PERIODS`).
+        compiled_batches: on virtual time, let :meth:`run` run ticks in compiled batches where
+            every part offers its compiled form (:mod:`daror_runtime.loop_batch`); False: every
+            tick through :meth:`tick` (the reference the batches are tested against).
 
     Raises:
         ConfigurationError: ``overrun_limit`` below 1 or ``max_stall_periods`` below 0.
@@ -179,6 +205,7 @@ class ControlLoop:
         recorder: Recording | None = None,
         overrun_limit: int = DEFAULT_OVERRUN_LIMIT,
         max_stall_periods: int = DEFAULT_MAX_STALL_PERIODS,
+        compiled_batches: bool = True,
     ) -> None:
         if overrun_limit < 1:
             raise ConfigurationError(f"overrun_limit must be at least 1 missed deadline, got {overrun_limit}")
@@ -210,6 +237,11 @@ class ControlLoop:
             for command_torque in (np.zeros(4), TORQUE_OFF.motor_torque_nm):
                 fill_tick_row_at(self._rows, 0, 0.0, zeros, zeros, zeros, zeros, command_torque, 0.0, 0.0, 0.0)
         self._fill_checked = entry_point(fill_tick_row_at, FILL_SIGNATURE)
+        # Compiled batches of lock-step ticks (loop_batch.py): only on virtual time, made at the first batch.
+        self._batch_capable = compiled_batches and clock.virtual and hal.virtual_time
+        self._batches: _Batches | None = None
+        #: Ticks run inside compiled batches since the loop was made (the rest went through :meth:`tick`).
+        self.batched_ticks = 0
         self._ticks = 0
         self._work_total_s = 0.0
         self._work_worst_s = 0.0
@@ -326,7 +358,9 @@ class ControlLoop:
         result = None
         tick = self.tick
         try:
-            if on_tick is None and stop is None:  # the lock-step fast path: nothing but ticks
+            if on_tick is None and stop is None and self._batch_capable:
+                result = self._run_batched(ticks, stop_on_fault)
+            elif on_tick is None and stop is None:  # nothing but ticks
                 for _ in range(ticks):
                     result = tick()
                     if stop_on_fault and result.faults:
@@ -342,6 +376,112 @@ class ControlLoop:
             if disable_gc and was_enabled:
                 gc.enable()
         return result
+
+    def _run_batched(self, ticks: int, stop_on_fault: bool) -> TickResult | None:
+        """:meth:`run`'s ticks in lock-step: compiled batches where every part allows, Python ticks elsewhere.
+
+        The last tick is always a Python tick (its result is what :meth:`run` returns); so is the
+        tick after a batch that stopped because the next tick is not the common case.
+        """
+        result = None
+        remaining = ticks
+        tick = self.tick
+        while remaining > 0:
+            if remaining > 1:
+                ran, reason, failed = self._batch(remaining - 1)
+                remaining -= ran
+                if failed is not None:
+                    result = failed
+                    if stop_on_fault:
+                        break
+                    continue
+                if ran > 0 and reason == STOP_BUDGET:
+                    continue  # the backend's budget ran out (a block of noise or readings): next batch
+            result = tick()
+            remaining -= 1
+            if stop_on_fault and result.faults:
+                break
+        return result
+
+    def _batch(self, limit: int) -> tuple[int, int, TickResult | None]:
+        """One compiled batch of at most ``limit`` ticks: ``(ticks run, why it stopped, a failed tick's result)``.
+
+        Runs nothing (0 ticks) unless every part offers its compiled form now. See
+        :mod:`daror_runtime.loop_batch`.
+        """
+        if self.monitor.faulted:
+            return 0, STOP_MONITOR, None
+        batch_controller = getattr(self.supervisor, "batch_controller", None)
+        controller = batch_controller() if batch_controller is not None else None
+        compiled_tick = getattr(controller, "compiled_tick", None)
+        controller_tick = compiled_tick() if compiled_tick is not None else None
+        backend = self.hal.lockstep_batches
+        monitor_arrays = self.monitor.batch_arrays()
+        recorder = self.recorder
+        if controller_tick is None or backend is None or monitor_arrays is None:
+            return 0, STOP_MONITOR, None
+        batches = self._batches
+        if batches is None:
+            batches = self._batches = _Batches()
+        if recorder is None:
+            slot: tuple[np.ndarray, int, int] | None = (batches.scratch_rows, 0, batches.scratch_rows.shape[0])
+        elif type(recorder) is Recorder:
+            slot = recorder.batch_slot()
+        else:  # another recorder takes rows through push only
+            slot = None
+        if slot is None:
+            return 0, STOP_MONITOR, None
+        begun = backend.begin()
+        if begun is None:
+            return 0, STOP_MONITOR, None
+        block, index, free = slot
+        n = min(limit, begun.ticks, free)
+        memory = controller_tick.memory
+        if batches.backup.shape[0] < _MONITOR_MEMORY + memory.shape[0]:
+            batches.backup = np.zeros(_MONITOR_MEMORY + memory.shape[0])
+        previous, lower, upper, command_limit = monitor_arrays
+        x, p, work, s = begun.state
+        torque = batches.torque
+        outcome = batches.outcome
+        began = _perf_counter()
+        ran = batches.run_ticks(
+            n, begun.seq, begun.period_s, begun.step, x, p, work, s, begun.readings, begun.row,
+            controller_tick.step, memory, controller_tick.knots, controller_tick.table,
+            previous, lower, upper, command_limit, block, index, torque, batches.backup, outcome,
+        )  # fmt: skip
+        work_s = _perf_counter() - began
+        reason = int(outcome[0])
+        if ran == 0:
+            return 0, reason, None
+        last_seq = begun.seq + ran - 1
+        if recorder is not None:
+            recorder.commit_batch(ran)
+        self.clock.advance(ran)
+        self.monitor.after_batch(last_seq)
+        self._ticks += ran
+        self.batched_ticks += ran
+        self._work_total_s += work_s
+        if work_s / ran > self._work_worst_s:
+            self._work_worst_s = work_s / ran
+        self._last_t_s = last_seq * begun.period_s
+        command = _new_tuple(CheckedCommand, (torque.copy(), True))
+        self.last_command = command
+        try:
+            backend.end(ran, int(outcome[1]))
+        except HalError as exc:
+            # The batch's last tick failed in the backend's step: reported as the Python tick reports
+            # a failed write (its row is recorded, with the monitor not yet faulted).
+            faults: list[Fault] = []
+            self._report(faults, FaultKind.HAL, f"writing the hardware failed: {exc}")
+            try:
+                sample: Sample | None = self.hal.read()
+            except HalError:
+                sample = None
+            self.supervisor.on_late_faults(sample, faults)
+            index = self.clock.ticks - 1
+            timing = _new_tuple(TickTiming, (index, index * self.dt_s, 0.0, False, 0, 0))
+            return ran, reason, _new_tuple(TickResult, (timing, sample, command, faults))
+        return ran, reason, None
 
     def _watchdog(self, faults: list[Fault], timing: TickTiming) -> None:
         """The overrun rules, for a tick that started late (a stall is named in ms and periods)."""

@@ -1,4 +1,4 @@
-"""What a backend may offer besides the :class:`hal.interface.Hal` contract: the simulated world.
+"""What a backend may offer besides the :class:`hal.interface.Hal` contract: the simulated world, batches.
 
 A backend that simulates the robot (``sim``, later ``can-sim``) can also play the world around
 it: the pilot in the sleeve, the two e-stop buttons, faults to inject. The console and the demo
@@ -7,17 +7,33 @@ use that world through :class:`SimulatedWorld` only, reached as :attr:`hal.inter
 they have. None of it goes through the runtime: it acts on the simulation, as a person acts on
 the robot.
 
+A backend on virtual time may also run ticks inside compiled code (:class:`LockStepBatches`,
+reached as :attr:`hal.interface.Hal.lockstep_batches`): the runtime's loop then runs many
+lock-step ticks in one compiled call when every part of the tick offers its compiled form
+(``daror_runtime/loop_batch.py``, docs/loop.md). Never on a backend that drives hardware.
+
 Units: rad, rad/s, Nm, s; arrays are ``float64`` of shape (4,), joints 1-4 at indices 0-3.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Literal, NamedTuple, Protocol, runtime_checkable
 
 from hal.robot import FloatArray
 
-__all__ = ["ESTOP_OPERATOR", "ESTOP_PILOT", "FAULT_KINDS", "FaultKind", "SimulatedWorld"]
+if TYPE_CHECKING:
+    from hal.kernels import CompiledFunction
+
+__all__ = [
+    "ESTOP_OPERATOR",
+    "ESTOP_PILOT",
+    "FAULT_KINDS",
+    "BackendBatch",
+    "FaultKind",
+    "LockStepBatches",
+    "SimulatedWorld",
+]
 
 #: Index of the operator's e-stop in :attr:`hal.interface.Sample.estop`.
 ESTOP_OPERATOR = 0
@@ -157,5 +173,54 @@ class SimulatedWorld(Protocol):
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         """``(holding, pilot)`` now, (4,) Nm each: the torque that holds the arm still where it truly is,
         and the torque the pilot applies (the simulation's truth: for reports of what the robot carries).
+        """
+        ...
+
+
+class BackendBatch(NamedTuple):
+    """What a backend hands a lock-step batch: its compiled tick, its state and where its readings are.
+
+    Attributes:
+        step: the backend's tick (:data:`hal.kernels.BACKEND_STEP`), called once per tick with the
+            state arrays below, the commanded torque and the readings block.
+        state: the four state arrays ``step`` takes first (the backend's own; the batch only passes them).
+        readings: the block the readings go to; the current sample's readings are rows ``row ..
+            row + 3`` (:data:`hal.kernels.READING_ROWS`), each tick's ``step`` writes the next four.
+        row: the first row of the current sample's readings.
+        seq: the current sample's ``seq``; its time is ``seq * period_s`` (virtual time).
+        period_s: the tick, s.
+        ticks: how many ticks may run before the backend needs Python again (at least 1).
+    """
+
+    step: CompiledFunction
+    state: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+    readings: FloatArray
+    row: int
+    seq: int
+    period_s: float
+    ticks: int
+
+
+class LockStepBatches(Protocol):
+    """A backend on virtual time that can run ticks inside compiled code (``Hal.lockstep_batches``).
+
+    The loop calls :meth:`begin` between ticks, runs up to ``ticks`` ticks of the backend's compiled
+    step (each exactly what ``read(); write(command)`` would have done with that command), then
+    :meth:`end` with how many ran; nothing else touches the backend in between. A batch tick is
+    a plain tick: fresh readings, no e-stop pressed, no drive in fault, nothing pending from the
+    world (a fault to inject, a pilot's torque to compute): :meth:`begin` returns None otherwise.
+    """
+
+    def begin(self) -> BackendBatch | None:
+        """Prepare a batch at the current tick; None when the next tick must run through read and write."""
+        ...
+
+    def end(self, ticks: int, status: int) -> None:
+        """``ticks`` (at least 1) of the batch ran; ``status`` is what the last one's step returned.
+
+        Raises:
+            HalError: the last step failed (negative ``status``): that tick does not count, torque
+                was removed, and the next :meth:`hal.interface.Hal.read` shows the failed tick's
+                sample with no drive enabled, as after a :meth:`hal.interface.Hal.write` that raised.
         """
         ...

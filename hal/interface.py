@@ -33,7 +33,7 @@ from hal.errors import BackendUnavailableError, HalConfigError, HalError, ShapeE
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 if TYPE_CHECKING:
-    from hal.capabilities import SimulatedWorld
+    from hal.capabilities import LockStepBatches, SimulatedWorld
     from hal.config import AnyHalConfig
 
 
@@ -246,6 +246,15 @@ class Hal(ABC):
 
         None on a backend that drives hardware: there, people and physics are the world. Reading it
         changes nothing (a pilot enters only by :meth:`~hal.capabilities.SimulatedWorld.seat_pilot`).
+        """
+        return None
+
+    @property
+    def lockstep_batches(self) -> LockStepBatches | None:
+        """The backend's compiled tick for lock-step batches (:class:`hal.capabilities.LockStepBatches`), or None.
+
+        Only a backend on :attr:`virtual_time` may offer it (the contract suite checks): a batch
+        runs ticks as fast as the CPU allows.
         """
         return None
 

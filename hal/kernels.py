@@ -23,8 +23,18 @@ from typing import Any
 
 import numba
 from numba import types
+from numba.core.typing.templates import Signature
+from numba.experimental.function_type import _get_wrapper_address
+from numba.types import WrapperAddressProtocol
 
-__all__ = ["SAMPLE_VECTOR", "entry_point", "misfits"]
+__all__ = [
+    "BACKEND_STEP",
+    "READING_ROWS",
+    "SAMPLE_VECTOR",
+    "CompiledFunction",
+    "entry_point",
+    "misfits",
+]
 
 #: How a kernel takes a float64 vector it only reads (a sample's array, a commanded torque):
 #: read-only and of any strides, so every float64 vector fits, writable or not, a view or not
@@ -66,3 +76,60 @@ def misfits(signature: Sequence[types.Type], args: Sequence[object]) -> list[str
         if not fits:
             wrong.append(f"argument {n}: {actual} does not fit {expected}")
     return wrong
+
+
+class CompiledFunction(WrapperAddressProtocol):
+    """A compiled kernel handed to other compiled code as a value (a numba first-class function).
+
+    A component offers its tick as one of these so that a compiled caller can run it without
+    importing the component's module (a backend's tick, for instance, is called by the runtime's
+    lock-step batches, and the runtime never imports a backend: ``docs/architecture.md``). The
+    kernel's address for ``signature`` is resolved once here (loaded from numba's cache when it is
+    there, compiled otherwise), outside any tick; passing the value to a compiled function costs
+    about 3 us a call, calling it from compiled code a few ns.
+
+    Args:
+        kernel: an ``njit`` dispatcher.
+        signature: the numba signature the caller's :class:`numba.types.FunctionType` declares
+            (``return_type(arg types...)``); the kernel is compiled for exactly these argument types.
+    """
+
+    def __init__(self, kernel: Any, signature: Signature) -> None:
+        self.kernel = kernel  # keeps the compiled code (and so the address) alive
+        self._signature = signature
+        kernel.compile(signature.args)
+        self._address = int(_get_wrapper_address(kernel, signature))
+
+    def __wrapper_address__(self) -> int:
+        return self._address
+
+    def signature(self) -> Signature:
+        return self._signature
+
+    @property
+    def function_type(self) -> types.FunctionType:
+        """The numba type a compiled caller declares for this value."""
+        return types.FunctionType(self._signature)
+
+
+#: A backend's compiled tick for lock-step batches (:class:`hal.capabilities.LockStepBatches`):
+#: ``step(x, p, work, s, torque, enable, readings, row) -> status``. The first four arrays are the
+#: backend's own state (what they hold is its business), ``torque`` the commanded motor torque
+#: (4,), ``enable`` the command's flag; the step writes the readings of the new tick into rows
+#: ``row .. row + 3`` of ``readings`` (in the order of :data:`READING_ROWS`) and returns 0 (drives
+#: enabled), 1 (disabled) or a negative status (the tick failed: the backend says why when the
+#: batch ends).
+BACKEND_STEP = types.intp(
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.boolean,
+    types.float64[:, ::1],
+    types.intp,
+)
+
+#: What the four rows of one tick's readings hold, in order (each (4,), joints 1-4): the link
+#: angles (rad), the link velocities (rad/s), the motor angles (rad), the spring torques (Nm).
+READING_ROWS = ("q_rad", "dq_rad_s", "theta_rad", "tau_nm")

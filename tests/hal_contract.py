@@ -11,7 +11,8 @@ and provides a ``backend`` fixture.
 What is checked (the docstring of :class:`hal.interface.Hal` states the same contract):
 
 * identity: ``kind``, a positive finite ``rate_hz``, ``virtual_time`` and ``drives_hardware``
-  as bools, never both; a world only on a backend that drives no hardware;
+  as bools, never both; a world only on a backend that drives no hardware; compiled lock-step
+  batches only on virtual time, and a batch tick gives the very readings a write and a read give;
 * lifecycle: ``read``/``write`` before ``open`` and after ``close`` raise ``HalNotOpenError``;
   ``close`` twice and before ``open`` is safe; ``open`` after ``close`` starts a new session with
   every drive disabled; ``with hal:`` opens and closes;
@@ -55,7 +56,16 @@ from hypothesis.stateful import (
 
 from hal.capabilities import SimulatedWorld
 from hal.errors import HalError, HalNotOpenError, ShapeError
-from hal.interface import ENABLE_WITHIN_S, NEVER_BLOCKS_S, Command, DriveState, Hal, HalFaultError, Sample
+from hal.interface import (
+    ENABLE_WITHIN_S,
+    NEVER_BLOCKS_S,
+    SAMPLE_ARRAYS,
+    Command,
+    DriveState,
+    Hal,
+    HalFaultError,
+    Sample,
+)
 from hal.robot import N_JOINTS, FloatArray
 
 OFF = Command.torque_off()
@@ -271,6 +281,32 @@ class HalContract:
         if world is not None:
             assert isinstance(world, SimulatedWorld)
             assert hal.world is world  # reading it changes nothing: the same world
+        if not hal.virtual_time:
+            assert hal.lockstep_batches is None, "only a backend on virtual time may run ticks in compiled batches"
+
+    def test_a_batch_tick_is_a_write_and_a_read(self, backend: BackendUnderTest) -> None:
+        """A backend's compiled batch gives the very readings read/write give for the same commands."""
+        reference, batched = backend.make(), backend.make()
+        if batched.lockstep_batches is None:
+            pytest.skip(f"{backend.name} runs no compiled batches")
+        torque = np.array([0.5, -1.0, 0.75, 0.25])
+        with reference, batched:
+            batches = batched.lockstep_batches
+            for tick in range(300):  # past a block of readings and of noise
+                reference.write(Command(torque, True))
+                begun = batches.begin()
+                assert begun is not None
+                assert begun.ticks >= 1
+                assert begun.seq == tick
+                x, p, work, s = begun.state
+                status = begun.step.kernel(x, p, work, s, torque.copy(), True, begun.readings, begun.row + 4)
+                batches.end(1, status)
+                expected, got = reference.read(), batched.read()
+                assert got.seq == expected.seq
+                assert got.t_s == expected.t_s
+                assert got.drives == expected.drives
+                for name in SAMPLE_ARRAYS:
+                    np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), err_msg=name)
 
     def test_read_and_write_need_an_open_backend(self, backend: BackendUnderTest) -> None:
         """Before ``open`` and after ``close``, ``read`` and ``write`` raise ``HalNotOpenError``; ``close`` is safe twice."""

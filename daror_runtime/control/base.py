@@ -17,12 +17,23 @@ loop turns into a fault that removes torque in the same tick.
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
+
+from numba import types
 
 from daror_runtime.errors import DarorError, InputError
 from hal.interface import Command, Sample
+from hal.kernels import CompiledFunction
+from hal.robot import FloatArray
 
-__all__ = ["ControlDesignError", "ControlError", "ControlSettingError", "Controller"]
+__all__ = [
+    "CONTROLLER_STEP",
+    "CompiledControllerTick",
+    "ControlDesignError",
+    "ControlError",
+    "ControlSettingError",
+    "Controller",
+]
 
 
 class ControlError(DarorError):
@@ -65,3 +76,35 @@ class Controller(Protocol):
             ControlError: a non-finite input or reference; the controller's state is unchanged.
         """
         ...
+
+
+#: A controller's compiled tick for lock-step batches (``daror_runtime/loop_batch.py``):
+#: ``step(t_s, readings, row, memory, knots, table, out) -> 0``. ``t_s`` is the sample's time (s),
+#: the sample's readings are rows ``row .. row + 3`` of ``readings`` (:data:`hal.kernels.READING_ROWS`),
+#: ``memory`` holds every number the controller keeps between ticks (its state, gains, its own
+#: reference time), ``knots`` and ``table`` a tabulated reference (empty when it has none), and
+#: the step writes the motor torque (4,) into ``out``. The same arithmetic as ``update`` on the
+#: same state: a batch tick and a Python tick give the same floats.
+CONTROLLER_STEP = types.intp(
+    types.float64,
+    types.float64[:, ::1],
+    types.intp,
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[:, :, ::1],
+    types.float64[::1],
+)
+
+
+class CompiledControllerTick(NamedTuple):
+    """What a controller hands a lock-step batch: its compiled tick and the arrays it works on.
+
+    ``memory`` is the controller's own state (the same memory ``update`` uses, so a batch and the
+    Python ticks around it continue each other); the batch copies it before each tick and puts it
+    back when the tick cannot finish in compiled code.
+    """
+
+    step: CompiledFunction  # of CONTROLLER_STEP
+    memory: FloatArray
+    knots: FloatArray
+    table: FloatArray

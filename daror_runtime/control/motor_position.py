@@ -33,12 +33,18 @@ import numpy as np
 import scipy.linalg
 from numba import njit, types
 
-from daror_runtime.control.base import ControlDesignError, ControlError, ControlSettingError
+from daror_runtime.control.base import (
+    CONTROLLER_STEP,
+    CompiledControllerTick,
+    ControlDesignError,
+    ControlError,
+    ControlSettingError,
+)
 from daror_runtime.control.position import LinkBounds, Reference
 from daror_runtime.models.base import Feedforward
 from daror_runtime.models.regressor import linear_torque
 from hal.interface import CheckedCommand, CheckedSample, Command, Sample
-from hal.kernels import SAMPLE_VECTOR, entry_point
+from hal.kernels import SAMPLE_VECTOR, CompiledFunction, entry_point
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 _new_tuple = tuple.__new__
@@ -124,6 +130,46 @@ def _motor_pd_table(
     else:
         scratch[8:12] = 0.0
     _motor_pd(scratch[0:4], scratch[4:8], scratch[8:12], theta, state, gains, out)
+
+
+# The controller's memory (MotorPositionPD._memory): its reference time, the piece cursor, the
+# filter state (2 x 4), the gains (6 x 4), the scratch (12) and the linear model's parameters.
+_MEMORY_T0 = 0
+_MEMORY_CURSOR = 1
+_MEMORY_STATE = 2
+_MEMORY_GAINS = _MEMORY_STATE + 2 * N_JOINTS
+_MEMORY_SCRATCH = _MEMORY_GAINS + 6 * N_JOINTS
+_MEMORY_MODEL = _MEMORY_SCRATCH + 3 * N_JOINTS
+
+
+@njit(cache=True)
+def _motor_pd_batch_step(
+    t_s: float,
+    readings: np.ndarray,
+    row: int,
+    memory: np.ndarray,
+    knots: np.ndarray,
+    table: np.ndarray,
+    out: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """:meth:`MotorPositionPD.update` on a batch's readings (:data:`~daror_runtime.control.base.CONTROLLER_STEP`).
+
+    The sample's theta is row ``row + 2`` of ``readings`` (:data:`hal.kernels.READING_ROWS`); the
+    controller's arrays are the slices of ``memory`` its views are.
+    """
+    _motor_pd_table(
+        t_s - memory[_MEMORY_T0],
+        knots,
+        table,
+        memory[_MEMORY_CURSOR : _MEMORY_CURSOR + 1],
+        readings[row + 2],
+        memory[_MEMORY_STATE:_MEMORY_GAINS].reshape((2, N_JOINTS)),
+        memory[_MEMORY_GAINS:_MEMORY_SCRATCH].reshape((6, N_JOINTS)),
+        memory[_MEMORY_MODEL:],
+        memory[_MEMORY_SCRATCH:_MEMORY_MODEL],
+        out,
+    )
+    return 0
 
 
 #: What :func:`_motor_pd_table` is resolved for: the time, the reference table (its knots and
@@ -283,17 +329,6 @@ class MotorPositionPD:
         self.kp_nm_per_rad, self.kd_nms_per_rad = kp, kd
         self.spectral_radius = radius
         alpha = 1.0 - math.exp(-2.0 * math.pi * velocity_filter_hz * dt_s)
-        self._gains = np.vstack(
-            [
-                kp,
-                kd,
-                np.full(N_JOINTS, 1.0 / sea.spring_stiffness_nm_per_rad),
-                np.full(N_JOINTS, alpha),
-                np.full(N_JOINTS, 1.0 / dt_s),
-                np.full(N_JOINTS, sea.max_motor_torque_nm),
-            ]
-        )
-        self._state = np.zeros((2, N_JOINTS))
         self._zero = np.zeros(N_JOINTS)
         self._feedforward = np.zeros(N_JOINTS)
         # The compiled paths are compiled with linear_torque: a model offering that kernel (AP, PLF,
@@ -301,6 +336,23 @@ class MotorPositionPD:
         # through its torque().
         kernel = feedforward.tick_kernel() if feedforward is not None else None
         self._linear = kernel.parameters if kernel is not None and kernel.function is linear_torque else None
+        # Every number the controller keeps between ticks, in one array (MEMORY_* layout): the
+        # arrays below are views of it, so the compiled batch tick (_motor_pd_batch_step) and update
+        # work on the very same state.
+        n_model = 0 if self._linear is None else int(np.asarray(self._linear).size)
+        self._memory = np.zeros(_MEMORY_MODEL + n_model)
+        self._cursor = self._memory[_MEMORY_CURSOR : _MEMORY_CURSOR + 1]
+        self._state = self._memory[_MEMORY_STATE:_MEMORY_GAINS].reshape(2, N_JOINTS)
+        self._gains = self._memory[_MEMORY_GAINS:_MEMORY_SCRATCH].reshape(6, N_JOINTS)
+        self._scratch = self._memory[_MEMORY_SCRATCH:_MEMORY_MODEL]
+        self._gains[:] = (
+            kp,
+            kd,
+            np.full(N_JOINTS, 1.0 / sea.spring_stiffness_nm_per_rad),
+            np.full(N_JOINTS, alpha),
+            np.full(N_JOINTS, 1.0 / dt_s),
+            np.full(N_JOINTS, sea.max_motor_torque_nm),
+        )
         table = getattr(reference, "piecewise_table", None)
         # The compiled path needs the feed-forward compiled too: none, or a model offering linear_torque.
         # Its arrays as float64 C-contiguous arrays (no copy when they are already: the types the
@@ -310,14 +362,13 @@ class MotorPositionPD:
             if table is not None and (feedforward is None or self._linear is not None)
             else None
         )
-        self._model_or_empty = (
-            np.ascontiguousarray(self._linear, dtype=np.float64) if self._linear is not None else np.zeros(0)
-        )
+        self._model_or_empty = self._memory[_MEMORY_MODEL:]
+        if self._linear is not None:
+            self._model_or_empty[:] = np.asarray(self._linear, dtype=np.float64).ravel()
         # A CheckedSample's theta goes to this entry point (no type dispatch); any other through the dispatcher.
         self._table_checked = entry_point(_motor_pd_table, TABLE_SIGNATURE) if self._table is not None else None
-        self._cursor = np.zeros(1)
-        self._scratch = np.zeros(3 * N_JOINTS)
         self._t0_s = 0.0
+        self._compiled_tick: CompiledControllerTick | None = None
 
     def reset(self, sample: Sample) -> None:
         """Start the reference clock at this sample; the filter starts at rest.
@@ -334,9 +385,23 @@ class MotorPositionPD:
                 "move the robot to the start first"
             )
         self._t0_s = sample.t_s
+        self._memory[_MEMORY_T0] = sample.t_s
         self._state[0] = sample.theta_rad
         self._state[1] = 0.0
         self._cursor[0] = 0.0
+
+    def compiled_tick(self) -> CompiledControllerTick | None:
+        """The controller's tick for lock-step batches (with a tabulated reference), or None.
+
+        The batch tick is :meth:`update` on a sample at the batch's readings: the same compiled
+        arithmetic (:func:`_motor_pd_table`) on the same memory. Loaded once, outside any tick.
+        """
+        if self._table is None:
+            return None
+        if self._compiled_tick is None:
+            step = CompiledFunction(_motor_pd_batch_step, CONTROLLER_STEP)
+            self._compiled_tick = CompiledControllerTick(step, self._memory, self._table[0], self._table[1])
+        return self._compiled_tick
 
     def update(self, sample: Sample, dt_s: float) -> Command:
         out = np.empty(N_JOINTS)  # a new array each tick: a command is a record, nobody changes it later

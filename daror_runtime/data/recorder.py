@@ -303,6 +303,26 @@ class Recorder:
             self._hand_over()  # as in push: the full block goes to the writer now
         return True
 
+    def batch_slot(self) -> tuple[FloatArray, int, int] | None:
+        """``(block, index, free)``: rows ``index .. index + free - 1`` of ``block`` may be filled now, or None.
+
+        For a lock-step batch that fills rows in compiled code and then calls :meth:`commit_batch`
+        with how many it filled (the rows :meth:`push_into` would have filled one by one). None
+        when the next row needs :meth:`push_into` (the block is full and must be handed over, a
+        writer error is latched, or the recorder is not recording).
+        """
+        if self._error is not None or self._refusal is not None or self._fill == self._block_rows:
+            return None
+        return self._block, self._fill, self._block_rows - self._fill
+
+    def commit_batch(self, rows: int) -> None:
+        """``rows`` rows were filled from :meth:`batch_slot`'s index on; a full block goes to the writer now."""
+        index = self._fill + rows
+        self._fill = index
+        self._rows_accepted += rows
+        if index == self._block_rows:
+            self._hand_over()
+
     def flush(self) -> bool:
         """Hand the partly filled block to the writer (no I/O, no waiting).
 

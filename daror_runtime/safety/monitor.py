@@ -179,6 +179,26 @@ class SafetyMonitor:
         self._previous_seq = None
         self._same_seq = 0
 
+    # --- lock-step batches (daror_runtime/loop_batch.py) ------------------------------------
+
+    def batch_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """``(previous, lower, upper, command_limit)`` for a batch's compiled checks, or None.
+
+        A batch runs :meth:`check`'s and :meth:`filter`'s common case in compiled code
+        (:func:`~daror_runtime.safety.kernels.signals_in_bounds`, :func:`~daror_runtime.safety.kernels.command_status`
+        on these very arrays) and hands any tick whose check or filter is not the common case back to
+        them. Only when nothing is latched, present or reported, and no ISB limits are checked (their
+        angles are computed in Python): None otherwise.
+        """
+        if self._latched or self._present or self._reported_now or self._reported_before or self._isb_on:
+            return None
+        return self._previous, self._lower, self._upper, self._command_limit
+
+    def after_batch(self, last_seq: int) -> None:
+        """A batch checked fresh samples up to ``last_seq``, every one in bounds (what :meth:`check` would record)."""
+        self._previous_seq = last_seq
+        self._same_seq = 0
+
     # --- per tick -------------------------------------------------------------------------
 
     def report(self, kind: FaultKind, t_s: float, message: str, joint: int | None = None) -> Fault | None:

@@ -35,9 +35,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hal.capabilities import FAULT_KINDS, FaultKind
+from hal.capabilities import FAULT_KINDS, BackendBatch, FaultKind
 from hal.errors import DescriptionError, HalError, HalNotOpenError, InputError, ShapeError
 from hal.interface import CheckedCommand, CheckedSample, Command, DriveState, Hal, HalFaultError, Sample
+from hal.kernels import BACKEND_STEP, CompiledFunction
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 from hal.sim import dynamics
 from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
@@ -141,6 +142,7 @@ class SimHal(Hal):
         self._no_fault_codes = (0,) * N_JOINTS
         self._is_open = False
         self._world: PlantWorld | None = None
+        self._batches: SimLockStepBatches | None = None
         # The plant's own arrays, which the tick kernel integrates in place (DynamicPlant never replaces them).
         self._x, self._p, self._work = self._plant.state, self._plant.params, self._plant.work
         self._tick_kernel = dynamics.hal_tick_entry()
@@ -181,6 +183,13 @@ class SimHal(Hal):
 
             self._world = PlantWorld(self)
         return self._world
+
+    @property
+    def lockstep_batches(self) -> SimLockStepBatches:
+        """Ticks of the plant and its drives inside compiled code (:class:`SimLockStepBatches`)."""
+        if self._batches is None:
+            self._batches = SimLockStepBatches(self)
+        return self._batches
 
     def open(self) -> None:
         """Start a session: plant at rest in static equilibrium at the scenario's ``initial_q_deg``.
@@ -547,3 +556,82 @@ def _number(value: object) -> float | None:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return None
+
+
+class SimLockStepBatches:
+    """:class:`hal.capabilities.LockStepBatches` of a :class:`SimHal`: its tick kernel run by a compiled caller.
+
+    A batch tick is :meth:`SimHal.write` of an enabled command followed by :meth:`SimHal.read`,
+    without the Python around them: the same kernel (:func:`hal.sim.dynamics.hal_tick`) on the same
+    arrays, so the readings are the very same floats. A batch only starts on a plain tick (open, no
+    fault injected or pending, no e-stop pressed, no pilot whose torque is computed per tick) and
+    stops before the noise block or the block of readings runs out (both renewed here, between
+    ticks, exactly as a write would renew them).
+    """
+
+    def __init__(self, hal: SimHal) -> None:
+        self._hal = hal
+        # The kernel's address for the batch's signature: loaded (or compiled) once, outside any tick.
+        self._step = CompiledFunction(dynamics.hal_tick, BACKEND_STEP)
+        self._first_row = 0
+
+    def begin(self) -> BackendBatch | None:
+        """The batch at the current tick, or None when the next tick needs :meth:`SimHal.write`."""
+        hal = self._hal
+        if (
+            not hal._is_open
+            or hal._bus_fault
+            or hal._any_fault
+            or hal._stale_left
+            or (hal._sample is not None and hal._sample.seq != hal._tick)  # the last tick of a stale spell
+            or hal._nan_pending
+            or callable(hal._external)
+            or True in hal._estop
+        ):
+            return None
+        s = hal._drive_vector
+        noise_ticks = int(dynamics.NOISE_BLOCK_SIZE - s[dynamics.S_NOISE_INDEX]) // dynamics.NOISE_PER_TICK
+        if noise_ticks == 0:  # what the next write would do first (TICK_NO_NOISE, then a refill)
+            hal._refill_noise()
+            noise_ticks = dynamics.NOISE_BLOCK_TICKS
+        row_ticks = (_BLOCK_ROWS - 4 - hal._row) // 4  # a tick writes rows row + 4 .. row + 7
+        if row_ticks < noise_ticks:
+            # A new block now rather than in the middle of the batch; the current readings move
+            # with it (rows 0-3), and a sample already built keeps the old block's rows.
+            hal._new_block()
+            row_ticks = _BLOCK_TICKS - 1
+        self._first_row = hal._row
+        return BackendBatch(
+            self._step,
+            (hal._x, hal._p, hal._work, s),
+            hal._out,
+            hal._row,
+            hal._tick,
+            hal._dt,
+            min(noise_ticks, row_ticks),
+        )
+
+    def end(self, ticks: int, status: int) -> None:
+        """Account for ``ticks`` ticks run; raises when the last one failed (as :meth:`SimHal.write` raises).
+
+        Raises:
+            HalError: the plant diverged in the last tick (torque removed, as :meth:`SimHal.write` does).
+        """
+        hal = self._hal
+        if status >= 0:
+            hal._tick += ticks
+            hal._row = self._first_row + 4 * ticks
+            hal._drives = hal._enabled_drives if status == dynamics.TICK_ENABLED else hal._disabled_drives
+            hal._sample = None
+            return
+        # The last tick failed inside the kernel: everything before it counts, it does not (as in write).
+        hal._tick += ticks - 1
+        hal._row = self._first_row + 4 * (ticks - 1)
+        hal._sample = None
+        hal._drives = hal._drive_states(False)
+        hal._refused()
+        if status == dynamics.TICK_BAD_COMMAND:  # the batch's torque passed the safety filter: not expected
+            raise HalError("a batch tick's torque is not finite; torque removed")
+        raise HalError(
+            f"simulated plant diverged at t = {hal._tick * hal._dt:.6f} s (scenario {hal.scenario.name!r}); torque removed"
+        )

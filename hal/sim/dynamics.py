@@ -46,9 +46,11 @@ from hal.robot import N_JOINTS, FloatArray
 
 #: How every kernel is compiled: cached on disk; division by zero gives inf/nan (numpy's error
 #: model) instead of a Python exception check in the inner loop, and the step's finiteness check
-#: catches it; fused multiply-add allowed, but no other fast-math flag: "no NaN/inf" would let
-#: the compiler delete exactly those finiteness checks (docs/simulation.md S17).
-_kernel = njit(cache=True, error_model="numpy", fastmath={"contract"})
+#: catches it. No fast-math flag at all, not even fused multiply-add: where LLVM fuses depends on
+#: what it inlined, which differs between a kernel compiled in this process and one loaded from
+#: numba's cache, so a contracted plant recorded different rows in a fresh and a cached run
+#: (docs/simulation.md S17); "no NaN/inf" would also delete the finiteness checks.
+_kernel = njit(cache=True, error_model="numpy")
 
 #: Length of the state vector ``[q, theta, q', theta']``.
 N_STATE = 4 * N_JOINTS
