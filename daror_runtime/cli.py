@@ -506,7 +506,9 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
     checked = None
     if args.script is not None:  # the whole script is checked before anything runs or is written
         checked = check_lines(
-            read_script(args.script), str(args.script), parse_context(spec, hal.description, hal.world is not None)
+            read_script(args.script),
+            str(args.script),
+            parse_context(spec, hal.description, hal.world.fault_kinds if hal.world is not None else None),
         )
     typed = checked is None and stdin_is_terminal()
     realtime = args.realtime or typed

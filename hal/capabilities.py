@@ -26,9 +26,11 @@ if TYPE_CHECKING:
     from hal.kernels import CompiledFunction
 
 __all__ = [
+    "BUS_FAULT_KINDS",
     "ESTOP_OPERATOR",
     "ESTOP_PILOT",
     "FAULT_KINDS",
+    "PLANT_FAULT_KINDS",
     "BackendBatch",
     "FaultKind",
     "LockStepBatches",
@@ -40,9 +42,14 @@ ESTOP_OPERATOR = 0
 #: Index of the pilot's e-stop in :attr:`hal.interface.Sample.estop`.
 ESTOP_PILOT = 1
 
-FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus"]
-#: The faults a simulated world can inject (what each does: :meth:`SimulatedWorld.inject_fault`).
-FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
+FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus", "heartbeat_loss", "emcy", "frozen_pdo", "drop_frames"]
+#: The faults the simulated plant injects in its sensors and drives (``sim``).
+PLANT_FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
+#: The faults simulated CANopen drives inject on the bus (``can-sim``, hal/canopen/sim).
+BUS_FAULT_KINDS: tuple[str, ...] = ("heartbeat_loss", "emcy", "frozen_pdo", "drive_fault", "drop_frames")
+#: Every fault a simulated world may offer (what each does: :meth:`SimulatedWorld.inject_fault`);
+#: a world offers its own subset (:attr:`SimulatedWorld.fault_kinds`).
+FAULT_KINDS: tuple[str, ...] = (*PLANT_FAULT_KINDS, *(k for k in BUS_FAULT_KINDS if k not in PLANT_FAULT_KINDS))
 
 
 @runtime_checkable
@@ -98,11 +105,16 @@ class SimulatedWorld(Protocol):
     def inject_fault(self, kind: str, joint: int | None = None, value: float | None = None) -> None:
         """Inject a fault, effective from the next sample or tick (``joint`` 1-4, None for all).
 
-        ``nan``: the next ``q`` reading is NaN. ``jump``: the ``q`` reading is offset by ``value``
-        rad from now on. ``stale``: the next ``value`` (default 1) samples repeat the latest one.
-        ``drive_fault``: the drive reports FAULT with code ``value`` (default 0x1000) and applies
-        no torque until :meth:`clear_faults`. ``bus``: the next ``read`` raises
-        :class:`hal.interface.HalFaultError`.
+        The simulated plant (``sim``): ``nan``: the next ``q`` reading is NaN. ``jump``: the ``q``
+        reading is offset by ``value`` rad from now on. ``stale``: the next ``value`` (default 1)
+        samples repeat the latest one. ``drive_fault``: the drive reports FAULT with code ``value``
+        (default 0x1000) and applies no torque until :meth:`clear_faults` or a fault reset.
+        ``bus``: the next ``read`` raises :class:`hal.interface.HalFaultError`.
+
+        Simulated CANopen drives (``can-sim``, ``joint`` names the drive): ``heartbeat_loss``: its
+        heartbeat stops. ``emcy``: it reports an error by a short EMCY and faults. ``frozen_pdo``:
+        its TPDOs stop. ``drive_fault``: its power stage faults (EMCY, FAULT). ``drop_frames``:
+        every frame to and from it is lost for ``value`` s (default 0.02).
 
         Raises:
             InputError: an unknown kind, a joint not 1-4, or a missing/invalid value.

@@ -258,6 +258,17 @@ class Hal(ABC):
         """
         return None
 
+    def request_fault_reset(self) -> None:
+        """Ask every drive in fault to reset it, from the next writes on; never blocks.
+
+        On CiA 402 drives this is one rising edge of controlword bit 7 (a drive whose cause
+        persists stays in FAULT); a backend that can bring a lost drive back (a CANopen drive
+        that went silent or restarted) starts that here too. The runtime calls it when the
+        operator acknowledges a fault. A drive that leaves FAULT reports DISABLED until enabled.
+        The default does nothing: a backend whose drive faults clear only with their cause.
+        """
+        return None
+
     @abstractmethod
     def open(self) -> None:
         """Connect (bus, drives or simulator) and start a session; every drive stays disabled."""

@@ -23,6 +23,7 @@ import pytest
 from daror_runtime.cli import main
 from daror_runtime.logs import configure_logging
 from daror_runtime.util.outputs import output_lock
+from hal.capabilities import PLANT_FAULT_KINDS
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "fsm_spec.yaml"
@@ -450,7 +451,7 @@ def test_a_hostile_file_named_in_the_console_is_refused_in_one_line(
     from daror_runtime.fsm.spec import load_fsm_spec
     from hal.robot import load_description
 
-    context = parse_context(load_fsm_spec(), load_description(), has_world=True)
+    context = parse_context(load_fsm_spec(), load_description(), PLANT_FAULT_KINDS)
     before = _snapshot(files.folder)
     start = time.perf_counter()
     with pytest.raises(CommandError) as refused:

@@ -47,13 +47,17 @@ class _Tally:
     failures: list[str] = field(default_factory=list)
 
 
-def parse_context(spec: FsmSpec, description: RobotDescription, has_world: bool) -> ParseContext:
-    """What lines are checked against in a session on ``spec`` and a robot ``description``."""
+def parse_context(spec: FsmSpec, description: RobotDescription, fault_kinds: tuple[str, ...] | None) -> ParseContext:
+    """What lines are checked against in a session on ``spec`` and a robot ``description``.
+
+    ``fault_kinds``: the faults the backend's simulated world injects; None: no simulated world
+    (hardware: ``sim`` lines are refused).
+    """
     return ParseContext(
         state_names=(*(s.name for s in spec.states), spec.fail.name),
-        has_world=has_world,
+        has_world=fault_kinds is not None,
         description=description,
-        fault_kinds=SimWorld.fault_kinds if has_world else (),
+        fault_kinds=fault_kinds or (),
     )
 
 
@@ -74,7 +78,9 @@ class ConsoleSession:
         self.out = out
         self.world = world
         self.timeout_s = request_timeout_s
-        self.context = parse_context(runtime.spec, runtime.description, world is not None)
+        self.context = parse_context(
+            runtime.spec, runtime.description, world.fault_kinds if world is not None else None
+        )
         self.tally = _Tally()
         self._line = ""  # the line being run (echoed by world acts)
         self._run: dict[str, Callable[[tuple], None]] = {  # type: ignore[type-arg]

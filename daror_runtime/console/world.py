@@ -18,7 +18,7 @@ from daror_runtime.errors import UsageError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.session.settings import SessionSettings
-from hal.capabilities import ESTOP_OPERATOR, ESTOP_PILOT, FAULT_KINDS, SimulatedWorld
+from hal.capabilities import ESTOP_OPERATOR, ESTOP_PILOT, SimulatedWorld
 from hal.robot import FloatArray
 
 #: The console's names of the e-stop buttons -> the world's button.
@@ -38,9 +38,6 @@ class SimWorld:
         HalNotOpenError: the backend is not open.
     """
 
-    #: The fault kinds a simulated world offers (``sim fault KIND``).
-    fault_kinds: tuple[str, ...] = FAULT_KINDS
-
     def __init__(self, world: SimulatedWorld | None) -> None:
         if world is None:
             raise UsageError(
@@ -48,7 +45,8 @@ class SimWorld:
                 "there is no simulated pilot, e-stop or fault to act on"
             )
         self.simulated: SimulatedWorld = world
-        self.fault_kinds = world.fault_kinds
+        #: The fault kinds this world offers (``sim fault KIND``).
+        self.fault_kinds: tuple[str, ...] = tuple(world.fault_kinds)
         world.seat_pilot()
 
     @property

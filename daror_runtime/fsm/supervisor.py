@@ -154,12 +154,14 @@ class FsmSupervisor:
         isb_margin_rad: float = 0.0,
         max_pending_requests: int = DEFAULT_MAX_PENDING_REQUESTS,
         max_requests_per_tick: int = DEFAULT_MAX_REQUESTS_PER_TICK,
+        on_fault_acknowledged: Callable[[], None] | None = None,
     ) -> None:
         if max_pending_requests < 1 or max_requests_per_tick < 1:
             raise ConfigurationError(
                 f"the request queue needs max_pending_requests >= 1 and max_requests_per_tick >= 1, "
                 f"got {max_pending_requests} and {max_requests_per_tick}"
             )
+        self._on_fault_acknowledged = on_fault_acknowledged
         modes = {s.mode for s in spec.states} | {spec.fail.mode}
         missing = sorted(modes - set(controllers))
         if missing:
@@ -312,6 +314,10 @@ class FsmSupervisor:
         return Response(event.value, True, self.state_name)
 
     def _acknowledged(self, outcome: Outcome) -> None:
+        if self._on_fault_acknowledged is not None:
+            # The drives' fault reset (CiA 402 bit 7 edge; lost drives brought back): a request the
+            # backend carries out over the next ticks, never a wait in this one.
+            self._on_fault_acknowledged()
         if self.machine.in_fail:
             self.signals.fault_acknowledged = True
             log.info(

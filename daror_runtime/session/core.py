@@ -120,6 +120,7 @@ class SessionCore:
             self.signals,
             isb_function=lambda limits: monitor_isb_function(self.shoulder, limits),
             isb_margin_rad=float(np.deg2rad(self.settings.isb_margin_deg)),
+            on_fault_acknowledged=hal.request_fault_reset,
         )
         self.loop = ControlLoop(hal, self.monitor, self.supervisor, self.clock)
         self.announcements = Announcements()

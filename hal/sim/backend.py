@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hal.capabilities import FAULT_KINDS, BackendBatch, FaultKind
+from hal.capabilities import PLANT_FAULT_KINDS, BackendBatch, FaultKind
 from hal.errors import DescriptionError, HalError, HalNotOpenError, InputError, ShapeError
 from hal.interface import CheckedCommand, CheckedSample, Command, DriveState, Hal, HalFaultError, Sample
 from hal.kernels import BACKEND_STEP, CompiledFunction
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from hal.config import AnyHalConfig
     from hal.sim.world import PlantWorld
 
-__all__ = ["DEFAULT_DRIVE_FAULT_CODE", "FAULT_KINDS", "STREAM_SIM_ENCODERS", "ExternalTorque", "FaultKind", "SimHal"]
+__all__ = ["DEFAULT_DRIVE_FAULT_CODE", "STREAM_SIM_ENCODERS", "ExternalTorque", "FaultKind", "SimHal"]
 
 #: Random stream of the encoder noise; ids 1-5 belong to hal.sim.static_dataset.
 STREAM_SIM_ENCODERS = 6
@@ -364,8 +364,8 @@ class SimHal(Hal):
         """
         if not self._is_open:
             raise HalNotOpenError("simulated HAL is not open; call open() first")
-        if kind not in FAULT_KINDS:
-            raise InputError(f"fault kind {kind!r}; expected one of {', '.join(FAULT_KINDS)}")
+        if kind not in PLANT_FAULT_KINDS:
+            raise InputError(f"fault kind {kind!r}; expected one of {', '.join(PLANT_FAULT_KINDS)}")
         if joint is not None and (isinstance(joint, bool) or joint not in range(1, N_JOINTS + 1)):
             raise InputError(f"joint {joint!r}; expected 1-{N_JOINTS} or None for all joints")
         joints = list(range(N_JOINTS)) if joint is None else [joint - 1]
@@ -410,6 +410,11 @@ class SimHal(Hal):
         self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] = 0.0
         self._any_fault = False
         self._fault_codes = self._no_fault_codes
+
+    # request_fault_reset: the Hal default (nothing). An injected drive fault here stands for a cause
+    # that persists (a hot motor): a fault reset edge would leave the drive in FAULT, so the drive
+    # leaves it only when the world removes the cause (clear_faults). hal/canopen's simulated drives
+    # model the other kind, a fault that a reset clears.
 
     def read_without_faults(self) -> Sample:
         """The current tick's sample without raising a pending bus fault (hooks and tests).

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from hal.capabilities import FAULT_KINDS
+from hal.capabilities import PLANT_FAULT_KINDS
 from hal.errors import HalError
 from hal.isb import Shoulder
 from hal.robot import FloatArray
@@ -39,7 +39,7 @@ class PlantWorld:
 
     @property
     def fault_kinds(self) -> tuple[str, ...]:
-        return FAULT_KINDS
+        return PLANT_FAULT_KINDS
 
     @property
     def t_s(self) -> float:

@@ -1,0 +1,162 @@
+"""The master's side of the bus: frames in (drained once per tick), frames out, the traffic log.
+
+Two ways to receive, one interface (:class:`FrameSource`): drain what arrived since the last tick.
+
+* :class:`PolledFrames` reads the bus in the tick (``recv(timeout=0)`` until empty): no thread at
+  all, so a lock-step run over simulated drives processes every frame in one fixed order.
+* :class:`ListenedFrames` lets python-can's ``Notifier`` thread receive, as on real hardware (the
+  frame's reception time is kept, and a slow tick does not let the controller's buffer
+  overflow). Its listener only stores the COB-ID, the bytes and the timestamp; an exception in
+  the receive thread (python-can ends the thread on one) is latched and raised by the next drain,
+  so the tick learns of it at once instead of reading an empty bus forever.
+
+Software filters are never set on a bus we drain: python-can's ``recv(timeout=0)`` returns None
+at the first frame a filter rejects, even with matching frames queued behind it.
+
+:class:`TrafficLog` writes every frame the master sends or receives in candump's ``-L`` format
+with python-can's ``CanutilsLogWriter``, stamped ``epoch_s + robot time`` (docs/canopen.md: the
+standard tools read a log whose first second is not 0).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import can
+
+from hal.errors import HalError
+
+__all__ = ["Frame", "FrameSource", "ListenedFrames", "PolledFrames", "TrafficLog"]
+
+
+class Frame(NamedTuple):
+    """One received frame: COB-ID, data, the time it was received (s, the source's clock)."""
+
+    cob_id: int
+    data: bytes
+    t_s: float
+
+
+class FrameSource:
+    """Frames that arrived since the last :meth:`drain`."""
+
+    def drain(self) -> list[Frame]:
+        """Every frame received since the last call, in arrival order.
+
+        Raises:
+            HalError: the receiving side failed (the message says how); latched, raised once.
+        """
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop receiving (a thread is stopped; a polled source does nothing)."""
+
+
+class PolledFrames(FrameSource):
+    """Reads the bus itself, in the caller's thread (lock-step: no thread, a fixed order).
+
+    Args:
+        bus: the master's bus.
+        now: the time a frame is stamped with when it is drained (robot time in lock-step).
+    """
+
+    def __init__(self, bus: can.BusABC, now: Callable[[], float]) -> None:
+        self._recv = bus.recv
+        self._now = now
+
+    def drain(self) -> list[Frame]:
+        frames = []
+        recv = self._recv
+        now = self._now()
+        while True:
+            try:
+                message = recv(timeout=0)
+            except can.CanError as exc:
+                raise HalError(f"reading the CAN bus failed: {exc}") from None
+            if message is None:
+                return frames
+            if message.is_error_frame or message.is_remote_frame or message.is_extended_id:
+                continue  # the DAROR bus carries standard data frames only
+            frames.append(Frame(message.arbitration_id, bytes(message.data), now))
+
+
+class _StoringListener(can.Listener):
+    """Runs in python-can's receive thread: stores the frame, nothing else, and keeps the thread alive."""
+
+    def __init__(self, frames: deque[Frame], errors: list[BaseException], now: Callable[[], float]) -> None:
+        self._frames = frames
+        self._errors = errors
+        self._now = now
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not (msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id):
+            self._frames.append(Frame(msg.arbitration_id, bytes(msg.data), self._now()))
+
+    def on_error(self, exc: Exception) -> None:
+        self._errors.append(exc)  # latched; the tick raises it (python-can would otherwise end the thread)
+
+
+class ListenedFrames(FrameSource):
+    """python-can's ``Notifier`` receives in its own thread; the tick drains what it stored.
+
+    Args:
+        bus: the master's bus.
+        now: the clock a frame is stamped with on reception (wall time since the backend opened).
+    """
+
+    def __init__(self, bus: can.BusABC, now: Callable[[], float]) -> None:
+        self._frames: deque[Frame] = deque()
+        self._errors: list[BaseException] = []
+        self._notifier = can.Notifier(bus, [_StoringListener(self._frames, self._errors, now)], timeout=0.05)
+        self._reported = False
+        self._lock = threading.Lock()
+
+    def drain(self) -> list[Frame]:
+        frames = []
+        popleft = self._frames.popleft
+        while self._frames:  # deque appends and pops are atomic: the thread never waits on the tick
+            frames.append(popleft())
+        failure = self._errors[0] if self._errors else self._notifier.exception
+        if failure is not None and not self._reported:
+            self._reported = True
+            raise HalError(f"the CAN receive thread failed: {type(failure).__name__}: {failure}")
+        return frames
+
+    def close(self) -> None:
+        self._notifier.stop(timeout=1.0)
+
+
+class TrafficLog:
+    """Every frame on the master's side of the bus, in candump ``-L`` format (python-can's writer).
+
+    Args:
+        path: the log file (written as frames come; a crash keeps what was written).
+        epoch_s: whole seconds added to robot time in the log (the session's start, Unix time).
+        channel: the interface name written on every line.
+    """
+
+    def __init__(self, path: Path, epoch_s: int, channel: str = "can0") -> None:
+        self.path = path
+        self.epoch_s = int(epoch_s)
+        self._writer = can.CanutilsLogWriter(str(path), channel=channel, append=False)
+        self._channel = channel
+
+    def frame(self, cob_id: int, data: bytes, robot_t_s: float, sent: bool) -> None:
+        """Log one frame the master sent (``sent``) or received, at robot time ``robot_t_s``."""
+        self._writer.on_message_received(
+            can.Message(
+                timestamp=self.epoch_s + robot_t_s,
+                arbitration_id=cob_id,
+                data=data,
+                is_extended_id=False,
+                is_rx=not sent,
+                channel=self._channel,
+            )
+        )
+
+    def close(self) -> None:
+        self._writer.stop()

@@ -1,0 +1,684 @@
+"""The CANopen master of the DAROR-01's four SEA drives: configured at start-up, one bus cycle per tick.
+
+Start-up (:meth:`CanMaster.start`, outside the tick, may wait on the bus)::
+
+    NMT reset communication -> every drive's boot-up message
+    per drive, by SDO: read its identity and units (device type, rated torque, encoder resolutions)
+      and refuse a drive whose units are not its EDS's; write cyclic synchronous torque (0x6060),
+      the peak torque (0x6072), the heartbeat producer (0x1017) and the master's heartbeat as its
+      consumer (0x1016), every PDO's communication and mapping parameters (never the defaults)
+    NMT start -> the first SYNC -> every drive's first TPDOs
+
+The tick, in one order, never waiting (:meth:`CanMaster.receive` is the HAL's read,
+:meth:`CanMaster.send_cycle` its write)::
+
+    read:  drain the frames received since the last tick; decode TPDOs, heartbeats, EMCY, SDO
+           answers; the watchdogs (heartbeat consumer, TPDO staleness over N SYNCs, the receive
+           thread); the sample
+    write: the CiA 402 power state machine of every drive, at most one transition per tick
+           (timeouts counted in ticks, fault reset on an explicit request only); the RPDOs
+           (controlword, target torque); due SDO transfers of a recovery; the master's heartbeat;
+           the SYNC (the runtime's tick is the SYNC producer)
+
+A drive that goes silent (heartbeat lost), whose TPDOs stop, or that restarted on its own is
+*lost*: it shows as a drive in FAULT with a code (:data:`LOST_CODES`) and gets no torque. Every
+such event, every EMCY that reports an error and every drive that does not follow the power state
+machine is latched and raised once by the next read (:class:`hal.interface.HalFaultError`). A fault
+reset request (:meth:`CanMaster.request_fault_reset`, the operator's acknowledge) sends a fault
+reset edge to drives in FAULT and brings lost drives back: NMT reset node, the same SDO
+configuration as at start-up (non-blocking, a transfer in flight per drive), NMT start.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import can
+import numpy as np
+
+from hal.canopen import objects as obj
+from hal.canopen.bus import Frame, FrameSource, TrafficLog
+from hal.canopen.cia301.emcy import EmcyMessage, parse_emcy
+from hal.canopen.cia301.heartbeat import HeartbeatConsumer
+from hal.canopen.cia301.nmt import (
+    EMCY_BASE,
+    HEARTBEAT_BASE,
+    SDO_RESPONSE_BASE,
+    SYNC_COB_ID,
+    NmtCommand,
+    NmtState,
+    heartbeat_frame,
+    nmt_frame,
+    parse_heartbeat,
+)
+from hal.canopen.cia301.pdo import PdoCodec, PdoMapping
+from hal.canopen.cia301.sdo import SdoClient, SdoTransfer
+from hal.canopen.cia402.statemachine import (
+    CW_DISABLE_VOLTAGE,
+    SW_ESTOP_OPERATOR,
+    SW_ESTOP_PILOT,
+    PowerState,
+    PowerStepper,
+    decode_statusword,
+    drive_state,
+)
+from hal.canopen.dictionary import DriveDictionary
+from hal.canopen.mapping import DAROR_MAPPING, DrivePdos
+from hal.errors import HalError
+from hal.interface import DriveState
+
+__all__ = ["LOST_CODES", "CanMaster", "MasterSettings"]
+
+#: The fault code a lost drive shows (CiA 301 error codes, the master's view of the drive).
+LOST_CODES = {
+    "heartbeat": 0x8130,  # life guard error or heartbeat error
+    "pdo": 0x8100,  # communication: its process data stopped
+    "restarted": 0x8140,  # recovered from bus off / restarted: its configuration is gone
+    "recovery": 0x8000,  # monitoring: bringing it back failed
+}
+
+
+@dataclass(frozen=True)
+class MasterSettings:
+    """How the master runs the bus (from the HAL configuration).
+
+    Attributes:
+        node_ids: the drive of joints 1-4.
+        period_s: the SYNC period = the tick, s.
+        heartbeat_producer_ms: every drive's heartbeat period (0x1017), and the master's own.
+        heartbeat_consumer_ms: a drive silent this long is lost; the drives consume the master's
+            heartbeat with the same time (0x1016).
+        master_node_id: the node id the master's heartbeat uses (0x700 + id).
+        peak_torque_nm: the drives' peak torque: commands are saturated there (0x6072 too).
+        stale_syncs: a drive whose TPDOs miss this many SYNCs in a row is lost.
+        transition_timeout_s: how long one power state transition may take before it is a fault.
+        velocity_filter_hz: first-order low-pass of the link velocity estimated from the load encoder.
+        sdo_timeout_s: how long an SDO transfer may wait for its answer.
+        boot_timeout_s: how long a drive may take to send its boot-up message after a reset.
+    """
+
+    node_ids: tuple[int, ...]
+    period_s: float
+    heartbeat_producer_ms: int = 100
+    heartbeat_consumer_ms: int = 250
+    master_node_id: int = 127
+    peak_torque_nm: float = 40.0
+    stale_syncs: int = 3
+    transition_timeout_s: float = 0.02
+    velocity_filter_hz: float = 50.0
+    sdo_timeout_s: float = 0.5
+    boot_timeout_s: float = 2.0
+
+
+@dataclass
+class _Recovery:
+    """Bringing a lost drive back: reset, configure, start (steps counted in the master's time)."""
+
+    phase: str  # "reset", "configure", "start"
+    since_s: float
+    transfers: list[SdoTransfer] = field(default_factory=list)
+
+
+@dataclass
+class _Drive:
+    """What the master knows of one drive."""
+
+    node_id: int
+    stepper: PowerStepper
+    statusword: int | None = None
+    power: PowerState | None = None
+    motor_counts: int = 0
+    load_counts: int = 0
+    torque_permille: int = 0
+    status_sync: int = -1  # the SYNC whose TPDO1 arrived last
+    load_sync: int = -1  # the SYNC whose TPDO2 arrived last
+    lost: str | None = None  # a key of LOST_CODES while lost
+    lost_why: str = ""
+    emcy: EmcyMessage | None = None  # an error reported by EMCY and not reset yet
+    recovery: _Recovery | None = None
+    controlword: int = CW_DISABLE_VOLTAGE
+
+
+class CanMaster:
+    """The protocol engine of the backend: no HAL types beyond the drive states; see the module docstring.
+
+    Args:
+        bus: the open python-can bus (the master's handle).
+        source: where received frames come from (:mod:`hal.canopen.bus`).
+        dictionary: the drives' EDS.
+        settings: see :class:`MasterSettings`.
+        now: the master's clock, s (robot time on a simulated bus, wall time since open on hardware).
+        pump: called after the master sent frames, before it expects answers (lock-step simulated
+            drives process the bus then; None on hardware).
+        wait: how start-up waits for answers between polls (``time.sleep`` on hardware).
+        traffic: the bus log (None: no log).
+        mapping: the PDOs configured on every drive.
+
+    Raises:
+        HalConfigError: the mapping does not fit the EDS (an object missing, of another size or not mappable).
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        source: FrameSource,
+        dictionary: DriveDictionary,
+        settings: MasterSettings,
+        now: Callable[[], float],
+        pump: Callable[[], None] | None = None,
+        wait: Callable[[float], None] | None = None,
+        traffic: TrafficLog | None = None,
+        mapping: DrivePdos = DAROR_MAPPING,
+    ) -> None:
+        self.bus = bus
+        self.source = source
+        self.dictionary = dictionary
+        self.settings = settings
+        self.mapping = mapping
+        self._now = now
+        self._pump = pump
+        self._wait = wait or (lambda s: None)
+        self.traffic = traffic
+        self.units = dictionary.units
+        self.n = len(settings.node_ids)
+        self._codecs = {pdo.name: self._codec(pdo) for pdo in mapping.all}
+        self._pack_rpdo = self._codecs[mapping.rpdo.name].pack
+        ticks = max(2, math.ceil(settings.transition_timeout_s / settings.period_s))
+        self.drives = [_Drive(node_id, PowerStepper(ticks)) for node_id in settings.node_ids]
+        self._by_node = {d.node_id: d for d in self.drives}
+        # COB-ID -> (drive, what): one dict lookup per received frame
+        self._routes: dict[int, tuple[_Drive, str]] = {}
+        for drive in self.drives:
+            self._routes[mapping.tpdo_status.cob_id(drive.node_id)] = (drive, "status")
+            self._routes[mapping.tpdo_load.cob_id(drive.node_id)] = (drive, "load")
+            self._routes[HEARTBEAT_BASE + drive.node_id] = (drive, "heartbeat")
+            self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy")
+            self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo")
+        self._rpdo_cob = [mapping.rpdo.cob_id(d.node_id) for d in self.drives]
+        self._unpack_status = self._codecs[mapping.tpdo_status.name].decode
+        self._unpack_load = self._codecs[mapping.tpdo_load.name].decode
+        self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
+        self.sdo = SdoClient(timeout_s=settings.sdo_timeout_s)
+        self._peak_permille = min(round(settings.peak_torque_nm / self.units.nm_per_permille), 32767)
+        self._latched: list[str] = []
+        self.syncs = 0  # SYNCs sent
+        self._last_sync_s = 0.0
+        self.sample_t_s = 0.0  # when the SYNC whose TPDOs the arrays hold was sent (the master's clock)
+        self._started_s = 0.0
+        self._next_heartbeat_s = 0.0
+        self.frames_received = 0
+        self.frames_sent = 0
+        self.unknown_frames = 0
+        # the sample's arrays, rebuilt per fresh cycle
+        self.q_rad = np.zeros(self.n)
+        self.dq_rad_s = np.zeros(self.n)
+        self.theta_rad = np.zeros(self.n)
+        self.tau_nm = np.zeros(self.n)
+        self._last_fresh_sync = -1
+        self._alpha = 1.0 - math.exp(-2.0 * math.pi * settings.velocity_filter_hz * settings.period_s)
+
+    def _codec(self, pdo: PdoMapping) -> PdoCodec:
+        from hal.errors import HalConfigError
+
+        for mapped in pdo.objects:
+            if self.dictionary.size_bits(mapped.index, mapped.sub) != mapped.bits:
+                raise HalConfigError(
+                    f"{self.dictionary.path}: {pdo.name} maps {mapped} but the EDS gives the object "
+                    f"{self.dictionary.size_bits(mapped.index, mapped.sub)} bits"
+                )
+            if not self.dictionary.pdo_mappable(mapped.index, mapped.sub):
+                raise HalConfigError(
+                    f"{self.dictionary.path}: {pdo.name} maps {mapped}, which the EDS says is not mappable"
+                )
+        return PdoCodec(pdo, tuple(self.dictionary.data_type(m.index, m.sub) for m in pdo.objects))
+
+    # --- frames out --------------------------------------------------------------------------
+
+    def _send(self, cob_id: int, data: bytes) -> None:
+        try:
+            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=self._now()))
+        except can.CanError as exc:
+            raise HalError(f"sending frame 0x{cob_id:03X} failed: {exc}") from None
+        self.frames_sent += 1
+        if self.traffic is not None:
+            self.traffic.frame(cob_id, data, self._now(), sent=True)
+
+    # --- start-up (outside the tick) ----------------------------------------------------------
+
+    def start(self) -> None:
+        """Reset, identify, configure and start every drive, then run the first cycle (may wait; see the module docstring).
+
+        Raises:
+            HalError: a drive did not answer, refused a write, or reports units other than its EDS
+                (the message names the drive, the object and the values).
+        """
+        self.sdo.cancel()
+        self._latched.clear()
+        for drive in self.drives:
+            drive.lost, drive.lost_why, drive.emcy, drive.recovery = None, "", None, None
+            drive.power, drive.statusword = None, None
+        booted: set[int] = set()
+        for drive in self.drives:
+            self._send(*nmt_frame(NmtCommand.RESET_COMMUNICATION, drive.node_id))
+        self._collect(lambda frames: booted.update(self._boot_ups(frames)), lambda: len(booted) == self.n,
+                      self.settings.boot_timeout_s, lambda: f"no boot-up message from node(s) {self._missing(booted)}")  # fmt: skip
+        transfers = [t for drive in self.drives for t in self._configuration(drive.node_id)]
+        self._run_sdo(transfers, "configuring the drives")
+        self._check_identity(transfers)
+        for drive in self.drives:
+            self._send(*nmt_frame(NmtCommand.START, drive.node_id))
+        self._started_s = self._now()
+        self.heartbeats.start(self._now())
+        self._next_heartbeat_s = self._now()
+        self._send_heartbeat_if_due()
+        first = self.syncs
+        self._sync()
+        self._collect(self._dispatch, lambda: all(d.status_sync >= first and d.load_sync >= first for d in self.drives),
+                      self.settings.boot_timeout_s,
+                      lambda: f"no TPDOs after the first SYNC from node(s) {self._missing_pdos(first)}")  # fmt: skip
+        self._latched.clear()  # what happened while starting is in the start's own errors
+
+    def _missing(self, seen: set[int]) -> str:
+        return ", ".join(str(d.node_id) for d in self.drives if d.node_id not in seen)
+
+    def _missing_pdos(self, sync: int) -> str:
+        return ", ".join(str(d.node_id) for d in self.drives if d.status_sync < sync or d.load_sync < sync)
+
+    def _boot_ups(self, frames: list[Frame]) -> list[int]:
+        found = []
+        for frame in frames:
+            node_id = frame.cob_id - HEARTBEAT_BASE
+            if node_id in self._by_node and parse_heartbeat(frame.data) is NmtState.BOOT_UP:
+                found.append(node_id)
+            elif frame.cob_id - SDO_RESPONSE_BASE in self._by_node:
+                self.sdo.on_response(frame.cob_id - SDO_RESPONSE_BASE, frame.data)
+        return found
+
+    def _collect(
+        self,
+        handle: Callable[[list[Frame]], object],
+        done: Callable[[], bool],
+        timeout_s: float,
+        missing: Callable[[], str],
+    ) -> None:
+        """Start-up only: pump, drain and hand frames to ``handle`` until ``done`` or ``timeout_s`` of waiting."""
+        waited = 0.0
+        step = min(0.001, timeout_s)
+        while True:
+            if self._pump is not None:
+                self._pump()
+            frames = self.source.drain()
+            self._log_received(frames)
+            handle(frames)
+            if done():
+                return
+            if waited >= timeout_s:
+                raise HalError(f"CAN bus: {missing()} within {timeout_s:g} s")
+            self._wait(step)
+            waited += step
+
+    def _configuration(self, node_id: int) -> list[SdoTransfer]:
+        """Queue the SDO transfers that identify and configure ``node_id``; returns them all (reads first)."""
+        s, d, sdo = self.settings, self.dictionary, self.sdo
+        reads = [
+            sdo.read(node_id, obj.DEVICE_TYPE, 0, "device type"),
+            sdo.read(node_id, obj.MOTOR_RATED_TORQUE, 0, "motor rated torque"),
+            sdo.read(node_id, obj.POSITION_ENCODER_RESOLUTION, 1, "position encoder increments"),
+            sdo.read(node_id, obj.POSITION_ENCODER_RESOLUTION, 2, "position encoder motor revolutions"),
+            sdo.read(node_id, obj.LOAD_ENCODER_RESOLUTION, 0, "load side encoder resolution"),
+        ]
+        writes = [
+            (obj.MODES_OF_OPERATION, 0, d.encode(obj.MODES_OF_OPERATION, 0, obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE),
+             "cyclic synchronous torque"),
+            (obj.MAX_TORQUE, 0, d.encode(obj.MAX_TORQUE, 0, self._peak_permille), "peak torque"),
+            (obj.PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", s.heartbeat_producer_ms), "heartbeat producer time"),
+            (obj.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", (s.master_node_id << 16) | s.heartbeat_consumer_ms),
+             "the master's heartbeat, consumed"),
+        ]  # fmt: skip
+        for pdo in self.mapping.all:
+            writes += pdo.configuration(node_id)
+        return reads + [sdo.write(node_id, index, sub, data, what) for index, sub, data, what in writes]
+
+    def _run_sdo(self, transfers: list[SdoTransfer], doing: str) -> None:
+        """Start-up only: run the SDO client until every queued transfer is done.
+
+        Raises:
+            HalError: a transfer failed: aborted by the drive or unanswered (the first failure, and how many).
+        """
+        waited = 0.0
+        # On a simulated bus (a pump) robot time stands still while nothing is synchronised, so the SDO
+        # timeouts count the time waited here; on hardware the master's clock runs by itself.
+        virtual = self._pump is not None
+        while self.sdo.busy:
+            for cob_id, data in self.sdo.frames_due(self._now() + waited if virtual else self._now()):
+                self._send(cob_id, data)
+            if self._pump is not None:
+                self._pump()
+            frames = self.source.drain()
+            self._log_received(frames)
+            for frame in frames:
+                node_id = frame.cob_id - SDO_RESPONSE_BASE
+                if node_id in self._by_node:
+                    self.sdo.on_response(node_id, frame.data)
+            if self.sdo.busy:
+                self._wait(0.0005)
+                waited += 0.0005
+        failures = [t.error for t in transfers if t.error]
+        if failures:
+            more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
+            raise HalError(f"CAN bus: {doing}: {failures[0]}{more}")
+
+    def _check_identity(self, transfers: list[SdoTransfer]) -> None:
+        """Every drive is a CiA 402 drive with the units of its EDS, else refuse to run (wrong units = wrong torques)."""
+        for transfer in transfers:
+            if transfer.error:
+                raise HalError(f"CAN bus: configuring the drives: {transfer.error}")
+        u = self.units
+        expected = {
+            (obj.MOTOR_RATED_TORQUE, 0): u.rated_torque_mnm,
+            (obj.LOAD_ENCODER_RESOLUTION, 0): round(u.load_increments_per_rev),
+            (obj.POSITION_ENCODER_RESOLUTION, 1): self.dictionary.default(obj.POSITION_ENCODER_RESOLUTION, 1),
+            (obj.POSITION_ENCODER_RESOLUTION, 2): self.dictionary.default(obj.POSITION_ENCODER_RESOLUTION, 2),
+        }
+        for transfer in transfers:
+            if transfer.data is not None:
+                continue  # a write: its answer was all there was to check
+            value = int.from_bytes(transfer.value, "little")
+            if transfer.index == obj.DEVICE_TYPE:
+                if value & 0xFFFF != obj.CIA402_PROFILE:
+                    raise HalError(
+                        f"CAN bus: node {transfer.node_id} reports device type 0x{value:08X}; expected a CiA 402 drive "
+                        f"(low word 0x{obj.CIA402_PROFILE:04X})"
+                    )
+                continue
+            want = expected[(transfer.index, transfer.sub)]
+            if value != want:
+                raise HalError(
+                    f"CAN bus: node {transfer.node_id} reports {transfer.what} {value}, its EDS "
+                    f"({self.dictionary.path.name}) says {want}: torques and angles would be converted wrong"
+                )
+
+    # --- the tick: read --------------------------------------------------------------------------
+
+    def receive(self) -> bool:
+        """Drain and decode what arrived since the last tick; run the watchdogs. True if every drive's TPDOs of the
+        last SYNC arrived (a fresh cycle: the arrays were updated).
+
+        Raises:
+            HalError: the receiving side failed (latched by the frame source, raised once).
+        """
+        try:
+            frames = self.source.drain()
+        except HalError as exc:
+            self._latch(str(exc))
+            frames = []
+        self._log_received(frames)
+        self._dispatch(frames)
+        now = self._now()
+        for node_id in self.heartbeats.newly_lost(now):
+            drive = self._by_node[node_id]
+            silent_ms = self.heartbeats.silent_s(node_id, now) * 1e3
+            self._lose(
+                drive,
+                "heartbeat",
+                f"no heartbeat for {silent_ms:.0f} ms (limit {self.settings.heartbeat_consumer_ms} ms)",
+            )
+        last = self.syncs - 1
+        fresh = True
+        for drive in self.drives:
+            missed = last - min(drive.status_sync, drive.load_sync)
+            if missed > 0:
+                fresh = False
+            if missed >= self.settings.stale_syncs and drive.lost is None and drive.recovery is None:
+                self._lose(drive, "pdo", f"no TPDO for {missed} SYNCs (limit {self.settings.stale_syncs})")
+            elif missed == 0 and drive.lost == "pdo":
+                drive.lost, drive.lost_why = None, ""  # its data came back (a dropout that ended)
+            if drive.lost == "heartbeat" and not self.heartbeats.is_lost(drive.node_id) and missed == 0:
+                drive.lost, drive.lost_why = None, ""  # its heartbeat came back
+        self._step_recoveries(now)
+        if fresh and last > self._last_fresh_sync:
+            self._update_arrays(last)
+        return fresh
+
+    def _update_arrays(self, sync: int) -> None:
+        u = self.units
+        q_new = np.array([d.load_counts for d in self.drives], dtype=float) * u.rad_per_load_increment
+        cycles = sync - self._last_fresh_sync
+        if self._last_fresh_sync >= 0:
+            raw = (q_new - self.q_rad) / (cycles * self.settings.period_s)
+            self.dq_rad_s += self._alpha * (raw - self.dq_rad_s)
+        self.q_rad = q_new
+        self.theta_rad = np.array([d.motor_counts for d in self.drives], dtype=float) * u.rad_per_motor_increment
+        self.tau_nm = np.array([d.torque_permille for d in self.drives], dtype=float) * u.nm_per_permille
+        self._last_fresh_sync = sync
+        self.sample_t_s = self._last_sync_s
+
+    @property
+    def sample_sync(self) -> int:
+        """The SYNC whose TPDOs the arrays hold (-1 before the first)."""
+        return self._last_fresh_sync
+
+    def _log_received(self, frames: list[Frame]) -> None:
+        self.frames_received += len(frames)
+        if self.traffic is not None:
+            for frame in frames:
+                self.traffic.frame(frame.cob_id, frame.data, frame.t_s, sent=False)
+
+    def _dispatch(self, frames: list[Frame]) -> None:
+        routes = self._routes
+        sync = self.syncs - 1
+        for frame in frames:
+            route = routes.get(frame.cob_id)
+            if route is None:
+                if frame.cob_id != SYNC_COB_ID:
+                    self.unknown_frames += 1
+                continue
+            drive, what = route
+            if what == "status":
+                values = self._unpack_status(frame.data)
+                if values is None:
+                    self._latch(
+                        f"drive {drive.node_id}: TPDO1 of {len(frame.data)} bytes; expected {self.mapping.tpdo_status.length}"
+                    )
+                    continue
+                drive.statusword, drive.motor_counts = int(values[0]), int(values[1])
+                drive.power = decode_statusword(drive.statusword)
+                drive.status_sync = sync
+            elif what == "load":
+                values = self._unpack_load(frame.data)
+                if values is None:
+                    self._latch(
+                        f"drive {drive.node_id}: TPDO2 of {len(frame.data)} bytes; expected {self.mapping.tpdo_load.length}"
+                    )
+                    continue
+                drive.load_counts, drive.torque_permille = int(values[0]), int(values[1])
+                drive.load_sync = sync
+            elif what == "heartbeat":
+                self._on_heartbeat(drive, frame)
+            elif what == "emcy":
+                self._on_emcy(drive, parse_emcy(frame.data))
+            else:
+                done = self.sdo.on_response(drive.node_id, frame.data)
+                if done is not None and done.error and drive.recovery is not None:
+                    self._recovery_failed(drive, done.error)
+
+    def _on_heartbeat(self, drive: _Drive, frame: Frame) -> None:
+        state = parse_heartbeat(frame.data)
+        if state is None:
+            self._latch(f"drive {drive.node_id}: a heartbeat frame that is not one ({frame.data.hex() or 'empty'})")
+            return
+        self.heartbeats.on_heartbeat(drive.node_id, state, frame.t_s)
+        if drive.recovery is not None:
+            if drive.recovery.phase == "reset" and state is NmtState.BOOT_UP:
+                self._configure_lost(drive)
+            return
+        if drive.lost == "restarted":
+            return
+        settled = frame.t_s - self._started_s > self.settings.heartbeat_consumer_ms / 1000.0
+        if state is NmtState.BOOT_UP or (settled and state in (NmtState.PRE_OPERATIONAL, NmtState.STOPPED)):
+            # Started drives report OPERATIONAL; a boot-up, or later another state, means it restarted
+            # or was stopped: its PDO configuration and its power state are gone. (A heartbeat sent just
+            # before the drive took NMT start may still say pre-operational: hence the settling time.)
+            self._lose(drive, "restarted", f"reported NMT state {state.name.lower().replace('_', '-')} while running")
+
+    def _on_emcy(self, drive: _Drive, message: EmcyMessage) -> None:
+        if message.is_error_reset:
+            drive.emcy = None
+            return
+        drive.emcy = message
+        self._latch(f"drive {drive.node_id}: {message.describe()}")
+
+    def _lose(self, drive: _Drive, kind: str, why: str) -> None:
+        drive.lost, drive.lost_why = kind, why
+        self._latch(f"drive {drive.node_id} lost: {why}")
+
+    def _latch(self, message: str) -> None:
+        self._latched.append(message)
+
+    def take_latched(self) -> str | None:
+        """The faults latched since the last call, as one message (None if none): the HAL raises it once."""
+        if not self._latched:
+            return None
+        message = "; ".join(self._latched)
+        self._latched.clear()
+        return message
+
+    def drive_states(self) -> tuple[tuple[DriveState, ...], tuple[int, ...], tuple[bool, bool]]:
+        """The drives as the HAL reports them: states, fault codes, and the e-stop inputs (operator, pilot)."""
+        states, codes = [], []
+        operator = pilot = False
+        for drive in self.drives:
+            code = 0
+            if drive.lost is not None or drive.recovery is not None:
+                state = DriveState.FAULT
+                code = LOST_CODES[drive.lost or "recovery"]
+            else:
+                state = drive_state(drive.power)
+                if drive.emcy is not None:
+                    state, code = DriveState.FAULT, drive.emcy.code
+                elif state is DriveState.FAULT:
+                    code = 0x1000  # a fault the drive shows without (yet) an EMCY: generic error
+            states.append(state)
+            codes.append(code)
+            word = drive.statusword or 0
+            operator = operator or bool(word & SW_ESTOP_OPERATOR)
+            pilot = pilot or bool(word & SW_ESTOP_PILOT)
+        return tuple(states), tuple(codes), (operator, pilot)
+
+    # --- the tick: write ---------------------------------------------------------------------------
+
+    def send_cycle(self, want_torque: bool, torque_nm: np.ndarray | None) -> None:
+        """One bus cycle: the power state machines, the RPDOs, due SDO transfers, the heartbeat, the SYNC.
+
+        ``torque_nm`` (4,) is sent only where ``want_torque`` and the drive is not lost; it is
+        saturated at the peak. Never waits.
+
+        Raises:
+            HalError: the bus refused a frame (torque cannot be commanded: the caller reports it).
+        """
+        nm_per_permille = self.units.nm_per_permille
+        peak = self._peak_permille
+        pack = self._pack_rpdo
+        for j, drive in enumerate(self.drives):
+            healthy = drive.lost is None and drive.recovery is None and drive.emcy is None
+            outcome = drive.stepper.step(drive.power, want_torque and healthy)
+            if outcome.timed_out is not None:
+                self._latch(f"drive {drive.node_id}: {outcome.timed_out}")
+            drive.controlword = outcome.controlword
+            permille = 0
+            if want_torque and healthy and torque_nm is not None:
+                permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille)))
+            self._send(self._rpdo_cob[j], pack(outcome.controlword, permille))
+        now = self._now()
+        for cob_id, data in self.sdo.frames_due(now):
+            self._send(cob_id, data)
+        self._send_heartbeat_if_due()
+        self._sync()
+
+    def send_torque_off(self) -> None:
+        """A cycle that disables every drive (controlword 0x0000, target torque 0), whatever the state."""
+        for j, drive in enumerate(self.drives):
+            drive.stepper.step(None, False)
+            drive.controlword = CW_DISABLE_VOLTAGE
+            self._send(self._rpdo_cob[j], self._pack_rpdo(CW_DISABLE_VOLTAGE, 0))
+        self._sync()
+
+    def _sync(self) -> None:
+        self._last_sync_s = self._now()
+        self.syncs += 1
+        self._send(SYNC_COB_ID, b"")
+        if self._pump is not None:
+            self._pump()
+
+    def _send_heartbeat_if_due(self) -> None:
+        now = self._now()
+        if now >= self._next_heartbeat_s:
+            self._send(*heartbeat_frame(self.settings.master_node_id, NmtState.OPERATIONAL))
+            self._next_heartbeat_s = now + self.settings.heartbeat_producer_ms / 1000.0
+
+    def stop(self) -> None:
+        """Torque off and every drive to pre-operational (PDOs stop); the bus stays open."""
+        self.send_torque_off()
+        for drive in self.drives:
+            self._send(*nmt_frame(NmtCommand.ENTER_PRE_OPERATIONAL, drive.node_id))
+        if self._pump is not None:
+            self._pump()
+
+    # --- fault reset and recovery --------------------------------------------------------------------
+
+    def request_fault_reset(self) -> None:
+        """The operator acknowledged: a fault reset edge to drives in fault, and lost drives brought back.
+
+        Never waits: the edge goes out with the next cycles; a lost drive is reset (NMT), configured
+        (SDO, one transfer in flight per drive) and started over the next ticks.
+        """
+        now = self._now()
+        for drive in self.drives:
+            if drive.lost is not None and drive.recovery is None:
+                drive.recovery = _Recovery("reset", now)
+                drive.emcy = None
+                self._send(*nmt_frame(NmtCommand.RESET_NODE, drive.node_id))
+            elif drive.power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) or drive.emcy is not None:
+                drive.stepper.request_fault_reset()
+
+    def _configure_lost(self, drive: _Drive) -> None:
+        recovery = drive.recovery
+        if recovery is None:
+            return
+        recovery.phase, recovery.since_s = "configure", self._now()
+        recovery.transfers = self._configuration(drive.node_id)
+
+    def _step_recoveries(self, now: float) -> None:
+        for drive in self.drives:
+            recovery = drive.recovery
+            if recovery is None:
+                continue
+            if recovery.phase == "reset" and now - recovery.since_s > self.settings.boot_timeout_s:
+                self._recovery_failed(
+                    drive, f"no boot-up message within {self.settings.boot_timeout_s:g} s of NMT reset node"
+                )
+            elif recovery.phase == "configure" and not self.sdo.node_busy(drive.node_id):
+                try:
+                    self._check_identity(recovery.transfers)  # every transfer answered, the units its EDS's
+                except HalError as exc:
+                    self._recovery_failed(drive, str(exc))
+                    continue
+                self._send(*nmt_frame(NmtCommand.START, drive.node_id))
+                recovery.phase, recovery.since_s = "start", now
+                drive.status_sync = drive.load_sync = -1
+                drive.power = None
+            elif recovery.phase == "start":
+                if min(drive.status_sync, drive.load_sync) >= self.syncs - 1 >= 0:
+                    drive.recovery = None
+                    drive.lost, drive.lost_why = None, ""
+                elif now - recovery.since_s > self.settings.boot_timeout_s:
+                    self._recovery_failed(drive, "no TPDOs after NMT start")
+
+    def _recovery_failed(self, drive: _Drive, why: str) -> None:
+        drive.recovery = None
+        drive.lost, drive.lost_why = "recovery", why
+        self.sdo.cancel_node(drive.node_id)
+        self._latch(f"drive {drive.node_id}: bringing it back failed: {why}")

@@ -1,0 +1,68 @@
+"""The object dictionary entries the backend and the simulated drives use (CiA 301, CiA 402, manufacturer).
+
+Index and sub-index constants, named as the standards name them; the EDS
+(``hal/canopen/daror_sea.eds``) must define every one listed in :data:`REQUIRED`.
+"""
+
+from __future__ import annotations
+
+# CiA 301 communication profile
+DEVICE_TYPE = 0x1000  # u32: 0x0192 in the low word: a CiA 402 device
+ERROR_REGISTER = 0x1001  # u8
+CONSUMER_HEARTBEAT_TIME = 0x1016  # array of u32: node id << 16 | ms
+PRODUCER_HEARTBEAT_TIME = 0x1017  # u16, ms
+# CiA 402 device profile
+ERROR_CODE = 0x603F  # u16
+CONTROLWORD = 0x6040  # u16
+STATUSWORD = 0x6041  # u16
+MODES_OF_OPERATION = 0x6060  # i8
+MODES_OF_OPERATION_DISPLAY = 0x6061  # i8
+POSITION_ACTUAL = 0x6064  # i32, increments (the SEA's motor side)
+VELOCITY_ACTUAL = 0x606C  # i32
+TARGET_TORQUE = 0x6071  # i16, per mille of the rated torque
+MAX_TORQUE = 0x6072  # u16, per mille of the rated torque
+MOTOR_RATED_TORQUE = 0x6076  # u32, mNm
+TORQUE_ACTUAL = 0x6077  # i16, per mille of the rated torque (the spring's torque)
+POSITION_ENCODER_RESOLUTION = 0x608F  # array: sub 1 increments, sub 2 motor revolutions
+# DAROR-01 SEA drive (manufacturer range)
+LOAD_POSITION_ACTUAL = 0x2010  # i32, increments (the link)
+LOAD_ENCODER_RESOLUTION = 0x2011  # u32, increments per revolution
+
+#: Modes of operation: cyclic synchronous torque.
+MODE_CYCLIC_SYNCHRONOUS_TORQUE = 10
+#: The device type's low word for a CiA 402 drive.
+CIA402_PROFILE = 0x0192
+
+#: Every object the backend reads, writes or maps: ``(index, sub, what)``.
+REQUIRED: tuple[tuple[int, int, str], ...] = (
+    (DEVICE_TYPE, 0, "device type"),
+    (ERROR_REGISTER, 0, "error register"),
+    (CONSUMER_HEARTBEAT_TIME, 1, "consumer heartbeat time"),
+    (PRODUCER_HEARTBEAT_TIME, 0, "producer heartbeat time"),
+    (0x1400, 1, "RPDO1 COB-ID"),
+    (0x1400, 2, "RPDO1 transmission type"),
+    (0x1600, 0, "RPDO1 mapping count"),
+    (0x1800, 1, "TPDO1 COB-ID"),
+    (0x1800, 2, "TPDO1 transmission type"),
+    (0x1800, 3, "TPDO1 inhibit time"),
+    (0x1800, 5, "TPDO1 event timer"),
+    (0x1A00, 0, "TPDO1 mapping count"),
+    (0x1801, 1, "TPDO2 COB-ID"),
+    (0x1801, 2, "TPDO2 transmission type"),
+    (0x1801, 3, "TPDO2 inhibit time"),
+    (0x1801, 5, "TPDO2 event timer"),
+    (0x1A01, 0, "TPDO2 mapping count"),
+    (ERROR_CODE, 0, "error code"),
+    (CONTROLWORD, 0, "controlword"),
+    (STATUSWORD, 0, "statusword"),
+    (MODES_OF_OPERATION, 0, "modes of operation"),
+    (POSITION_ACTUAL, 0, "position actual value"),
+    (TARGET_TORQUE, 0, "target torque"),
+    (MAX_TORQUE, 0, "max torque"),
+    (MOTOR_RATED_TORQUE, 0, "motor rated torque"),
+    (TORQUE_ACTUAL, 0, "torque actual value"),
+    (POSITION_ENCODER_RESOLUTION, 1, "position encoder increments"),
+    (POSITION_ENCODER_RESOLUTION, 2, "position encoder motor revolutions"),
+    (LOAD_POSITION_ACTUAL, 0, "load side position"),
+    (LOAD_ENCODER_RESOLUTION, 0, "load side encoder resolution"),
+)

@@ -1,0 +1,825 @@
+"""One simulated DAROR SEA drive: the device side of CiA 301 (NMT, SDO server, PDOs, EMCY, heartbeat) and CiA 402.
+
+A pure, deterministic state machine: no bus, no thread, no clock. Frames leave through the
+``send(cob_id, data)`` callback given at construction; frames arrive through
+:meth:`SimulatedSeaDrive.receive`, in bus order; time is robot time in seconds, passed in by the
+caller at every call. The caller owns the SYNC: it calls :meth:`SimulatedSeaDrive.on_sync` with
+what the drive's sensors measure (the plant's state and the e-stop buttons) instead of passing the
+SYNC frame to ``receive``, and :meth:`SimulatedSeaDrive.advance` whenever time passes (heartbeats,
+the heartbeat consumer, the end of a fault reaction).
+
+What the drive does, in the words of the standards:
+
+* NMT: boot-up message, then PRE-OPERATIONAL; start, stop, enter pre-operational, reset node
+  (everything back to factory, as at power on), reset communication (0x1000-0x1FFF back to
+  factory). A drive in OPERATION ENABLED (or QUICK STOP ACTIVE) that leaves OPERATIONAL, by any
+  NMT command, falls to SWITCH ON DISABLED: its PDOs stop, so it could only go on applying its last
+  target torque with nobody able to change it (CiA 402's abort connection option "disable voltage").
+* SDO server (PRE-OPERATIONAL and OPERATIONAL only): expedited upload and download of 1-4 bytes,
+  the CiA 301 abort codes; CiA 301's order for a PDO change is enforced (mapping written only while
+  the PDO's COB-ID is invalid and its count is 0; the count checked against the entries).
+* PDOs (OPERATIONAL only): RPDOs of transmission type 0-240 are buffered and act at the next
+  SYNC, types 254/255 act at once; a frame of the wrong length is not processed (EMCY 0x8210,
+  once, cleared with an EMCY error reset by the next good one). TPDOs of type 1-240 go every n-th
+  SYNC since the node became operational; types 0, 254 and 255 (the EDS's factory state) go when
+  their data changed, judged when the drive samples, at a SYNC. Inhibit times and event timers are
+  stored but not timed.
+* CiA 402: :func:`device_next_state` on every controlword (RPDO or SDO); both e-stop buttons are
+  wired to the drive's safe torque off: while either is pressed the power stage is off (SWITCH ON
+  DISABLED, which the drive cannot leave). Faults go through FAULT REACTION ACTIVE to FAULT at the
+  next :meth:`~SimulatedSeaDrive.on_sync` or :meth:`~SimulatedSeaDrive.advance`; a fault reset
+  clears 0x603F and the error register and sends the EMCY error reset.
+* Heartbeat producer (0x1017, ms) and consumer (0x1016:1, ``node << 16 | ms``): a consumed node
+  silent longer than its time while the drive is OPERATIONAL is a fault (0x8130).
+
+Fault injection (:meth:`SimulatedSeaDrive.inject`) does to the drive what a bench test rig would
+do to a real one; see :data:`FAULT_KINDS`.
+
+Units: torques in N m outside, per mille of the rated torque 0x6076 inside; angles in rad outside,
+encoder increments inside (:class:`hal.canopen.dictionary.DriveUnits`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from hal.canopen import objects as obj
+from hal.canopen.cia301 import sdo
+from hal.canopen.cia301.emcy import emcy_frame_data
+from hal.canopen.cia301.nmt import (
+    EMCY_BASE,
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
+    SDO_REQUEST_BASE,
+    SDO_RESPONSE_BASE,
+    NmtCommand,
+    NmtState,
+    heartbeat_frame,
+    parse_heartbeat,
+)
+from hal.canopen.cia301.pdo import COB_ID_INVALID, MappedObject, PdoCodec, PdoMapping, struct_format
+from hal.canopen.cia402.statemachine import PowerState, device_next_state, statusword_of
+from hal.canopen.dictionary import DriveDictionary
+from hal.errors import HalConfigError
+
+__all__ = [
+    "ERROR_DRIVE_OVER_CURRENT",
+    "ERROR_HEARTBEAT",
+    "ERROR_PDO_LENGTH",
+    "ERROR_RESET",
+    "ERROR_TEMPERATURE",
+    "FAULT_KINDS",
+    "SimulatedSeaDrive",
+]
+
+#: Error codes (CiA 301 / CiA 402) the drive reports in 0x603F and its EMCY messages.
+ERROR_RESET = 0x0000  # error reset or no error
+ERROR_DRIVE_OVER_CURRENT = 0x2310  # continuous over current (the power stage faulted)
+ERROR_TEMPERATURE = 0x4310  # excess temperature drive
+ERROR_HEARTBEAT = 0x8130  # life guard error or heartbeat error
+ERROR_PDO_LENGTH = 0x8210  # PDO not processed due to length error
+
+#: Error register (0x1001) bits.
+_REGISTER_GENERIC = 0x01
+_REGISTER_COMMUNICATION = 0x10
+
+#: What :meth:`SimulatedSeaDrive.inject` can do to a drive.
+FAULT_KINDS: tuple[str, ...] = ("heartbeat_loss", "emcy", "drive_fault", "frozen_pdo", "drop_frames")
+#: How long ``drop_frames`` loses frames when no duration is given, s.
+DEFAULT_DROP_S = 0.02
+
+# SDO abort codes (CiA 301 table 22; their meanings: hal.canopen.cia301.sdo.ABORT_MESSAGES).
+_ABORT_COMMAND = 0x05040001
+_ABORT_UNSUPPORTED = 0x06010000
+_ABORT_WRITE_ONLY = 0x06010001
+_ABORT_READ_ONLY = 0x06010002
+_ABORT_NO_OBJECT = 0x06020000
+_ABORT_NOT_MAPPABLE = 0x06040041
+_ABORT_MAPPING_TOO_LONG = 0x06040042
+_ABORT_LENGTH = 0x06070010
+_ABORT_NO_SUB = 0x06090011
+_ABORT_INVALID_VALUE = 0x06090030
+_ABORT_VALUE_TOO_HIGH = 0x06090031
+
+_READABLE = frozenset({"ro", "rw", "rww", "rwr", "const"})
+_WRITABLE = frozenset({"rw", "wo", "rww", "rwr"})
+#: The states the e-stop (safe torque off) throws out of, and which the drive cannot enter while it is pressed.
+_POWER_STAGE_STATES = frozenset(
+    {
+        PowerState.READY_TO_SWITCH_ON,
+        PowerState.SWITCHED_ON,
+        PowerState.OPERATION_ENABLED,
+        PowerState.QUICK_STOP_ACTIVE,
+    }
+)
+#: The states a drive may not keep when it loses its PDOs (it could not be commanded any more).
+_COMMANDED_STATES = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE})
+_INT16 = (-(1 << 15), (1 << 15) - 1)
+_INT32 = (-(1 << 31), (1 << 31) - 1)
+#: CAN identifiers are 11 bits (bit 29 of a COB-ID would ask for a 29-bit frame, which this bus has not).
+_CAN_ID_MASK = 0x7FF
+_COB_ID_EXTENDED = 1 << 29
+#: The communication profile's area: what reset communication sets back to factory.
+_COMMUNICATION_AREA = range(0x1000, 0x2000)
+#: Slack of time comparisons, s: robot time that adds up ticks of 1/f is never exact.
+_TIME_EPS_S = 1e-9
+#: The most bits a PDO carries (one CAN frame).
+_PDO_MAX_BITS = 64
+
+
+@dataclass(frozen=True)
+class _PdoSlot:
+    """One PDO the EDS defines: its direction, number, parameter indices and how many mapping entries it has."""
+
+    direction: str  # "rpdo" or "tpdo"
+    number: int
+    comm: int
+    mapping: int
+    max_entries: int
+
+
+class SimulatedSeaDrive:
+    """The device side of one DAROR SEA drive (see the module docstring).
+
+    The drive is unpowered (it hears and sends nothing) until :meth:`power_on`.
+
+    Args:
+        node_id: the drive's node id, 1-127.
+        dictionary: the drives' object dictionary (its EDS): factory values, types, access.
+        send: called with ``(COB-ID, data)`` for every frame the drive puts on the bus.
+        master_node_id: the master's node id, 1-127 (the node whose heartbeat the master configures
+            in 0x1016:1; the consumer watches whichever node 0x1016:1 names, as CiA 301 says).
+
+    Raises:
+        ValueError: a node id out of 1-127, or the master's id equal to the drive's.
+        HalConfigError: the dictionary lacks an object the simulated drive needs.
+    """
+
+    def __init__(
+        self,
+        node_id: int,
+        dictionary: DriveDictionary,
+        send: Callable[[int, bytes], None],
+        master_node_id: int = 127,
+    ) -> None:
+        for name, value in (("node_id", node_id), ("master_node_id", master_node_id)):
+            if not 1 <= value <= 127:
+                raise ValueError(f"{name} must be 1-127, not {value}")
+        if node_id == master_node_id:
+            raise ValueError(f"the drive and the master cannot share node id {node_id}")
+        self._node_id = node_id
+        self._master_node_id = master_node_id
+        self._dictionary = dictionary
+        self._send = send
+        self._units = dictionary.units
+        for index in (obj.MODES_OF_OPERATION_DISPLAY, obj.CONSUMER_HEARTBEAT_TIME, obj.PRODUCER_HEARTBEAT_TIME):
+            dictionary.variable(index, 1 if index == obj.CONSUMER_HEARTBEAT_TIME else 0)  # HalConfigError if missing
+        self._rpdos = self._find_pdos("rpdo", 0x1400, 0x1600)
+        self._tpdos = self._find_pdos("tpdo", 0x1800, 0x1A00)
+        self._slots = {index: slot for slot in (*self._rpdos, *self._tpdos) for index in (slot.comm, slot.mapping)}
+        self._factory: dict[tuple[int, int], Any] = {}
+        # The e-stop inputs are hardwired buttons, not drive state: they survive a power cycle.
+        self._estop_operator = False
+        self._estop_pilot = False
+        self._powered = False
+        self._nmt = NmtState.BOOT_UP
+        self._power = PowerState.NOT_READY_TO_SWITCH_ON
+        self._values: dict[tuple[int, int], Any] = {}  # what differs from the factory values
+        self._fault_register = 0  # error register bits of the CiA 402 faults in force
+        self._pdo_length_error = False
+        self._heartbeat_stopped = False  # injected: heartbeat_loss
+        self._pdo_frozen = False  # injected: frozen_pdo
+        self._drop_until_s: float | None = None  # injected: drop_frames
+        self._codecs: dict[int, PdoCodec] = {}
+        self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
+        self._tpdo_last: dict[int, bytes] = {}
+        self._sync_count = 0
+        self._hb_period_s: float | None = None
+        self._hb_origin_s = 0.0
+        self._hb_next = 1
+        self._heard_s: dict[int, float] = {}
+        self._consumer_set_s = 0.0
+        self._consumer_lost = False
+
+    def _find_pdos(self, direction: str, comm_base: int, mapping_base: int) -> tuple[_PdoSlot, ...]:
+        """The PDOs 1-4 (the pre-defined connection set's) the EDS defines in one direction."""
+        slots = []
+        for number in range(1, 5):
+            comm, mapping = comm_base + number - 1, mapping_base + number - 1
+            if self._exists(comm, 1) and self._exists(comm, 2) and self._exists(mapping, 0):
+                entries = 0
+                while entries < _PDO_MAX_BITS and self._exists(mapping, entries + 1):
+                    entries += 1
+                slots.append(_PdoSlot(direction, number, comm, mapping, entries))
+        return tuple(slots)
+
+    # ------------------------------------------------------------------ what the drive shows
+
+    @property
+    def node_id(self) -> int:
+        return self._node_id
+
+    @property
+    def master_node_id(self) -> int:
+        return self._master_node_id
+
+    @property
+    def powered(self) -> bool:
+        """True from :meth:`power_on` on."""
+        return self._powered
+
+    @property
+    def nmt_state(self) -> NmtState:
+        """The NMT state (BOOT_UP, i.e. initialising, until :meth:`power_on`)."""
+        return self._nmt
+
+    @property
+    def power_state(self) -> PowerState:
+        """The CiA 402 power state (NOT READY TO SWITCH ON until :meth:`power_on`)."""
+        return self._power
+
+    @property
+    def applied_torque_nm(self) -> float:
+        """The torque the power stage applies, N m.
+
+        The target torque 0x6071 saturated at +-max torque 0x6072 (both per mille of the rated
+        torque), only in OPERATION ENABLED with no e-stop pressed; else 0.0.
+        """
+        if not self._powered or self._power is not PowerState.OPERATION_ENABLED or self._estop_pressed:
+            return 0.0
+        limit = int(self._get(obj.MAX_TORQUE, 0))
+        target = int(self._get(obj.TARGET_TORQUE, 0))
+        return max(-limit, min(limit, target)) * self._units.nm_per_permille
+
+    def value(self, index: int, sub: int = 0) -> int:
+        """The current value of object ``index:sub``, as the drive stores it (increments, per mille, ...).
+
+        Raises:
+            KeyError: the dictionary has no such object.
+            TypeError: the object is not an integer (the device name 0x1008 is a string).
+        """
+        if self._missing(index, sub) is not None:
+            raise KeyError(f"node {self._node_id} has no object 0x{index:04X}:{sub}")
+        value = self._get(index, sub)
+        if not isinstance(value, int):
+            raise TypeError(f"object 0x{index:04X}:{sub} is a {type(value).__name__}, not an integer")
+        return int(value)
+
+    @property
+    def _estop_pressed(self) -> bool:
+        return self._estop_operator or self._estop_pilot
+
+    # ------------------------------------------------------------------ the caller's entry points
+
+    def power_on(self, now_s: float) -> None:
+        """Power the drive on (or cycle its power) at ``now_s``, s.
+
+        Every object back to its EDS factory value, injected faults gone, CiA 402 SWITCH ON
+        DISABLED (NOT READY TO SWITCH ON passes at once), the boot-up message sent, PRE-OPERATIONAL.
+        """
+        self._powered = True
+        self._values.clear()
+        self._fault_register = 0
+        self._drop_until_s = None
+        self._power = PowerState.SWITCH_ON_DISABLED
+        self._restart_communication(now_s)
+
+    def receive(self, cob_id: int, data: bytes, now_s: float) -> None:
+        """One frame from the bus at ``now_s``, s, in bus order.
+
+        NMT commands, SDO requests (answered at once through ``send``), RPDOs on the COB-IDs in
+        0x1400.., heartbeats of other nodes (for the consumer). SYNC is not handled here (the
+        caller calls :meth:`on_sync`); every other frame is ignored, as is every frame while the
+        drive is unpowered or losing frames (``drop_frames``).
+
+        Raises:
+            ValueError: a COB-ID that is not an 11-bit identifier, or more than 8 bytes of data.
+        """
+        if not 0 <= cob_id <= _CAN_ID_MASK:
+            raise ValueError(f"COB-ID 0x{cob_id:X} is not an 11-bit CAN identifier")
+        if len(data) > 8:
+            raise ValueError(f"a CAN frame carries at most 8 bytes, not {len(data)}")
+        if not self._powered or self._dropping(now_s):
+            return
+        data = bytes(data)
+        if cob_id == NMT_COB_ID:
+            self._on_nmt(data, now_s)
+        elif cob_id == SDO_REQUEST_BASE + self._node_id:
+            self._on_sdo(data, now_s)
+        elif HEARTBEAT_BASE < cob_id <= HEARTBEAT_BASE + 127:
+            self._on_heartbeat(cob_id - HEARTBEAT_BASE, data, now_s)
+        else:
+            self._on_rpdo(cob_id, data, now_s)
+
+    def on_sync(
+        self,
+        q_rad: float,
+        theta_rad: float,
+        tau_nm: float,
+        estop_operator: bool,
+        estop_pilot: bool,
+        now_s: float,
+    ) -> None:
+        """A SYNC at ``now_s``, s, with what the drive's inputs measure at that instant.
+
+        Args:
+            q_rad: the link (load side) angle, rad.
+            theta_rad: the SEA's motor side angle (gearbox output), rad.
+            tau_nm: the spring's torque, N m.
+            estop_operator: the operator's e-stop button is pressed.
+            estop_pilot: the pilot's e-stop button is pressed.
+            now_s: robot time, s.
+
+        The e-stop inputs act in every NMT state (they are wired to the safe torque off) and the
+        drive samples its sensors at every SYNC it sees (so that an SDO read finds fresh values);
+        only in OPERATIONAL does it apply the RPDO data buffered since the last SYNC and send its
+        synchronous TPDOs. A SYNC lost to ``drop_frames`` is not seen.
+
+        Raises:
+            ValueError: an angle or a torque that is not finite (a simulation bug; nothing changed).
+        """
+        for name, x in (("q_rad", q_rad), ("theta_rad", theta_rad), ("tau_nm", tau_nm)):
+            if not math.isfinite(x):
+                raise ValueError(f"{name} = {x}: a drive's sensors never measure a non-finite value")
+        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        if not self._powered:
+            return
+        self._end_fault_reaction()
+        if self._estop_pressed and self._power in _POWER_STAGE_STATES:
+            self._power = PowerState.SWITCH_ON_DISABLED  # safe torque off: the power stage is gone
+        self._sample(q_rad, theta_rad, tau_nm)
+        if self._nmt is not NmtState.OPERATIONAL or self._dropping(now_s):
+            return
+        self._sync_count += 1
+        self._apply_pending_rpdos(now_s)
+        self._transmit_tpdos(now_s)
+
+    def advance(self, now_s: float) -> None:
+        """Time passes until ``now_s``, s: the end of a fault reaction, the heartbeat consumer, heartbeats due."""
+        if not self._powered:
+            return
+        self._end_fault_reaction()
+        self._check_consumer(now_s)
+        self._produce_heartbeat(now_s)
+
+    def inject(self, kind: str, now_s: float, duration_s: float | None = None) -> None:
+        """Do to the drive at ``now_s``, s, what a bench test rig would do to a real one.
+
+        Kinds (:data:`FAULT_KINDS`):
+
+        * ``heartbeat_loss``: the heartbeat producer stops until reset node, reset communication
+          or :meth:`power_on`;
+        * ``emcy``: excess temperature (0x4310, error register 0x09) reported in a short 4-byte
+          EMCY; FAULT via the fault reaction; a fault reset clears it;
+        * ``drive_fault``: the power stage faults (0x2310, error register 0x03; 8-byte EMCY);
+          FAULT via the fault reaction; a fault reset clears it;
+        * ``frozen_pdo``: the TPDOs stop (heartbeat, SDO, NMT and RPDOs go on) until reset node,
+          reset communication or :meth:`power_on`;
+        * ``drop_frames``: every frame to and from the drive (the SYNC included) is lost for
+          ``duration_s`` (default :data:`DEFAULT_DROP_S`), then the drive works again on its own.
+
+        Raises:
+            ValueError: an unknown kind; a duration for a kind other than ``drop_frames``, or one
+                that is not finite and positive; a drive that is not powered.
+        """
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault kind {kind!r}; expected one of {', '.join(FAULT_KINDS)}")
+        if duration_s is not None and kind != "drop_frames":
+            raise ValueError(f"{kind} lasts until the drive is reset; only drop_frames takes a duration")
+        if not self._powered:
+            raise ValueError(f"node {self._node_id} is not powered: power it on before injecting {kind}")
+        if kind == "heartbeat_loss":
+            self._heartbeat_stopped = True
+        elif kind == "frozen_pdo":
+            self._pdo_frozen = True
+        elif kind == "emcy":
+            self._fault(ERROR_TEMPERATURE, 0x09, now_s, emcy_length=4)
+        elif kind == "drive_fault":
+            self._fault(ERROR_DRIVE_OVER_CURRENT, 0x03, now_s)
+        else:
+            self._start_dropping(now_s, DEFAULT_DROP_S if duration_s is None else duration_s)
+
+    def _start_dropping(self, now_s: float, duration_s: float) -> None:
+        if not (math.isfinite(duration_s) and duration_s > 0.0):
+            raise ValueError(f"drop_frames needs a finite, positive duration, not {duration_s} s")
+        until = now_s + duration_s
+        self._drop_until_s = until if self._drop_until_s is None else max(self._drop_until_s, until)
+
+    # ------------------------------------------------------------------ objects
+
+    def _exists(self, index: int, sub: int) -> bool:
+        return self._missing(index, sub) is None
+
+    def _missing(self, index: int, sub: int) -> int | None:
+        """The SDO abort code for an object the dictionary lacks (object or sub-index), None if it exists."""
+        try:
+            self._dictionary.variable(index, sub)
+        except HalConfigError:
+            try:
+                self._dictionary.variable(index, 0)
+            except HalConfigError:
+                return _ABORT_NO_OBJECT
+            return _ABORT_NO_SUB
+        return None
+
+    def _get(self, index: int, sub: int) -> Any:
+        """The current value of an object that exists (statusword and error register computed from the state)."""
+        if index == obj.STATUSWORD and sub == 0:
+            return statusword_of(self._power, self._estop_operator, self._estop_pilot)
+        if index == obj.ERROR_REGISTER and sub == 0:
+            return self._error_register()
+        key = (index, sub)
+        if key in self._values:
+            return self._values[key]
+        if key not in self._factory:
+            self._factory[key] = self._dictionary.default(index, sub, self._node_id)
+        return self._factory[key]
+
+    def _error_register(self) -> int:
+        communication = _REGISTER_GENERIC | _REGISTER_COMMUNICATION if self._pdo_length_error else 0
+        return self._fault_register | communication
+
+    def _sample(self, q_rad: float, theta_rad: float, tau_nm: float) -> None:
+        """The actual values at a SYNC: increments and per mille, saturated at their types' ranges."""
+        units = self._units
+        self._values[(obj.POSITION_ACTUAL, 0)] = _clamp(round(theta_rad / units.rad_per_motor_increment), _INT32)
+        self._values[(obj.LOAD_POSITION_ACTUAL, 0)] = _clamp(round(q_rad / units.rad_per_load_increment), _INT32)
+        self._values[(obj.TORQUE_ACTUAL, 0)] = _clamp(round(tau_nm / units.nm_per_permille), _INT16)
+
+    def _write(self, index: int, sub: int, value: Any, now_s: float) -> None:
+        """Store a value already checked (:meth:`_write_problem`) and do what writing it means."""
+        if index == obj.CONTROLWORD and sub == 0:
+            self._apply_controlword(int(value), now_s)
+            return
+        self._values[(index, sub)] = value
+        if index == obj.MODES_OF_OPERATION:
+            self._values[(obj.MODES_OF_OPERATION_DISPLAY, 0)] = value
+        elif index == obj.PRODUCER_HEARTBEAT_TIME:
+            self._schedule_heartbeat(now_s)
+        elif index == obj.CONSUMER_HEARTBEAT_TIME:
+            self._consumer_set_s = now_s
+            self._consumer_lost = False
+        slot = self._slots.get(index)
+        if slot is not None:
+            self._codecs.pop(slot.comm, None)
+            self._tpdo_last.pop(slot.comm, None)
+            if not self._pdo_valid(slot):
+                self._rpdo_pending.pop(slot.comm, None)  # an invalid PDO does not exist: its data neither
+
+    def _write_problem(self, index: int, sub: int, value: Any) -> int | None:
+        """The abort code of a value the drive refuses for ``index:sub`` (None: it takes it)."""
+        slot = self._slots.get(index)
+        if slot is not None and index == slot.comm:
+            return self._communication_problem(slot, sub, int(value))
+        if slot is not None:
+            return self._mapping_problem(slot, sub, int(value))
+        if index == obj.MODES_OF_OPERATION and value != obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE:
+            return _ABORT_INVALID_VALUE  # the DAROR drives run cyclic synchronous torque only
+        if index == obj.CONSUMER_HEARTBEAT_TIME and sub >= 1:
+            node, reserved = (int(value) >> 16) & 0xFF, int(value) >> 24
+            if reserved or node > 127 or (node == self._node_id and int(value) & 0xFFFF):
+                return _ABORT_INVALID_VALUE  # no node id 128-255; a node does not consume its own heartbeat
+        return None
+
+    # ------------------------------------------------------------------ PDO parameters
+
+    def _pdo_valid(self, slot: _PdoSlot) -> bool:
+        return not int(self._get(slot.comm, 1)) & COB_ID_INVALID
+
+    def _communication_problem(self, slot: _PdoSlot, sub: int, value: int) -> int | None:
+        """CiA 301's rules for a PDO communication parameter (COB-ID, transmission type, inhibit time)."""
+        valid = self._pdo_valid(slot)
+        if sub == 1:
+            if value & _COB_ID_EXTENDED:
+                return _ABORT_INVALID_VALUE  # 29-bit identifiers: not on this bus
+            cob = int(self._get(slot.comm, 1))
+            if valid and not value & COB_ID_INVALID and (value & _CAN_ID_MASK) != (cob & _CAN_ID_MASK):
+                return _ABORT_INVALID_VALUE  # the identifier of a valid PDO cannot change
+        elif sub == 2 and 241 <= value <= 253:
+            return _ABORT_INVALID_VALUE  # reserved, or RTR-only (this drive answers no remote frame)
+        elif sub == 3 and valid:
+            return _ABORT_INVALID_VALUE  # the inhibit time changes only while the PDO is invalid
+        return None
+
+    def _mapping_problem(self, slot: _PdoSlot, sub: int, value: int) -> int | None:
+        """CiA 301's rules for a PDO mapping: invalid COB-ID first, count 0 while entries change, entries that fit."""
+        if self._pdo_valid(slot):
+            return _ABORT_INVALID_VALUE  # CiA 301: invalidate the PDO (COB-ID bit 31) before its mapping changes
+        if sub != 0:
+            if int(self._get(slot.mapping, 0)) != 0:
+                return _ABORT_UNSUPPORTED  # CiA 301: the count is set to 0 before an entry changes
+            return self._entry_problem(slot, value)
+        if value > slot.max_entries:
+            return _ABORT_VALUE_TOO_HIGH
+        entries = [int(self._get(slot.mapping, n)) for n in range(1, value + 1)]
+        for entry in entries:
+            problem = self._entry_problem(slot, entry)
+            if problem is not None:
+                return problem
+        if sum(MappedObject.from_entry(entry).bits for entry in entries) > _PDO_MAX_BITS:
+            return _ABORT_MAPPING_TOO_LONG
+        return None
+
+    def _entry_problem(self, slot: _PdoSlot, entry: int) -> int | None:
+        """Why a mapping entry cannot be in ``slot`` (None: it can): the object must exist, be mappable,
+        be writable for an RPDO or readable for a TPDO, whole bytes of its own size, of a type a PDO carries."""
+        mapped = MappedObject.from_entry(entry)
+        if self._missing(mapped.index, mapped.sub) is not None:
+            return _ABORT_NOT_MAPPABLE
+        dictionary = self._dictionary
+        access = dictionary.access(mapped.index, mapped.sub)
+        if not dictionary.pdo_mappable(mapped.index, mapped.sub):
+            return _ABORT_NOT_MAPPABLE
+        if access not in (_WRITABLE if slot.direction == "rpdo" else _READABLE):
+            return _ABORT_NOT_MAPPABLE
+        if mapped.bits % 8 or mapped.bits != dictionary.size_bits(mapped.index, mapped.sub):
+            return _ABORT_NOT_MAPPABLE
+        try:
+            struct_format(dictionary.data_type(mapped.index, mapped.sub))
+        except ValueError:
+            return _ABORT_NOT_MAPPABLE
+        return None
+
+    def _codec(self, slot: _PdoSlot) -> PdoCodec:
+        """The codec of a PDO's current mapping (cached until one of its parameters is written)."""
+        codec = self._codecs.get(slot.comm)
+        if codec is None:
+            count = int(self._get(slot.mapping, 0))
+            objects = tuple(MappedObject.from_entry(int(self._get(slot.mapping, n))) for n in range(1, count + 1))
+            mapping = PdoMapping(slot.direction, slot.number, objects, int(self._get(slot.comm, 2)))  # type: ignore[arg-type]
+            types = tuple(self._dictionary.data_type(o.index, o.sub) for o in objects)
+            codec = self._codecs[slot.comm] = PdoCodec(mapping, types)
+        return codec
+
+    # ------------------------------------------------------------------ NMT
+
+    def _on_nmt(self, data: bytes, now_s: float) -> None:
+        """An NMT command (2 bytes: command specifier, node id or 0 for every node); others are ignored."""
+        if len(data) != 2 or data[1] not in (0, self._node_id):
+            return
+        try:
+            command = NmtCommand(data[0])
+        except ValueError:
+            return
+        if command is NmtCommand.START:
+            self._enter(NmtState.OPERATIONAL)
+        elif command is NmtCommand.STOP:
+            self._enter(NmtState.STOPPED)
+        elif command is NmtCommand.ENTER_PRE_OPERATIONAL:
+            self._enter(NmtState.PRE_OPERATIONAL)
+        elif command is NmtCommand.RESET_NODE:
+            self.power_on(now_s)
+        else:
+            self._restart_communication(now_s)
+
+    def _enter(self, state: NmtState) -> None:
+        """Go to NMT ``state``: entering OPERATIONAL restarts the SYNC count; leaving it ends the PDOs."""
+        if state is self._nmt:
+            return
+        if state is NmtState.OPERATIONAL:
+            self._sync_count = 0
+            self._tpdo_last.clear()
+        elif self._nmt is NmtState.OPERATIONAL:
+            self._lose_pdos()
+        self._nmt = state
+
+    def _lose_pdos(self) -> None:
+        """The PDOs stop: buffered RPDO data are dropped, and a drive that was being commanded stops."""
+        self._rpdo_pending.clear()
+        self._tpdo_last.clear()
+        if self._power in _COMMANDED_STATES:
+            self._power = PowerState.SWITCH_ON_DISABLED
+
+    def _restart_communication(self, now_s: float) -> None:
+        """Reset communication: 0x1000-0x1FFF to factory, communication faults gone, boot-up, PRE-OPERATIONAL."""
+        for key in [key for key in self._values if key[0] in _COMMUNICATION_AREA]:
+            del self._values[key]
+        self._lose_pdos()
+        self._codecs.clear()
+        self._sync_count = 0
+        self._heard_s.clear()
+        self._consumer_set_s = now_s
+        self._consumer_lost = False
+        self._pdo_length_error = False
+        self._heartbeat_stopped = False
+        self._pdo_frozen = False
+        self._nmt = NmtState.BOOT_UP
+        self._emit(*heartbeat_frame(self._node_id, NmtState.BOOT_UP), now_s)
+        self._nmt = NmtState.PRE_OPERATIONAL
+        self._schedule_heartbeat(now_s)
+
+    # ------------------------------------------------------------------ SDO server
+
+    def _on_sdo(self, data: bytes, now_s: float) -> None:
+        """An SDO request: answered at once (PRE-OPERATIONAL and OPERATIONAL only)."""
+        if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            return
+        request = sdo.parse_request(data)
+        if request.kind == "abort":
+            return  # the client gave up: nothing to answer
+        if request.kind == "download":
+            size_given = bool(data[0] & 0x01)
+            problem = self._sdo_download(request.index, request.sub, request.data, size_given, now_s)
+            response = sdo.download_response(request.index, request.sub) if problem is None else None
+        elif request.kind == "upload":
+            response, problem = self._sdo_upload(request.index, request.sub)
+        else:
+            response, problem = None, _ABORT_COMMAND
+        if response is None:
+            response = sdo.abort_frame(request.index, request.sub, problem or _ABORT_COMMAND)
+        self._emit(SDO_RESPONSE_BASE + self._node_id, response, now_s)
+
+    def _sdo_download(self, index: int, sub: int, payload: bytes, size_given: bool, now_s: float) -> int | None:
+        """Write ``payload`` to ``index:sub``: None when done, else the abort code (nothing changed)."""
+        problem = self._missing(index, sub)
+        if problem is not None:
+            return problem
+        if self._dictionary.access(index, sub) not in _WRITABLE:
+            return _ABORT_READ_ONLY
+        size = self._dictionary.size_bits(index, sub) // 8
+        if not size_given:
+            payload = payload[:size]  # "size not indicated": the object's own size is meant
+        if len(payload) != size:
+            return _ABORT_LENGTH
+        value = self._dictionary.decode(index, sub, payload)
+        problem = self._write_problem(index, sub, value)
+        if problem is not None:
+            return problem
+        self._write(index, sub, value, now_s)
+        return None
+
+    def _sdo_upload(self, index: int, sub: int) -> tuple[bytes | None, int | None]:
+        """Read ``index:sub``: ``(response, None)``, or ``(None, abort code)``."""
+        problem = self._missing(index, sub)
+        if problem is not None:
+            return None, problem
+        if self._dictionary.access(index, sub) not in _READABLE:
+            return None, _ABORT_WRITE_ONLY
+        data = self._dictionary.encode(index, sub, self._get(index, sub))
+        if not 1 <= len(data) <= 4:
+            return None, _ABORT_UNSUPPORTED  # would need a segmented transfer, which this server has not
+        return sdo.upload_response(index, sub, data), None
+
+    # ------------------------------------------------------------------ PDOs
+
+    def _on_rpdo(self, cob_id: int, data: bytes, now_s: float) -> None:
+        """A frame that may be an RPDO: processed only when operational and on a valid RPDO's COB-ID."""
+        if self._nmt is not NmtState.OPERATIONAL:
+            return
+        for slot in self._rpdos:
+            cob = int(self._get(slot.comm, 1))
+            if cob & COB_ID_INVALID or (cob & _CAN_ID_MASK) != cob_id:
+                continue
+            codec = self._codec(slot)
+            values = codec.decode(data)
+            if values is None:
+                self._report_pdo_length_error(now_s)
+                return
+            self._clear_pdo_length_error(now_s)
+            writes = tuple(zip(codec.mapping.objects, values, strict=True))
+            transmission = int(self._get(slot.comm, 2))
+            if transmission <= 240:
+                self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
+            elif transmission >= 254:
+                self._apply_rpdo(writes, now_s)  # event-driven: acts at once
+            return
+
+    def _apply_pending_rpdos(self, now_s: float) -> None:
+        pending, self._rpdo_pending = self._rpdo_pending, {}
+        for comm in sorted(pending):
+            self._apply_rpdo(pending[comm], now_s)
+
+    def _apply_rpdo(self, writes: tuple[tuple[MappedObject, Any], ...], now_s: float) -> None:
+        """Write an RPDO's values into their objects, in mapping order (a value the drive refuses is skipped)."""
+        for mapped, value in writes:
+            if self._write_problem(mapped.index, mapped.sub, value) is None:
+                self._write(mapped.index, mapped.sub, value, now_s)
+
+    def _transmit_tpdos(self, now_s: float) -> None:
+        """At a SYNC: the synchronous TPDOs due, and the event-driven ones whose data changed."""
+        if self._pdo_frozen:
+            return
+        for slot in self._tpdos:
+            cob = int(self._get(slot.comm, 1))
+            if cob & COB_ID_INVALID:
+                continue
+            transmission = int(self._get(slot.comm, 2))
+            codec = self._codec(slot)
+            data = codec.pack(*(self._get(o.index, o.sub) for o in codec.mapping.objects))
+            if 1 <= transmission <= 240:
+                due = self._sync_count % transmission == 0
+            else:  # 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
+                due = self._tpdo_last.get(slot.comm) != data
+            if due:
+                self._tpdo_last[slot.comm] = data
+                self._emit(cob & _CAN_ID_MASK, data, now_s)
+
+    # ------------------------------------------------------------------ CiA 402 and faults
+
+    def _apply_controlword(self, controlword: int, now_s: float) -> None:
+        """A controlword (RPDO or SDO): the CiA 402 transition it asks, unless the e-stop holds the power stage off."""
+        previous = int(self._get(obj.CONTROLWORD, 0))
+        self._values[(obj.CONTROLWORD, 0)] = controlword
+        state = device_next_state(self._power, controlword, previous)
+        if self._estop_pressed and state in _POWER_STAGE_STATES:
+            state = PowerState.SWITCH_ON_DISABLED  # safe torque off: the drive cannot leave SWITCH ON DISABLED
+        fault_reset = self._power is PowerState.FAULT and state is not PowerState.FAULT
+        self._power = state
+        if fault_reset:
+            self._values[(obj.ERROR_CODE, 0)] = ERROR_RESET
+            self._fault_register = 0
+            self._emcy(ERROR_RESET, now_s)
+
+    def _fault(self, code: int, register: int, now_s: float, emcy_length: int = 8) -> None:
+        """A fault: FAULT REACTION ACTIVE (unless already in FAULT), 0x603F and 0x1001 set, EMCY sent."""
+        if self._power is not PowerState.FAULT:
+            self._power = PowerState.FAULT_REACTION_ACTIVE
+        self._values[(obj.ERROR_CODE, 0)] = code
+        self._fault_register |= register | _REGISTER_GENERIC
+        self._emcy(code, now_s, emcy_length)
+
+    def _end_fault_reaction(self) -> None:
+        if self._power is PowerState.FAULT_REACTION_ACTIVE:
+            self._power = PowerState.FAULT
+
+    def _report_pdo_length_error(self, now_s: float) -> None:
+        """An RPDO of the wrong length: not processed; EMCY 0x8210 once, until a good one arrives."""
+        if not self._pdo_length_error:
+            self._pdo_length_error = True
+            self._emcy(ERROR_PDO_LENGTH, now_s)
+
+    def _clear_pdo_length_error(self, now_s: float) -> None:
+        if self._pdo_length_error:
+            self._pdo_length_error = False
+            self._emcy(ERROR_RESET, now_s)
+
+    def _emcy(self, code: int, now_s: float, length: int = 8) -> None:
+        """An EMCY with the error register as it is now (CiA 301: none while STOPPED or with 0x1014 invalid)."""
+        if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            return
+        cob = int(self._get(0x1014, 0)) if self._exists(0x1014, 0) else EMCY_BASE + self._node_id
+        if cob & COB_ID_INVALID:
+            return
+        self._emit(cob & _CAN_ID_MASK, emcy_frame_data(code, self._error_register(), b"", length), now_s)
+
+    # ------------------------------------------------------------------ heartbeat
+
+    def _schedule_heartbeat(self, now_s: float) -> None:
+        """Heartbeats from the producer time 0x1017 (ms; 0 = none): the first one period after ``now_s``."""
+        period_ms = int(self._get(obj.PRODUCER_HEARTBEAT_TIME, 0))
+        self._hb_period_s = period_ms / 1000.0 if period_ms > 0 else None
+        self._hb_origin_s = now_s
+        self._hb_next = 1
+
+    def _produce_heartbeat(self, now_s: float) -> None:
+        """The heartbeat if one is due at ``now_s`` (one frame however late; then on the period's grid again)."""
+        period = self._hb_period_s
+        if period is None or now_s + _TIME_EPS_S < self._hb_origin_s + self._hb_next * period:
+            return
+        if not self._heartbeat_stopped:
+            self._emit(*heartbeat_frame(self._node_id, self._nmt), now_s)
+        # The grid is origin + k * period (no drift); missed beats are not sent late in a burst.
+        passed = math.floor((now_s - self._hb_origin_s + _TIME_EPS_S) / period)
+        self._hb_next = max(self._hb_next + 1, passed + 1)
+
+    def _on_heartbeat(self, node_id: int, data: bytes, now_s: float) -> None:
+        """Another node's heartbeat (or boot-up message): its sign of life for the consumer."""
+        if node_id == self._node_id or parse_heartbeat(data) is None:
+            return
+        self._heard_s[node_id] = now_s
+        if node_id == (int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1)) >> 16) & 0x7F:
+            self._consumer_lost = False
+
+    def _check_consumer(self, now_s: float) -> None:
+        """The heartbeat consumer: a fault when the consumed node is silent too long while OPERATIONAL.
+
+        Counting starts at the first heartbeat of the node or at the write of 0x1016:1, whichever
+        is later; each loss is a fault once (until the node's heartbeat comes back).
+        """
+        entry = int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1))
+        node, time_ms = (entry >> 16) & 0x7F, entry & 0xFFFF
+        heard = self._heard_s.get(node)
+        if time_ms == 0 or node == 0 or heard is None or self._consumer_lost:
+            return
+        silent_s = now_s - max(heard, self._consumer_set_s)
+        if self._nmt is NmtState.OPERATIONAL and silent_s > time_ms / 1000.0 + _TIME_EPS_S:
+            self._consumer_lost = True
+            self._fault(ERROR_HEARTBEAT, _REGISTER_COMMUNICATION, now_s)
+
+    # ------------------------------------------------------------------ the bus
+
+    def _dropping(self, now_s: float) -> bool:
+        return self._drop_until_s is not None and now_s < self._drop_until_s
+
+    def _emit(self, cob_id: int, data: bytes, now_s: float) -> None:
+        """A frame to the bus (lost while ``drop_frames`` lasts)."""
+        if not self._dropping(now_s):
+            self._send(cob_id, data)
+
+
+def _clamp(value: int, bounds: tuple[int, int]) -> int:
+    """``value`` saturated at ``bounds`` (what a drive's counter of that type can show)."""
+    return max(bounds[0], min(bounds[1], value))
