@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -572,6 +573,77 @@ def _console_session(
     return code
 
 
+# --- hil ------------------------------------------------------------------------------
+
+#: ``--fault KIND:NODE@T_S``: a bus fault, the drive's node id, the robot time it happens at.
+_FAULT_RE = re.compile(r"^(?P<kind>[a-z_]+):(?P<node>\d{1,3})@(?P<at>[0-9]+(?:\.[0-9]*)?)$")
+
+
+def _parse_fault(text: str, node_ids: list[int], kinds: tuple[str, ...]) -> tuple[str, int, float]:
+    """``(kind, joint 1-4, robot time s)`` of one ``--fault KIND:NODE@T_S``.
+
+    Raises:
+        UsageError: not of that form, an unknown kind, or a node that is not one of the drives'.
+    """
+    match = _FAULT_RE.match(text)
+    if match is None:
+        raise UsageError(f"--fault {text!r}: expected KIND:NODE@T_S, e.g. heartbeat_loss:2@30.5")
+    kind, node, at = match["kind"], int(match["node"]), float(match["at"])
+    if kind not in kinds:
+        raise UsageError(f"--fault {text!r}: unknown fault {kind!r}; expected one of {', '.join(kinds)}")
+    if node not in node_ids:
+        raise UsageError(f"--fault {text!r}: node {node} is not a drive; expected one of {node_ids}")
+    return kind, node_ids.index(node) + 1, at
+
+
+def cmd_hil(args: argparse.Namespace, console: Console) -> int:
+    """A console script over simulated CANopen drives, lock-step: the session, the audit log and the bus log."""
+    from daror_runtime.clocks import LockStepClock
+    from daror_runtime.console.commands import parse_context
+    from daror_runtime.console.grammar import check_lines
+    from daror_runtime.console.run import read_script
+    from daror_runtime.fsm.spec import load_fsm_spec
+    from daror_runtime.session.settings import load_session_settings
+    from daror_runtime.util.atomic import write_text_atomic
+    from daror_runtime.util.outputs import output_lock
+    from hal.capabilities import BUS_FAULT_KINDS, BusStatistics, FaultSchedule
+    from hal.config import hal_config
+    from hal.interface import open_hal
+
+    spec = load_fsm_spec(args.spec)
+    settings = load_session_settings(args.settings)
+    out = _output_dir(args.out, args.script)
+    traffic = out / "can.log"
+    for name in (traffic, out / "hil.json"):
+        if name.exists():
+            raise UsageError(f"{name}: exists; a HIL run writes a new one: expected another --out")
+    config = hal_config(
+        "can-sim", "--scenario/--rate-hz", scenario=args.scenario, rate_hz=args.rate_hz, traffic_log=str(traffic)
+    )
+    faults = [_parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS) for text in args.fault or []]
+    hal = open_hal(config)
+    world = hal.world
+    if not isinstance(world, FaultSchedule) or not isinstance(hal, BusStatistics):
+        raise UsageError(f"the {config.backend} backend schedules no faults")  # the registry was changed
+    checked = check_lines(
+        read_script(args.script), str(args.script), parse_context(spec, hal.description, world.fault_kinds)
+    )
+    for kind, joint, at_s in faults:
+        world.schedule_fault(kind, joint, at_s)
+    clock = LockStepClock(1.0 / hal.rate_hz)
+    with output_lock(out):
+        code = _console_session(args, console, hal, out, spec, settings, checked, False, clock)
+        report = {
+            "script": str(args.script),
+            "faults": [{"kind": k, "node": config.node_ids[j - 1], "joint": j, "at_s": t} for k, j, t in faults],
+            "bus": hal.bus_report(),
+            "exit_code": code,
+        }
+        write_text_atomic(out / "hil.json", json.dumps(report, indent=2) + "\n")
+    console.print(f"bus log: {traffic} ({report['bus'].get('frames_sent', 0)} frames sent)")  # type: ignore[union-attr]
+    return code
+
+
 # --- fsm ------------------------------------------------------------------------------
 
 
@@ -819,6 +891,23 @@ def build_parser() -> argparse.ArgumentParser:
         "--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed at a terminal)"
     )
     con.set_defaults(handler=cmd_console)
+
+    hil = commands.add_parser(
+        "hil",
+        help="hardware-in-the-loop: a console script over simulated CANopen drives (lock-step), with the bus log",
+    )
+    hil.add_argument("--script", type=Path, required=True, help="console lines, all checked before anything runs")
+    hil.add_argument("--out", type=Path, required=True, help="folder: can.log, hil.json, the session and audit files")
+    hil.add_argument("--rate-hz", type=float, help="loop and SYNC rate (default: the highest the bus load allows)")
+    hil.add_argument("--scenario", help="simulated plant behind the drives (default exo_dummy_arm)")
+    hil.add_argument(
+        "--fault", action="append", metavar="KIND:NODE@T_S",
+        help="inject a bus fault into node NODE at robot time T_S (repeatable); KIND: " + ", ".join(
+            ("heartbeat_loss", "emcy", "frozen_pdo", "drive_fault", "drop_frames")),
+    )  # fmt: skip
+    hil.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
+    hil.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
+    hil.set_defaults(handler=cmd_hil)
 
     fsm = commands.add_parser("fsm", help="the safety FSM spec: check it, draw it, export its JSON Schema")
     fsm_cmds = fsm.add_subparsers(dest="fsm_command", required=True, metavar="WHAT")

@@ -32,7 +32,9 @@ __all__ = [
     "FAULT_KINDS",
     "PLANT_FAULT_KINDS",
     "BackendBatch",
+    "BusStatistics",
     "FaultKind",
+    "FaultSchedule",
     "LockStepBatches",
     "SimulatedWorld",
 ]
@@ -235,4 +237,26 @@ class LockStepBatches(Protocol):
                 was removed, and the next :meth:`hal.interface.Hal.read` shows the failed tick's
                 sample with no drive enabled, as after a :meth:`hal.interface.Hal.write` that raised.
         """
+        ...
+
+
+@runtime_checkable
+class FaultSchedule(Protocol):
+    """A simulated world that injects faults at a robot time of its own (``daror hil --fault``)."""
+
+    def schedule_fault(self, kind: str, joint: int, at_s: float, duration_s: float | None = None) -> None:
+        """Inject ``kind`` (one of the world's ``fault_kinds``) into ``joint``'s drive at robot time ``at_s``.
+
+        Raises:
+            InputError: an unknown kind, a joint not 1-4, a negative time or a duration that is not positive.
+        """
+        ...
+
+
+@runtime_checkable
+class BusStatistics(Protocol):
+    """A backend on a field bus that reports on it (CANopen: rate, load, frame counts)."""
+
+    def bus_report(self) -> dict[str, object]:
+        """What the bus did since the backend opened: plain values, ready for JSON."""
         ...

@@ -13,7 +13,7 @@ flags (``--hal``, ``--scenario``). :func:`hal.interface.open_hal` turns it into 
     channel: can0
     bitrate: 1000000              # bit/s
     node_ids: [1, 2, 3, 4]        # CANopen node id of the drive of joints 1-4
-    rate_hz: 1000                 # loop rate = SYNC rate
+    rate_hz: 500                  # loop rate = SYNC rate (left out: the highest the bus allows)
     heartbeat_producer_ms: 100    # how often every node sends its heartbeat
     heartbeat_consumer_ms: 250    # a drive silent this long is lost: a latched fault
     eds: drives.eds               # the drives' EDS file (relative to this file)
@@ -95,22 +95,29 @@ class _CanFields(_Config):
         channel: the python-can channel (``can0``, ``PCAN_USBBUS1``, a virtual bus name).
         bitrate: the bus bit rate, bit/s (one of :data:`CAN_BITRATES`).
         node_ids: CANopen node id of the drive of joints 1-4 (distinct, 1-127).
-        rate_hz: loop rate, Hz; also the SYNC rate (at most 2 kHz: a bus cycle carries SYNC and
-            two PDOs per drive).
+        rate_hz: loop rate, Hz; also the SYNC rate. None: the highest rate the PDO mapping allows
+            within the bus-load budget (hal/canopen/busload.py: 500 Hz for four drives on 1 Mbit/s);
+            a rate over the budget is refused when the backend is built.
         heartbeat_producer_ms: how often the drives (and the master) send a heartbeat, ms.
         heartbeat_consumer_ms: how long a drive's heartbeat may be missing before the backend
-            latches a fault (raised by the next ``read``), ms; longer than the producer time.
+            latches a fault (raised by the next ``read``), ms; longer than the producer time. The
+            drives watch the master's heartbeat with the same time (a silent master stops them).
+        master_node_id: the node id of the master's heartbeat (not one of the drives').
         eds: the drives' EDS file (object dictionary); None: the backend's own.
+        traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
+            not exist yet); None: no log.
     """
 
     interface: Text
     channel: Text
     bitrate: Bitrate = 1_000_000
     node_ids: Annotated[list[NodeId], Field(min_length=N_JOINTS, max_length=N_JOINTS)] = [1, 2, 3, 4]
-    rate_hz: Annotated[Number, Field(gt=0, le=2_000)] = 1000.0
+    rate_hz: Annotated[Number, Field(gt=0, le=2_000)] | None = None
     heartbeat_producer_ms: HeartbeatMs = 100
     heartbeat_consumer_ms: HeartbeatMs = Field(250, validate_default=True)  # checked against the producer's
+    master_node_id: NodeId = 127
     eds: Text | None = None
+    traffic_log: Text | None = None
 
     @field_validator("node_ids")
     @classmethod
@@ -118,6 +125,13 @@ class _CanFields(_Config):
         if len(set(node_ids)) != len(node_ids):
             raise ValueError(f"{node_ids}: expected four different node ids, one per drive")
         return node_ids
+
+    @field_validator("master_node_id")
+    @classmethod
+    def _not_a_drive(cls, master_node_id: int, info: ValidationInfo) -> int:
+        if master_node_id in (info.data.get("node_ids") or []):
+            raise ValueError(f"{master_node_id} is a drive's node id; expected the master's own")
+        return master_node_id
 
     @field_validator("heartbeat_consumer_ms")
     @classmethod
@@ -147,11 +161,17 @@ class CanSimHalConfig(_CanFields):
 
 
 class CanHalConfig(_CanFields):
-    """The CANopen backend on the DAROR-01's drives: real hardware, real time."""
+    """The CANopen backend on the DAROR-01's drives: real hardware, real time.
+
+    Attributes:
+        velocity_filter_hz: first-order low-pass of the link velocity the backend estimates from
+            the load-side encoder, Hz (the drives do not send a velocity: hal/canopen/mapping.py).
+    """
 
     backend: Literal["can"] = "can"
     interface: Text = "socketcan"
     channel: Text = "can0"
+    velocity_filter_hz: Annotated[Number, Field(gt=0, le=1_000)] = 50.0
 
 
 #: A HAL configuration: one of the variants (the type of a value).
@@ -162,11 +182,11 @@ HalConfig = Annotated[AnyHalConfig, Field(discriminator="backend")]
 _VARIANTS: dict[str, type[_Config]] = {"sim": SimHalConfig, "can-sim": CanSimHalConfig, "can": CanHalConfig}
 _ADAPTER: TypeAdapter[AnyHalConfig] = TypeAdapter(HalConfig)
 #: Fields that hold a file path; a relative one in a file is relative to that file's folder.
-_PATH_FIELDS = ("scenario", "robot", "eds")
+_PATH_FIELDS = ("scenario", "robot", "eds", "traffic_log")
 
 
 def _looks_like_path(value: str) -> bool:
-    return Path(value).suffix.lower() in {".yaml", ".yml", ".eds"} or "/" in value or "\\" in value
+    return Path(value).suffix.lower() in {".yaml", ".yml", ".eds", ".log"} or "/" in value or "\\" in value
 
 
 def _variant(backend: object, source: str, where: str = "") -> type[_Config]:

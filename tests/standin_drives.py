@@ -77,7 +77,7 @@ class StandInDrives(Hal):
     def from_config(cls, config: AnyHalConfig) -> StandInDrives:
         if not isinstance(config, CanHalConfig | CanSimHalConfig):
             raise HalConfigError(f"the stand-in drives take a can configuration, not {config.backend!r}")
-        return cls(rate_hz=config.rate_hz)
+        return cls(rate_hz=config.rate_hz or 1000.0)
 
     @property
     def rate_hz(self) -> float:

@@ -68,7 +68,7 @@ def test_each_backend_has_its_variant_with_defaults() -> None:
     can = hal_config("can")
     assert isinstance(can, CanHalConfig)
     assert (can.interface, can.channel, can.bitrate, can.node_ids) == ("socketcan", "can0", 1_000_000, [1, 2, 3, 4])
-    assert (can.rate_hz, can.heartbeat_producer_ms, can.heartbeat_consumer_ms, can.eds) == (1000.0, 100, 250, None)
+    assert (can.rate_hz, can.heartbeat_producer_ms, can.heartbeat_consumer_ms, can.eds) == (None, 100, 250, None)
     can_sim = hal_config("can-sim", scenario="exo")
     assert isinstance(can_sim, CanSimHalConfig)
     assert (can_sim.interface, can_sim.scenario) == ("virtual", "exo")

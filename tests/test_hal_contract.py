@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
 import pytest
 
 from hal.config import hal_config
-from hal.interface import BACKENDS, hal_class, open_hal, register_backend
+from hal.interface import BACKENDS, Command, HalFaultError, hal_class, open_hal, register_backend
+from hal.robot import N_JOINTS
 from tests.hal_contract import BackendUnderTest, HalContract
 from tests.standin_drives import TARGET
 
@@ -49,8 +51,26 @@ STANDIN_DRIVES = BackendUnderTest(
     applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
 )
 
-#: Every backend the contract runs against. The CANopen backends join here (issue 12).
-BACKENDS_UNDER_TEST = [SIM, SIM_EXO_500HZ, STANDIN_DRIVES]
+
+
+def _fault_can_drive(hal: Any, joint: int) -> None:
+    """The drive's power stage faults; its EMCY is taken here (on CAN a drive fault comes with one: HalFaultError)."""
+    _world(hal).inject_fault("drive_fault", joint)
+    hal.write(Command(np.full(N_JOINTS, 1.0), True))
+    with pytest.raises(HalFaultError, match=f"drive {joint}: EMCY 0x2310"):
+        hal.read()
+
+
+CAN_SIM = BackendUnderTest(
+    "can-sim",
+    make=lambda: open_hal(hal_config("can-sim")),
+    latch_fault=lambda hal: _world(hal).inject_fault("emcy", 1),
+    fault_drive=_fault_can_drive,
+    applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+)
+
+#: Every backend the contract runs against.
+BACKENDS_UNDER_TEST = [SIM, SIM_EXO_500HZ, STANDIN_DRIVES, CAN_SIM]
 
 
 @pytest.fixture(scope="module", autouse=True)

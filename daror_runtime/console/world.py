@@ -14,6 +14,8 @@ never imports a backend and never asks which one it has: a backend without a wor
 
 from __future__ import annotations
 
+import numpy as np
+
 from daror_runtime.errors import UsageError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.waypoints import load_waypoints
@@ -23,6 +25,8 @@ from hal.robot import FloatArray
 
 #: The console's names of the e-stop buttons -> the world's button.
 BUTTONS = {"operator": ESTOP_OPERATOR, "pilot": ESTOP_PILOT}
+#: How far past each waypoint the simulated pilot's sweep reaches, deg (see :meth:`SimWorld.pilot_sweep`).
+SWEEP_BEYOND_DEG = 1.0
 
 
 class SimWorld:
@@ -130,8 +134,14 @@ class SimWorld:
         """
         waypoints = load_waypoints(settings.waypoints_file)
         numbers = [n for n in waypoints.training_order if (n - 1) % settings.waypoint_stride == 0]
-        poses = [waypoints.waypoints[n - 1].isb_rad for n in numbers]
-        return self.simulated.pilot_sweep_isb(poses, seconds_per_move)
+        poses = np.array([waypoints.waypoints[n - 1].isb_rad for n in numbers])
+        # A pilot's range of motion is larger than the poses the protocol visits: the pilot reaches
+        # SWEEP_BEYOND_DEG past each of them (away from the poses' middle, every angle), so the
+        # recorded envelope holds every waypoint with room for the measurement (quantised, a SYNC
+        # late over CAN) instead of touching it.
+        middle = poses.mean(axis=0)
+        beyond = np.sign(poses - middle) * np.deg2rad(SWEEP_BEYOND_DEG)
+        return self.simulated.pilot_sweep_isb(list(poses + beyond), seconds_per_move)
 
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         """``(holding, pilot)`` now, (4,) Nm: what holds the arm still where it is, and what the pilot adds."""

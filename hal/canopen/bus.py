@@ -140,10 +140,25 @@ class TrafficLog:
     """
 
     def __init__(self, path: Path, epoch_s: int, channel: str = "can0") -> None:
-        self.path = path
+        self.path = Path(path)
         self.epoch_s = int(epoch_s)
-        self._writer = can.CanutilsLogWriter(str(path), channel=channel, append=False)
+        try:
+            with open(self.path, "x"):  # a new file: an existing log is never overwritten
+                pass
+        except FileExistsError:
+            raise HalError(f"{self.path}: exists; the bus log is not overwritten: expected a new file") from None
+        except OSError as exc:
+            raise HalError(f"{self.path}: cannot be created ({exc.strerror})") from None
+        self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
         self._channel = channel
+
+    @classmethod
+    def reopen(cls, path: Path, epoch_s: int, channel: str) -> TrafficLog:
+        """The log of a backend opened again in the same session: appended to, the same epoch."""
+        log = cls.__new__(cls)
+        log.path, log.epoch_s, log._channel = Path(path), int(epoch_s), channel
+        log._writer = can.CanutilsLogWriter(str(path), channel=channel, append=True)
+        return log
 
     def frame(self, cob_id: int, data: bytes, robot_t_s: float, sent: bool) -> None:
         """Log one frame the master sent (``sent``) or received, at robot time ``robot_t_s``."""

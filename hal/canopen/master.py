@@ -54,7 +54,7 @@ from hal.canopen.cia301.nmt import (
     nmt_frame,
     parse_heartbeat,
 )
-from hal.canopen.cia301.pdo import PdoCodec, PdoMapping
+from hal.canopen.cia301.pdo import OPTIONAL_SUBS, PdoCodec, PdoMapping
 from hal.canopen.cia301.sdo import SdoClient, SdoTransfer
 from hal.canopen.cia402.statemachine import (
     CW_DISABLE_VOLTAGE,
@@ -212,11 +212,9 @@ class CanMaster:
         self.frames_received = 0
         self.frames_sent = 0
         self.unknown_frames = 0
-        # the sample's arrays, rebuilt per fresh cycle
-        self.q_rad = np.zeros(self.n)
-        self.dq_rad_s = np.zeros(self.n)
-        self.theta_rad = np.zeros(self.n)
-        self.tau_nm = np.zeros(self.n)
+        # the sample's arrays: new read-only ones per fresh cycle
+        self.q_rad = self.dq_rad_s = self.theta_rad = self.tau_nm = np.zeros(self.n)
+        self.q_rad.flags.writeable = False
         self._last_fresh_sync = -1
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * settings.velocity_filter_hz * settings.period_s)
 
@@ -340,7 +338,16 @@ class CanMaster:
         ]  # fmt: skip
         for pdo in self.mapping.all:
             writes += pdo.configuration(node_id)
-        return reads + [sdo.write(node_id, index, sub, data, what) for index, sub, data, what in writes]
+        optional = {
+            (pdo.communication_index, sub)
+            for pdo in self.mapping.all
+            if pdo.direction == "tpdo"
+            for sub in OPTIONAL_SUBS
+        }
+        return reads + [
+            sdo.write(node_id, index, sub, data, what, optional=(index, sub) in optional)
+            for index, sub, data, what in writes
+        ]
 
     def _run_sdo(self, transfers: list[SdoTransfer], doing: str) -> None:
         """Start-up only: run the SDO client until every queued transfer is done.
@@ -444,15 +451,19 @@ class CanMaster:
         return fresh
 
     def _update_arrays(self, sync: int) -> None:
+        """New arrays for the cycle ``sync`` (read-only: a sample that holds the old ones stays as it was)."""
         u = self.units
         q_new = np.array([d.load_counts for d in self.drives], dtype=float) * u.rad_per_load_increment
-        cycles = sync - self._last_fresh_sync
+        dq_new = np.zeros(self.n)
         if self._last_fresh_sync >= 0:
+            cycles = sync - self._last_fresh_sync
             raw = (q_new - self.q_rad) / (cycles * self.settings.period_s)
-            self.dq_rad_s += self._alpha * (raw - self.dq_rad_s)
-        self.q_rad = q_new
-        self.theta_rad = np.array([d.motor_counts for d in self.drives], dtype=float) * u.rad_per_motor_increment
-        self.tau_nm = np.array([d.torque_permille for d in self.drives], dtype=float) * u.nm_per_permille
+            dq_new = self.dq_rad_s + self._alpha * (raw - self.dq_rad_s)
+        theta = np.array([d.motor_counts for d in self.drives], dtype=float) * u.rad_per_motor_increment
+        tau = np.array([d.torque_permille for d in self.drives], dtype=float) * u.nm_per_permille
+        for array in (q_new, dq_new, theta, tau):
+            array.flags.writeable = False
+        self.q_rad, self.dq_rad_s, self.theta_rad, self.tau_nm = q_new, dq_new, theta, tau
         self._last_fresh_sync = sync
         self.sample_t_s = self._last_sync_s
 

@@ -24,6 +24,7 @@ from typing import Literal
 
 __all__ = [
     "COB_ID_INVALID",
+    "OPTIONAL_SUBS",
     "TRANSMISSION_SYNCHRONOUS",
     "MappedObject",
     "PdoCodec",
@@ -35,6 +36,8 @@ __all__ = [
 COB_ID_INVALID = 0x8000_0000
 #: Transmission type 1: a TPDO is sent after every SYNC; an RPDO's data act at the next SYNC.
 TRANSMISSION_SYNCHRONOUS = 1
+#: Sub-indices of a TPDO's communication parameter that CiA 301 makes optional (inhibit time, event timer).
+OPTIONAL_SUBS = (3, 5)
 
 #: The ``struct`` code of each CiA 301 basic data type a PDO may carry (the EDS data type codes).
 _STRUCT_CODES: dict[int, str] = {
@@ -102,6 +105,8 @@ class PdoMapping:
     transmission_type: int = TRANSMISSION_SYNCHRONOUS
 
     def __post_init__(self) -> None:
+        if 241 <= self.transmission_type <= 253 or not 0 <= self.transmission_type <= 255:
+            raise ValueError(f"{self.name}: transmission type {self.transmission_type} is reserved or invalid")
         if not 1 <= self.number <= 4:
             raise ValueError(f"{self.name}: PDO number {self.number}; expected 1-4 (the pre-defined connection set)")
         if any(o.bits % 8 for o in self.objects):
@@ -132,7 +137,12 @@ class PdoMapping:
         return base + node_id + (0x80 if self.direction == "rpdo" else 0)
 
     def configuration(self, node_id: int) -> list[tuple[int, int, bytes, str]]:
-        """The SDO writes that configure this PDO on ``node_id``, in CiA 301's order: ``(index, sub, data, what)``."""
+        """The SDO writes that configure this PDO on ``node_id``, in CiA 301's order: ``(index, sub, data, what)``.
+
+        A TPDO's inhibit time (sub 3) and event timer (sub 5) are optional in CiA 301; a drive
+        without them has neither (see :data:`OPTIONAL_SUBS`): the master accepts "sub-index does
+        not exist" for those two and nothing else.
+        """
         comm, mapping, cob = self.communication_index, self.mapping_index, self.cob_id(node_id)
         u8, u16, u32 = (
             (lambda v: struct.pack("<B", v)),

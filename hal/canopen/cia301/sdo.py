@@ -37,6 +37,8 @@ __all__ = [
 ]
 
 _HEADER = struct.Struct("<BHB")
+#: Abort codes that say an object or sub-index does not exist.
+_DOES_NOT_EXIST = (0x06020000, 0x06090011)
 _ABORT = struct.Struct("<BHBI")
 
 #: Abort codes (CiA 301 table 22) and what they mean.
@@ -161,6 +163,7 @@ class SdoTransfer:
     sub: int
     data: bytes | None  # None: a read
     what: str = ""  # what the transfer is for, for messages ("TPDO1 mapping entry 2")
+    optional: bool = False  # the object may not exist on the drive: "does not exist" is not an error
     sent_at_s: float | None = None
     done: bool = False
     error: str | None = None
@@ -183,14 +186,19 @@ class SdoClient:
     _queues: dict[int, deque[SdoTransfer]] = field(default_factory=dict)
     _in_flight: dict[int, SdoTransfer] = field(default_factory=dict)
 
-    def write(self, node_id: int, index: int, sub: int, data: bytes, what: str = "") -> SdoTransfer:
+    def write(
+        self, node_id: int, index: int, sub: int, data: bytes, what: str = "", optional: bool = False
+    ) -> SdoTransfer:
         """Queue a write of ``data`` (1-4 bytes) to ``index:sub`` of ``node_id``.
+
+        ``optional``: an object the drive may not have; its "object/sub-index does not exist"
+        abort completes the transfer without an error.
 
         Raises:
             ValueError: ``data`` does not fit an expedited transfer.
         """
         download_request(index, sub, data)  # refused now rather than on the bus
-        return self._queue(SdoTransfer(node_id, index, sub, data, what))
+        return self._queue(SdoTransfer(node_id, index, sub, data, what, optional))
 
     def read(self, node_id: int, index: int, sub: int, what: str = "") -> SdoTransfer:
         """Queue a read of ``index:sub`` of ``node_id`` (at most 4 bytes expected)."""
@@ -237,7 +245,9 @@ class SdoClient:
             return None  # an answer to something else (a late one): not ours
         del self._in_flight[node_id]
         transfer.done = True
-        if response.kind == "aborted":
+        if response.kind == "aborted" and transfer.optional and response.abort_code in _DOES_NOT_EXIST:
+            pass  # the drive has no such object: nothing to configure
+        elif response.kind == "aborted":
             meaning = ABORT_MESSAGES.get(response.abort_code, "unknown abort code")
             transfer.error = f"{transfer.target}: the drive aborted the transfer: 0x{response.abort_code:08X} {meaning}"
         elif transfer.data is None and response.kind == "uploaded":

@@ -98,6 +98,8 @@ def statusword_of(state: PowerState, estop_operator: bool = False, estop_pilot: 
     word = _BITS[state] | SW_REMOTE
     if state in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCHED_ON, PowerState.OPERATION_ENABLED):
         word |= SW_VOLTAGE_ENABLED | 0x0020  # quick stop bit 5 is active low: 1 = no quick stop
+    elif state is PowerState.QUICK_STOP_ACTIVE:
+        word |= SW_VOLTAGE_ENABLED  # the power stage still has voltage while it stops
     if estop_operator:
         word |= SW_ESTOP_OPERATOR
     if estop_pilot:

@@ -12,9 +12,10 @@ What the drive does, in the words of the standards:
 
 * NMT: boot-up message, then PRE-OPERATIONAL; start, stop, enter pre-operational, reset node
   (everything back to factory, as at power on), reset communication (0x1000-0x1FFF back to
-  factory). A drive in OPERATION ENABLED (or QUICK STOP ACTIVE) that leaves OPERATIONAL, by any
-  NMT command, falls to SWITCH ON DISABLED: its PDOs stop, so it could only go on applying its last
-  target torque with nobody able to change it (CiA 402's abort connection option "disable voltage").
+  factory). A drive in OPERATION ENABLED (or QUICK STOP ACTIVE) that leaves OPERATIONAL or enters
+  STOPPED, by any NMT command (reset communication included), falls to SWITCH ON DISABLED: its PDOs
+  stop, so it could only go on applying its last target torque with nobody able to change it
+  (CiA 402's abort connection option "disable voltage").
 * SDO server (PRE-OPERATIONAL and OPERATIONAL only): expedited upload and download of 1-4 bytes,
   the CiA 301 abort codes; CiA 301's order for a PDO change is enforced (mapping written only while
   the PDO's COB-ID is invalid and its count is 0; the count checked against the entries).
@@ -24,6 +25,9 @@ What the drive does, in the words of the standards:
   SYNC since the node became operational; types 0, 254 and 255 (the EDS's factory state) go when
   their data changed, judged when the drive samples, at a SYNC. Inhibit times and event timers are
   stored but not timed.
+* Sensors: sampled at every SYNC the drive sees, in every NMT state (an SDO read at start-up finds
+  the real position): 0x6064 and 0x2010 in increments, 0x6077 in per mille, saturated at their
+  types. The velocity 0x606C is not simulated (it stays 0; the DAROR mapping does not carry it).
 * CiA 402: :func:`device_next_state` on every controlword (RPDO or SDO); both e-stop buttons are
   wired to the drive's safe torque off: while either is pressed the power stage is off (SWITCH ON
   DISABLED, which the drive cannot leave). Faults go through FAULT REACTION ACTIVE to FAULT at the
@@ -44,7 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from hal.canopen import objects as obj
 from hal.canopen.cia301 import sdo
@@ -103,6 +107,7 @@ _ABORT_LENGTH = 0x06070010
 _ABORT_NO_SUB = 0x06090011
 _ABORT_INVALID_VALUE = 0x06090030
 _ABORT_VALUE_TOO_HIGH = 0x06090031
+_ABORT_GENERAL = 0x08000000
 
 _READABLE = frozenset({"ro", "rw", "rww", "rwr", "const"})
 _WRITABLE = frozenset({"rw", "wo", "rww", "rwr"})
@@ -119,22 +124,34 @@ _POWER_STAGE_STATES = frozenset(
 _COMMANDED_STATES = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE})
 _INT16 = (-(1 << 15), (1 << 15) - 1)
 _INT32 = (-(1 << 31), (1 << 31) - 1)
-#: CAN identifiers are 11 bits (bit 29 of a COB-ID would ask for a 29-bit frame, which this bus has not).
+#: CAN identifiers are 11 bits: a COB-ID's bits 11-28 are 0, and bit 29 (a 29-bit frame) is refused.
 _CAN_ID_MASK = 0x7FF
-_COB_ID_EXTENDED = 1 << 29
+_COB_ID_NOT_11_BIT = 0x3FFF_F800
+#: CAN-IDs CiA 301 (7.3.5) reserves: no configurable object (a PDO) may use them.
+_RESTRICTED_CAN_IDS = (
+    range(0x000, 0x080),
+    range(0x101, 0x181),
+    range(0x581, 0x600),
+    range(0x601, 0x680),
+    range(0x6E0, 0x700),
+    range(0x701, 0x800),
+)
 #: The communication profile's area: what reset communication sets back to factory.
 _COMMUNICATION_AREA = range(0x1000, 0x2000)
 #: Slack of time comparisons, s: robot time that adds up ticks of 1/f is never exact.
 _TIME_EPS_S = 1e-9
-#: The most bits a PDO carries (one CAN frame).
+#: COB-ID EMCY (CiA 301); the pre-defined 0x80 + node id when the EDS has no such object.
+_COB_ID_EMCY = 0x1014
+#: The most bits a PDO carries (one CAN frame), and the most entries a mapping parameter has (CiA 301).
 _PDO_MAX_BITS = 64
+_MAX_MAPPING_ENTRIES = 0x40
 
 
 @dataclass(frozen=True)
 class _PdoSlot:
     """One PDO the EDS defines: its direction, number, parameter indices and how many mapping entries it has."""
 
-    direction: str  # "rpdo" or "tpdo"
+    direction: Literal["rpdo", "tpdo"]
     number: int
     comm: int
     mapping: int
@@ -167,7 +184,7 @@ class SimulatedSeaDrive:
     ) -> None:
         for name, value in (("node_id", node_id), ("master_node_id", master_node_id)):
             if not 1 <= value <= 127:
-                raise ValueError(f"{name} must be 1-127, not {value}")
+                raise ValueError(f"{name.replace('_', ' ')} must be 1-127, not {value}")
         if node_id == master_node_id:
             raise ValueError(f"the drive and the master cannot share node id {node_id}")
         self._node_id = node_id
@@ -175,8 +192,8 @@ class SimulatedSeaDrive:
         self._dictionary = dictionary
         self._send = send
         self._units = dictionary.units
-        for index in (obj.MODES_OF_OPERATION_DISPLAY, obj.CONSUMER_HEARTBEAT_TIME, obj.PRODUCER_HEARTBEAT_TIME):
-            dictionary.variable(index, 1 if index == obj.CONSUMER_HEARTBEAT_TIME else 0)  # HalConfigError if missing
+        # The one object the drive writes that obj.REQUIRED (checked by the dictionary) does not list.
+        dictionary.variable(obj.MODES_OF_OPERATION_DISPLAY, 0)
         self._rpdos = self._find_pdos("rpdo", 0x1400, 0x1600)
         self._tpdos = self._find_pdos("tpdo", 0x1800, 0x1A00)
         self._slots = {index: slot for slot in (*self._rpdos, *self._tpdos) for index in (slot.comm, slot.mapping)}
@@ -203,15 +220,33 @@ class SimulatedSeaDrive:
         self._heard_s: dict[int, float] = {}
         self._consumer_set_s = 0.0
         self._consumer_lost = False
+        for index, sub in self._objects_read_at_run_time():
+            self._get(index, sub)  # a factory value missing from the EDS is found now, not at a SYNC
 
-    def _find_pdos(self, direction: str, comm_base: int, mapping_base: int) -> tuple[_PdoSlot, ...]:
+    def _objects_read_at_run_time(self) -> list[tuple[int, int]]:
+        """The objects whose factory values the drive needs while it runs (PDO parameters, heartbeat, CiA 402)."""
+        objects = [
+            (obj.PRODUCER_HEARTBEAT_TIME, 0),
+            (obj.CONSUMER_HEARTBEAT_TIME, 1),
+            (obj.CONTROLWORD, 0),
+            (obj.TARGET_TORQUE, 0),
+            (obj.MAX_TORQUE, 0),
+            (obj.ERROR_CODE, 0),
+        ]
+        if self._exists(_COB_ID_EMCY, 0):
+            objects.append((_COB_ID_EMCY, 0))
+        for slot in (*self._rpdos, *self._tpdos):
+            objects += [(slot.comm, 1), (slot.comm, 2), *((slot.mapping, n) for n in range(slot.max_entries + 1))]
+        return objects
+
+    def _find_pdos(self, direction: Literal["rpdo", "tpdo"], comm_base: int, mapping_base: int) -> tuple[_PdoSlot, ...]:
         """The PDOs 1-4 (the pre-defined connection set's) the EDS defines in one direction."""
         slots = []
         for number in range(1, 5):
             comm, mapping = comm_base + number - 1, mapping_base + number - 1
             if self._exists(comm, 1) and self._exists(comm, 2) and self._exists(mapping, 0):
                 entries = 0
-                while entries < _PDO_MAX_BITS and self._exists(mapping, entries + 1):
+                while entries < _MAX_MAPPING_ENTRIES and self._exists(mapping, entries + 1):
                     entries += 1
                 slots.append(_PdoSlot(direction, number, comm, mapping, entries))
         return tuple(slots)
@@ -279,6 +314,7 @@ class SimulatedSeaDrive:
 
         Every object back to its EDS factory value, injected faults gone, CiA 402 SWITCH ON
         DISABLED (NOT READY TO SWITCH ON passes at once), the boot-up message sent, PRE-OPERATIONAL.
+        The e-stop inputs are kept: they are buttons wired to the drive, read at every SYNC.
         """
         self._powered = True
         self._values.clear()
@@ -402,6 +438,20 @@ class SimulatedSeaDrive:
         else:
             self._start_dropping(now_s, DEFAULT_DROP_S if duration_s is None else duration_s)
 
+    def clear_injected(self, now_s: float) -> None:
+        """Remove every injected cause at ``now_s``, s: heartbeats and TPDOs resume, frames pass again.
+
+        The heartbeat comes back on its period's grid (its timer never stopped; only its frames did).
+        A fault the drive latched (``emcy``, ``drive_fault``) stays until the master's fault reset,
+        as on a real drive whose cause went away. Nothing happens to an unpowered drive.
+        """
+        if not self._powered:
+            return
+        self._heartbeat_stopped = False
+        self._pdo_frozen = False
+        if self._drop_until_s is not None:
+            self._drop_until_s = min(self._drop_until_s, now_s)  # frames pass from now on
+
     def _start_dropping(self, now_s: float, duration_s: float) -> None:
         if not (math.isfinite(duration_s) and duration_s > 0.0):
             raise ValueError(f"drop_frames needs a finite, positive duration, not {duration_s} s")
@@ -466,8 +516,9 @@ class SimulatedSeaDrive:
         if slot is not None:
             self._codecs.pop(slot.comm, None)
             self._tpdo_last.pop(slot.comm, None)
-            if not self._pdo_valid(slot):
-                self._rpdo_pending.pop(slot.comm, None)  # an invalid PDO does not exist: its data neither
+            if not self._pdo_valid(slot) or (index, sub) == (slot.comm, 2):
+                # An invalid PDO does not exist, nor do its data; data buffered for a SYNC belong to the old type.
+                self._rpdo_pending.pop(slot.comm, None)
 
     def _write_problem(self, index: int, sub: int, value: Any) -> int | None:
         """The abort code of a value the drive refuses for ``index:sub`` (None: it takes it)."""
@@ -493,8 +544,8 @@ class SimulatedSeaDrive:
         """CiA 301's rules for a PDO communication parameter (COB-ID, transmission type, inhibit time)."""
         valid = self._pdo_valid(slot)
         if sub == 1:
-            if value & _COB_ID_EXTENDED:
-                return _ABORT_INVALID_VALUE  # 29-bit identifiers: not on this bus
+            if value & _COB_ID_NOT_11_BIT or any(value & _CAN_ID_MASK in ids for ids in _RESTRICTED_CAN_IDS):
+                return _ABORT_INVALID_VALUE  # not an 11-bit identifier a PDO may use
             cob = int(self._get(slot.comm, 1))
             if valid and not value & COB_ID_INVALID and (value & _CAN_ID_MASK) != (cob & _CAN_ID_MASK):
                 return _ABORT_INVALID_VALUE  # the identifier of a valid PDO cannot change
@@ -549,7 +600,7 @@ class SimulatedSeaDrive:
         if codec is None:
             count = int(self._get(slot.mapping, 0))
             objects = tuple(MappedObject.from_entry(int(self._get(slot.mapping, n))) for n in range(1, count + 1))
-            mapping = PdoMapping(slot.direction, slot.number, objects, int(self._get(slot.comm, 2)))  # type: ignore[arg-type]
+            mapping = PdoMapping(slot.direction, slot.number, objects, int(self._get(slot.comm, 2)))
             types = tuple(self._dictionary.data_type(o.index, o.sub) for o in objects)
             codec = self._codecs[slot.comm] = PdoCodec(mapping, types)
         return codec
@@ -582,8 +633,8 @@ class SimulatedSeaDrive:
         if state is NmtState.OPERATIONAL:
             self._sync_count = 0
             self._tpdo_last.clear()
-        elif self._nmt is NmtState.OPERATIONAL:
-            self._lose_pdos()
+        elif self._nmt is NmtState.OPERATIONAL or state is NmtState.STOPPED:
+            self._lose_pdos()  # STOPPED: no SDO either, the drive could not be commanded at all
         self._nmt = state
 
     def _lose_pdos(self) -> None:
@@ -623,13 +674,14 @@ class SimulatedSeaDrive:
         if request.kind == "download":
             size_given = bool(data[0] & 0x01)
             problem = self._sdo_download(request.index, request.sub, request.data, size_given, now_s)
-            response = sdo.download_response(request.index, request.sub) if problem is None else None
+            response = sdo.download_response(request.index, request.sub)
         elif request.kind == "upload":
-            response, problem = self._sdo_upload(request.index, request.sub)
+            problem = self._upload_problem(request.index, request.sub)
+            response = b"" if problem is not None else self._upload_response(request.index, request.sub)
         else:
-            response, problem = None, _ABORT_COMMAND
-        if response is None:
-            response = sdo.abort_frame(request.index, request.sub, problem or _ABORT_COMMAND)
+            problem, response = _ABORT_COMMAND, b""
+        if problem is not None:
+            response = sdo.abort_frame(request.index, request.sub, problem)
         self._emit(SDO_RESPONSE_BASE + self._node_id, response, now_s)
 
     def _sdo_download(self, index: int, sub: int, payload: bytes, size_given: bool, now_s: float) -> int | None:
@@ -651,17 +703,26 @@ class SimulatedSeaDrive:
         self._write(index, sub, value, now_s)
         return None
 
-    def _sdo_upload(self, index: int, sub: int) -> tuple[bytes | None, int | None]:
-        """Read ``index:sub``: ``(response, None)``, or ``(None, abort code)``."""
+    def _upload_problem(self, index: int, sub: int) -> int | None:
+        """The abort code of a read of ``index:sub`` the drive refuses (None: it answers)."""
         problem = self._missing(index, sub)
         if problem is not None:
-            return None, problem
+            return problem
         if self._dictionary.access(index, sub) not in _READABLE:
-            return None, _ABORT_WRITE_ONLY
-        data = self._dictionary.encode(index, sub, self._get(index, sub))
-        if not 1 <= len(data) <= 4:
-            return None, _ABORT_UNSUPPORTED  # would need a segmented transfer, which this server has not
-        return sdo.upload_response(index, sub, data), None
+            return _ABORT_WRITE_ONLY
+        try:
+            size = len(self._encoded(index, sub))
+        except HalConfigError:
+            return _ABORT_GENERAL  # the EDS gives the object no value
+        if not 1 <= size <= 4:
+            return _ABORT_UNSUPPORTED  # it would need a segmented transfer, which this server has not
+        return None
+
+    def _upload_response(self, index: int, sub: int) -> bytes:
+        return sdo.upload_response(index, sub, self._encoded(index, sub))
+
+    def _encoded(self, index: int, sub: int) -> bytes:
+        return self._dictionary.encode(index, sub, self._get(index, sub))
 
     # ------------------------------------------------------------------ PDOs
 
@@ -760,7 +821,7 @@ class SimulatedSeaDrive:
         """An EMCY with the error register as it is now (CiA 301: none while STOPPED or with 0x1014 invalid)."""
         if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
             return
-        cob = int(self._get(0x1014, 0)) if self._exists(0x1014, 0) else EMCY_BASE + self._node_id
+        cob = int(self._get(_COB_ID_EMCY, 0)) if self._exists(_COB_ID_EMCY, 0) else EMCY_BASE + self._node_id
         if cob & COB_ID_INVALID:
             return
         self._emit(cob & _CAN_ID_MASK, emcy_frame_data(code, self._error_register(), b"", length), now_s)

@@ -1,0 +1,441 @@
+"""The CANopen backends: ``can`` (the DAROR-01's drives) and ``can-sim`` (simulated drives on a virtual bus).
+
+Both are the same master (:class:`hal.canopen.master.CanMaster`) behind the HAL contract; the
+runtime above ``hal`` is identical for every backend. What differs:
+
+=============  ======================================  ==========================================
+               ``can`` (:class:`CanHal`)                ``can-sim`` (:class:`SimulatedCanHal`)
+=============  ======================================  ==========================================
+the bus        python-can, from the configuration       python-can ``virtual``, one per backend
+               (or a bus handed in)
+receiving      python-can's Notifier thread stores      drained in the tick (no thread: a fixed
+               frames; the tick drains them             order, deterministic in lock-step)
+time           the wall clock since ``open``            the plant's robot time (virtual: each
+                                                        write is one SYNC, one plant tick)
+the drives     real ones                                :mod:`hal.canopen.sim` in front of the
+                                                        simulated plant, processed after each
+                                                        cycle the master sends
+=============  ======================================  ==========================================
+
+The loop's rate is the SYNC rate: the configuration's ``rate_hz``, or the highest rate the PDO
+mapping allows within the bus-load budget (:mod:`hal.canopen.busload`; 500 Hz for four drives on
+1 Mbit/s). A configuration over the budget is refused with the numbers.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import can
+import numpy as np
+
+from hal.canopen.bus import FrameSource, ListenedFrames, PolledFrames, TrafficLog
+from hal.canopen.busload import bus_load, check_bus_load, highest_rate
+from hal.canopen.dictionary import DriveDictionary, load_dictionary
+from hal.canopen.mapping import DAROR_MAPPING
+from hal.canopen.master import CanMaster, MasterSettings
+from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig
+from hal.errors import HalConfigError, HalError, HalNotOpenError, ShapeError
+from hal.interface import CheckedCommand, CheckedSample, Command, Hal, HalFaultError, Sample
+from hal.robot import N_JOINTS, RobotDescription, load_description
+
+if TYPE_CHECKING:
+    from hal.canopen.sim.drives import SimulatedDriveSet
+    from hal.canopen.sim.world import CanSimWorld
+
+__all__ = ["CanHal", "SimulatedCanHal"]
+
+_new_tuple = tuple.__new__
+#: Virtual bus channels already handed out in this process (each simulated backend gets its own).
+_CHANNELS = itertools.count(1)
+
+
+def _rate(config: CanHalConfig | CanSimHalConfig, where: str) -> float:
+    """The configured rate, or the highest the mapping allows; refused over the bus-load budget.
+
+    Raises:
+        HalConfigError: the load of the configured rate exceeds the budget (the message has the numbers).
+    """
+    pdos, n = DAROR_MAPPING.all, len(config.node_ids)
+    rate = (
+        float(config.rate_hz)
+        if config.rate_hz is not None
+        else highest_rate(pdos, n, config.bitrate, config.heartbeat_producer_ms)
+    )
+    check_bus_load(bus_load(pdos, n, rate, config.bitrate, config.heartbeat_producer_ms), where)
+    return rate
+
+
+class CanHal(Hal):
+    """The DAROR-01's four CiA 402 SEA drives over CANopen (python-can for the bus, canopen for the EDS).
+
+    Args:
+        config: the ``can`` configuration (interface, channel, bit rate, node ids, rate, heartbeats, EDS).
+        description: the robot (default: the packaged DAROR-01); its peak motor torque is the drives'.
+        bus: an already open python-can bus to use instead of opening one from ``config`` (it is
+            not shut down by :meth:`close`).
+        traffic_log: where to log every frame in candump format (None: no log).
+
+    Raises:
+        HalConfigError: the EDS cannot be read or lacks an object; the bus would be over its load budget.
+    """
+
+    kind = "can"
+    virtual_time = False
+    drives_hardware = True
+
+    def __init__(
+        self,
+        config: CanHalConfig | CanSimHalConfig,
+        description: RobotDescription | None = None,
+        bus: can.BusABC | None = None,
+        traffic_log: Path | None = None,
+    ) -> None:
+        super().__init__(description or load_description())
+        self.config = config
+        self.dictionary: DriveDictionary = load_dictionary(config.eds)
+        self._rate_hz = _rate(config, f"HAL backend {self.kind}")
+        self._given_bus = bus
+        self._bus: can.BusABC | None = None
+        self._source: FrameSource | None = None
+        self._master: CanMaster | None = None
+        self._traffic_path = traffic_log or (Path(config.traffic_log) if config.traffic_log is not None else None)
+        self._traffic: TrafficLog | None = None
+        self._traffic_epoch_s: int | None = None
+        self._is_open = False
+        self._sample: Sample | None = None
+        self._pending_fault: str | None = None
+        self._t0 = 0.0
+
+    @classmethod
+    def from_config(cls, config: AnyHalConfig) -> CanHal:
+        """The backend of a ``can`` configuration, not opened.
+
+        Raises:
+            HalConfigError: not a ``can`` configuration, or see the constructor.
+        """
+        if not isinstance(config, CanHalConfig):
+            raise HalConfigError(f"the {cls.kind} backend takes a {cls.kind} configuration, not {config.backend!r}")
+        return cls(config)
+
+    @property
+    def rate_hz(self) -> float:
+        return self._rate_hz
+
+    @property
+    def master(self) -> CanMaster:
+        """The master of the open session (its counters and drives, for tests and benchmarks).
+
+        Raises:
+            HalNotOpenError: the backend is not open.
+        """
+        if self._master is None:
+            raise HalNotOpenError(f"{self.kind} backend is not open; call open() first")
+        return self._master
+
+    def settings(self) -> MasterSettings:
+        """The master's settings from the configuration and the robot description."""
+        c = self.config
+        return MasterSettings(
+            node_ids=tuple(c.node_ids),
+            period_s=1.0 / self._rate_hz,
+            heartbeat_producer_ms=c.heartbeat_producer_ms,
+            heartbeat_consumer_ms=c.heartbeat_consumer_ms,
+            master_node_id=c.master_node_id,
+            peak_torque_nm=float(self.description.sea.max_motor_torque_nm),
+            velocity_filter_hz=self._velocity_filter_hz(),
+        )
+
+    def _velocity_filter_hz(self) -> float:
+        return float(getattr(self.config, "velocity_filter_hz", 50.0))
+
+    # --- lifecycle --------------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the bus, start a traffic log, reset, configure and start every drive (blocks until they answer).
+
+        Raises:
+            HalError: the bus cannot be opened, or a drive does not answer or has other units than its EDS.
+        """
+        if self._is_open:
+            self.close()
+        self._t0 = time.monotonic()
+        bus = self._given_bus or self._open_bus()
+        self._bus = bus
+        self._open_traffic()
+        now = self._now
+        self._source = self._frame_source(bus, now)
+        self._master = self._make_master(bus, self._source, now)
+        try:
+            self._master.start()
+        except HalError:
+            self._shutdown()
+            raise
+        self._is_open = True
+        self._sample = None
+        self._pending_fault = None
+
+    def _now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def _open_bus(self) -> can.BusABC:
+        c = self.config
+        try:
+            return can.Bus(interface=c.interface, channel=c.channel, bitrate=c.bitrate)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise HalError(f"CAN interface {c.interface!r} channel {c.channel!r}: cannot be opened: {exc}") from None
+
+    def _open_traffic(self) -> None:
+        """The bus log of this session (one file: a second open of the backend appends to it)."""
+        if self._traffic_path is not None and self._traffic is None:
+            if self._traffic_epoch_s is None:
+                self._traffic_epoch_s = int(time.time())
+                self._traffic = TrafficLog(self._traffic_path, self._traffic_epoch_s, channel=str(self.config.channel))
+            else:
+                self._traffic = TrafficLog.reopen(self._traffic_path, self._traffic_epoch_s, str(self.config.channel))
+
+    def bus_report(self) -> dict[str, object]:
+        """The bus of this backend: rate, bit rate, worst-case load, frames, the log (:class:`hal.capabilities.BusStatistics`)."""
+        c = self.config
+        load = bus_load(DAROR_MAPPING.all, len(c.node_ids), self._rate_hz, c.bitrate, c.heartbeat_producer_ms)
+        report: dict[str, object] = {
+            "backend": self.kind,
+            "rate_hz": self._rate_hz,
+            "bitrate": c.bitrate,
+            "node_ids": list(c.node_ids),
+            "worst_case_load": round(load.total, 4),
+            "load": load.describe(),
+            "traffic_log": str(self._traffic_path) if self._traffic_path is not None else None,
+            "traffic_log_epoch_s": self._traffic_epoch_s,
+        }
+        if self._master is not None:
+            m = self._master
+            report |= {
+                "syncs": m.syncs,
+                "frames_sent": m.frames_sent,
+                "frames_received": m.frames_received,
+                "unknown_frames": m.unknown_frames,
+            }
+        return report
+
+    def _frame_source(self, bus: can.BusABC, now: object) -> FrameSource:
+        return ListenedFrames(bus, now)  # type: ignore[arg-type]
+
+    def _make_master(self, bus: can.BusABC, source: FrameSource, now: object) -> CanMaster:
+        return CanMaster(bus, source, self.dictionary, self.settings(), now, wait=time.sleep, traffic=self._traffic)  # type: ignore[arg-type]
+
+    def close(self) -> None:
+        """Torque off, every drive to pre-operational, the receive thread stopped, the bus closed. Safe twice.
+
+        Raises:
+            HalError: the torque-off frames could not be sent (the bus is closed anyway; the drives'
+                own heartbeat consumers stop them when the master's heartbeat ends).
+        """
+        master, was_open = self._master, self._is_open
+        self._is_open = False
+        try:
+            if was_open and master is not None:
+                master.stop()
+        finally:
+            self._shutdown()
+
+    def _shutdown(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+        if self._bus is not None and self._given_bus is None:
+            self._bus.shutdown()
+        self._bus = None
+        if self._traffic is not None:
+            self._traffic.close()
+            self._traffic = None
+        self._master = None
+
+    # --- the tick ---------------------------------------------------------------------------------
+
+    def read(self) -> Sample:
+        """The sample of the drives' TPDOs of the last SYNC (the same object until the next write).
+
+        Raises:
+            HalFaultError: faults latched since the last read (EMCY, a drive lost, the receive thread), once.
+            HalNotOpenError: the backend is not open.
+        """
+        if not self._is_open or self._master is None:
+            raise HalNotOpenError(f"{self.kind} backend is not open; call open() first")
+        sample = self._sample
+        if sample is None:
+            master = self._master
+            master.receive()
+            sample = self._sample = self._build_sample(master)
+            latched = master.take_latched()
+            if latched is not None:
+                self._pending_fault = latched
+        if self._pending_fault is not None:
+            message, self._pending_fault = self._pending_fault, None
+            raise HalFaultError(message)
+        return sample
+
+    def _build_sample(self, master: CanMaster) -> Sample:
+        states, codes, (operator, pilot) = master.drive_states()
+        # CheckedSample: the master's arrays are float64 (4,) and replaced, never changed, per cycle.
+        return _new_tuple(
+            CheckedSample,
+            (max(master.sample_sync, 0), master.sample_t_s, master.q_rad, master.dq_rad_s, master.theta_rad,
+             master.tau_nm, (operator, pilot), states, codes),
+        )  # fmt: skip
+
+    def write(self, command: Command) -> None:
+        """The cycle: each drive's power state machine one step, the RPDOs, the SYNC. Never blocks.
+
+        Raises:
+            HalError: an enabled command with a non-finite torque (torque removed first), or the bus refused a frame.
+            ShapeError: an enabled command's torque is not of shape (4,) (torque removed first).
+            HalNotOpenError: the backend is not open.
+        """
+        if not self._is_open or self._master is None:
+            raise HalNotOpenError(f"{self.kind} backend is not open; call open() first")
+        master = self._master
+        enable = bool(command.enable)
+        torque = None
+        if enable:
+            torque = command.motor_torque_nm
+            if type(command) is not CheckedCommand:
+                shape = getattr(torque, "shape", None)
+                if shape != (N_JOINTS,):
+                    self._torque_off()
+                    raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {shape}")
+                torque = np.asarray(torque, dtype=float)
+            if not all(math.isfinite(float(t)) for t in torque):
+                self._torque_off()
+                raise HalError(f"motor_torque_nm = {np.asarray(torque).tolist()} is not finite; torque removed")
+        self._sample = None
+        master.send_cycle(enable, torque)
+
+    def _torque_off(self) -> None:
+        self._sample = None
+        if self._master is not None:
+            self._master.send_torque_off()
+
+    def request_fault_reset(self) -> None:
+        """A fault reset edge to drives in fault; lost drives are reset, configured and started again (over the next ticks)."""
+        if self._master is not None:
+            self._master.request_fault_reset()
+
+
+class SimulatedCanHal(CanHal):
+    """``can-sim``: the CANopen backend against simulated SEA drives on a python-can ``virtual`` bus.
+
+    The same master as :class:`CanHal`, on its own virtual channel, drained in the tick; the
+    drives (:mod:`hal.canopen.sim`) process the bus after each cycle the master sends, and move
+    the simulated plant one tick per SYNC. Lock-step is deterministic; the backend also runs in
+    real time (the loop's clock paces the SYNCs).
+
+    Args:
+        config: the ``can-sim`` configuration (scenario, seed, node ids, rate, heartbeats, EDS).
+        description: the robot (default: the one the scenario names).
+        traffic_log: where to log every frame in candump format (None: no log).
+
+    Raises:
+        HalConfigError: as :class:`CanHal`, or an interface other than ``virtual``.
+        DescriptionError: the scenario or the robot description cannot be loaded.
+    """
+
+    kind = "can-sim"
+    virtual_time = True
+    drives_hardware = False
+
+    def __init__(
+        self, config: CanSimHalConfig, description: RobotDescription | None = None, traffic_log: Path | None = None
+    ) -> None:
+        from hal.sim.backend import SimHal
+        from hal.sim.scenario import load_scenario
+
+        if config.interface != "virtual":
+            raise HalConfigError(
+                f"HAL backend can-sim: interface {config.interface!r}; the simulated drives live on python-can's "
+                "'virtual' bus (use --hal can for a real interface)"
+            )
+        scenario = load_scenario(config.scenario)
+        if config.seed is not None:
+            scenario = scenario.model_copy(update={"seed": config.seed})
+        # The drives quantise their encoders in the units of their EDS: the plant's sensors do not.
+        scenario = scenario.model_copy(update={"sensors": scenario.sensors.model_copy(update={"quantise": False})})
+        self._scenario = scenario
+        rate = _rate(config, "HAL backend can-sim")
+        self._plant = SimHal(scenario, rate, description)
+        super().__init__(config, self._plant.description, None, traffic_log)
+        self._channel = f"{config.channel}-{next(_CHANNELS)}"
+        self._drive_bus: can.BusABC | None = None
+        self._drives: SimulatedDriveSet | None = None
+        self._world: CanSimWorld | None = None
+
+    @classmethod
+    def from_config(cls, config: AnyHalConfig) -> SimulatedCanHal:
+        if not isinstance(config, CanSimHalConfig):
+            raise HalConfigError(f"the {cls.kind} backend takes a {cls.kind} configuration, not {config.backend!r}")
+        return cls(config)
+
+    def _velocity_filter_hz(self) -> float:
+        return float(self._scenario.sensors.velocity_filter_hz)  # the same estimate the sim backend's drives make
+
+    def _drive_set(self) -> SimulatedDriveSet:
+        from hal.canopen.sim.drives import SimulatedDriveSet
+
+        if self._drives is None:
+            self._drives = SimulatedDriveSet(
+                None, self._plant, tuple(self.config.node_ids), self.dictionary, self.config.master_node_id
+            )
+        return self._drives
+
+    @property
+    def world(self) -> CanSimWorld:
+        """The plant's pilot and buttons, and faults injected into the drives (:class:`hal.canopen.sim.world.CanSimWorld`)."""
+        from hal.canopen.sim.world import CanSimWorld
+
+        if self._world is None:
+            self._world = CanSimWorld(self._plant.world, self._drive_set())
+        return self._world
+
+    @property
+    def applied_motor_torque_nm(self) -> np.ndarray:
+        """The torque the drives' power stages apply now, Nm (tests)."""
+        return self._drive_set().applied_motor_torque_nm
+
+    def _now(self) -> float:
+        return self._plant.world.t_s
+
+    def open(self) -> None:
+        """A new session: the plant at rest, the drives switched on, then the master's start-up (see :class:`CanHal`)."""
+        drives = self._drive_set()
+        if self._is_open:
+            self.close()
+        self._bus = can.Bus(interface="virtual", channel=self._channel, preserve_timestamps=True)
+        self._drive_bus = can.Bus(interface="virtual", channel=self._channel, preserve_timestamps=True)
+        drives.attach(self._drive_bus)
+        drives.power_on()
+        self._open_traffic()
+        self._source = PolledFrames(self._bus, self._now)
+        self._master = CanMaster(
+            self._bus, self._source, self.dictionary, self.settings(), self._now,
+            pump=drives.step, wait=lambda s: None, traffic=self._traffic,
+        )  # fmt: skip
+        try:
+            self._master.start()
+        except HalError:
+            self._shutdown()
+            raise
+        self._is_open = True
+        self._sample = None
+        self._pending_fault = None
+
+    def _shutdown(self) -> None:
+        super()._shutdown()  # the master's bus: this backend made it, CanHal shuts it down
+        if self._drive_bus is not None:
+            if self._drives is not None:
+                self._drives.attach(None)
+            self._drive_bus.shutdown()
+            self._drive_bus = None

@@ -1,0 +1,194 @@
+"""The four simulated SEA drives on their side of the bus, in front of the simulated plant.
+
+The drives' side of a python-can ``virtual`` bus: one bus handle for all four drives (python-can
+copies every frame once per receiving handle, so one handle on this side keeps a cycle at 5 + 13
+copies instead of 5 x 4 + 13 x 4). :meth:`SimulatedDriveSet.step` processes the frames that
+arrived since the last call in bus order; a SYNC is where time passes::
+
+    SYNC: every drive applies the RPDOs received since the previous SYNC and samples its joint
+          (q, theta and the spring torque of the plant's readings now, the e-stop inputs) into
+          its TPDOs; the plant then runs one tick with the torques the drives' power stages apply
+
+so a TPDO carries the state at the SYNC that triggered it, and a target torque acts from the
+SYNC after the RPDO that carried it (CiA 402 cyclic synchronous torque). The plant is a
+:class:`hal.sim.backend.SimHal` (physics, sensors, pilot, e-stop buttons) whose encoders are not
+quantised: the drives quantise, in the units of their EDS. Robot time is the plant's.
+
+In lock-step the master calls :meth:`step` after it sent its frames (no thread, one fixed order:
+the run is deterministic).
+"""
+
+from __future__ import annotations
+
+import can
+import numpy as np
+
+from hal.canopen.cia301.nmt import SYNC_COB_ID
+from hal.canopen.dictionary import DriveDictionary
+from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
+from hal.capabilities import BUS_FAULT_KINDS
+from hal.errors import HalError, InputError
+from hal.interface import Command
+from hal.robot import N_JOINTS
+from hal.sim.backend import SimHal
+
+__all__ = ["SimulatedDriveSet"]
+
+
+class SimulatedDriveSet:
+    """The drives of joints 1-4 and the plant they move.
+
+    Args:
+        bus: the drives' handle on the virtual bus (created with ``preserve_timestamps=True``), or
+            None until :meth:`attach`.
+        plant: the simulated plant, opened by :meth:`power_on`.
+        node_ids: the node id of the drive of joints 1-4.
+        dictionary: the drives' EDS.
+        master_node_id: the node id whose heartbeat the drives consume.
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC | None,
+        plant: SimHal,
+        node_ids: tuple[int, ...],
+        dictionary: DriveDictionary,
+        master_node_id: int,
+    ) -> None:
+        self.bus = bus
+        self.plant = plant
+        self.dictionary = dictionary
+        self.drives = [SimulatedSeaDrive(n, dictionary, self._send, master_node_id) for n in node_ids]
+        self._by_node = {d.node_id: d for d in self.drives}
+        self._torques = np.zeros(N_JOINTS)
+        self._scheduled: list[tuple[float, str, int, float | None]] = []
+        self.syncs = 0
+
+    @property
+    def t_s(self) -> float:
+        """Robot time: the plant's, s."""
+        return self.plant.world.t_s
+
+    def attach(self, bus: can.BusABC | None) -> None:
+        """Use ``bus`` from now on (None: detached; frames the drives send are lost, as on an unplugged cable)."""
+        self.bus = bus
+
+    def _send(self, cob_id: int, data: bytes) -> None:
+        if self.bus is None:
+            return
+        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=self.t_s))
+
+    def power_on(self) -> None:
+        """A new session: the plant at rest, every drive switched on (boot-up message, pre-operational, factory objects)."""
+        self.plant.open()
+        self.syncs = 0
+        while self.bus is not None and self.bus.recv(timeout=0) is not None:
+            pass  # nothing of an earlier session is left on the drives' side
+        now = self.t_s
+        for drive in self.drives:
+            drive.power_on(now)
+
+    def step(self) -> None:
+        """Process every frame received since the last call, in bus order (see the module docstring).
+
+        Raises:
+            HalError: the plant failed (diverged): the session cannot go on.
+        """
+        if self.bus is None:
+            return
+        recv = self.bus.recv
+        drives = self.drives
+        while True:
+            message = recv(timeout=0)
+            if message is None:
+                break
+            if message.is_error_frame or message.is_remote_frame:
+                continue
+            cob_id = message.arbitration_id
+            if cob_id == SYNC_COB_ID:
+                self._sync()
+                continue
+            data = bytes(message.data)
+            now = self.t_s
+            for drive in drives:  # every drive sees every frame; each takes what is addressed to it
+                drive.receive(cob_id, data, now)
+        now = self.t_s
+        for drive in drives:
+            drive.advance(now)
+
+    def _sync(self) -> None:
+        now = self.t_s
+        self._inject_due(now)
+        sample = self.plant.read_without_faults()
+        operator, pilot = sample.estop[0], sample.estop[1]
+        q, theta, tau = sample.q_rad, sample.theta_rad, sample.tau_nm
+        torques = self._torques
+        enable = False
+        for j, drive in enumerate(self.drives):
+            drive.on_sync(float(q[j]), float(theta[j]), float(tau[j]), operator, pilot, now)
+            torques[j] = drive.applied_torque_nm
+            enable = enable or torques[j] != 0.0
+        self.syncs += 1
+        try:
+            self.plant.write(Command(torques.copy(), enable))
+        except HalError as exc:
+            raise HalError(f"simulated plant behind the CAN drives: {exc}") from None
+        now = self.t_s
+        for drive in self.drives:
+            drive.advance(now)
+
+    # --- faults -------------------------------------------------------------------------------
+
+    def inject(self, kind: str, joint: int, duration_s: float | None = None) -> None:
+        """Inject ``kind`` into the drive of ``joint`` (1-4) now (see :data:`hal.capabilities.BUS_FAULT_KINDS`).
+
+        Raises:
+            InputError: an unknown kind, a joint not 1-4, or a duration that is not positive.
+        """
+        drive = self._drive_of(kind, joint, duration_s)
+        drive.inject(kind, self.t_s, (duration_s or DEFAULT_DROP_S) if kind == "drop_frames" else None)
+
+    def schedule(self, kind: str, joint: int, at_s: float, duration_s: float | None = None) -> None:
+        """Inject ``kind`` into the drive of ``joint`` at the first SYNC at or after robot time ``at_s``.
+
+        Raises:
+            InputError: as :meth:`inject`, or a time that is negative or not finite.
+        """
+        self._drive_of(kind, joint, duration_s)
+        if not (np.isfinite(at_s) and at_s >= 0):
+            raise InputError(f"fault {kind} at {at_s} s: expected a time of 0 s or later")
+        self._scheduled.append((float(at_s), kind, joint, duration_s))
+        self._scheduled.sort(key=lambda item: item[0])
+
+    def _inject_due(self, now: float) -> None:
+        while self._scheduled and self._scheduled[0][0] <= now + 1e-12:
+            _, kind, joint, duration = self._scheduled.pop(0)
+            self.inject(kind, joint, duration)
+
+    def _drive_of(self, kind: str, joint: int, duration_s: float | None) -> SimulatedSeaDrive:
+        if kind not in BUS_FAULT_KINDS:
+            raise InputError(f"fault kind {kind!r}; expected one of {', '.join(BUS_FAULT_KINDS)}")
+        if not (isinstance(joint, int) and 1 <= joint <= len(self.drives)):
+            raise InputError(f"fault {kind}: joint {joint!r}; expected 1-{len(self.drives)}")
+        if duration_s is not None and kind != "drop_frames":
+            # Only a dropout ends by itself; the other faults last until a fault reset or NMT reset.
+            raise InputError(f"fault {kind}: a duration is only for drop_frames; {kind} lasts until it is reset")
+        if duration_s is not None and not (np.isfinite(duration_s) and duration_s > 0):
+            raise InputError(f"fault {kind}: duration {duration_s} s; expected a positive time")
+        return self.drives[joint - 1]
+
+    def clear_faults(self) -> None:
+        """Every injected cause removed (heartbeats and TPDOs resume, frames pass, nothing scheduled).
+
+        A drive in FAULT stays there until the master's fault reset (CiA 402: the cause is gone,
+        the fault is still latched in the drive), as a real drive does.
+        """
+        self._scheduled.clear()
+        now = self.t_s
+        for drive in self.drives:
+            drive.clear_injected(now)
+
+    @property
+    def applied_motor_torque_nm(self) -> np.ndarray:
+        """The torque each drive's power stage applies now (Nm, (4,))."""
+        return np.array([d.applied_torque_nm for d in self.drives])
