@@ -17,6 +17,7 @@ import pytest
 from hal.config import hal_config
 from hal.interface import BACKENDS, Command, HalFaultError, hal_class, open_hal, register_backend
 from hal.robot import N_JOINTS
+from tests.can_rig import CanOnSimulatedDrives
 from tests.hal_contract import BackendUnderTest, HalContract
 from tests.standin_drives import TARGET
 
@@ -52,7 +53,6 @@ STANDIN_DRIVES = BackendUnderTest(
 )
 
 
-
 def _fault_can_drive(hal: Any, joint: int) -> None:
     """The drive's power stage faults; its EMCY is taken here (on CAN a drive fault comes with one: HalFaultError)."""
     _world(hal).inject_fault("drive_fault", joint)
@@ -69,8 +69,17 @@ CAN_SIM = BackendUnderTest(
     applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
 )
 
-#: Every backend the contract runs against.
-BACKENDS_UNDER_TEST = [SIM, SIM_EXO_500HZ, STANDIN_DRIVES, CAN_SIM]
+CAN_RIG = BackendUnderTest(
+    "can-on-simulated-drives",
+    make=lambda: CanOnSimulatedDrives(),
+    latch_fault=lambda hal: _world(hal).inject_fault("emcy", 1),
+    fault_drive=_fault_can_drive,
+    applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+)
+
+#: Every backend the contract runs against: the CAN master both in lock-step over simulated drives
+#: (can-sim) and as on the robot (Notifier thread, wall clock) against drives answering from a thread.
+BACKENDS_UNDER_TEST = [SIM, SIM_EXO_500HZ, STANDIN_DRIVES, CAN_SIM, CAN_RIG]
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -106,6 +106,7 @@ class CanHal(Hal):
         self._traffic_path = traffic_log or (Path(config.traffic_log) if config.traffic_log is not None else None)
         self._traffic: TrafficLog | None = None
         self._traffic_epoch_s: int | None = None
+        self._counts: dict[str, object] = {}
         self._is_open = False
         self._sample: Sample | None = None
         self._pending_fault: str | None = None
@@ -196,7 +197,9 @@ class CanHal(Hal):
                 self._traffic_epoch_s = int(time.time())
                 self._traffic = TrafficLog(self._traffic_path, self._traffic_epoch_s, channel=str(self.config.channel))
             else:
-                self._traffic = TrafficLog.reopen(self._traffic_path, self._traffic_epoch_s, str(self.config.channel))
+                self._traffic = TrafficLog(
+                    self._traffic_path, self._traffic_epoch_s, str(self.config.channel), append=True
+                )
 
     def bus_report(self) -> dict[str, object]:
         """The bus of this backend: rate, bit rate, worst-case load, frames, the log (:class:`hal.capabilities.BusStatistics`)."""
@@ -213,14 +216,17 @@ class CanHal(Hal):
             "traffic_log_epoch_s": self._traffic_epoch_s,
         }
         if self._master is not None:
-            m = self._master
-            report |= {
-                "syncs": m.syncs,
-                "frames_sent": m.frames_sent,
-                "frames_received": m.frames_received,
-                "unknown_frames": m.unknown_frames,
-            }
-        return report
+            self._counts = self._master_counts(self._master)
+        return report | self._counts
+
+    @staticmethod
+    def _master_counts(m: CanMaster) -> dict[str, object]:
+        return {
+            "syncs": m.syncs,
+            "frames_sent": m.frames_sent,
+            "frames_received": m.frames_received,
+            "unknown_frames": m.unknown_frames,
+        }
 
     def _frame_source(self, bus: can.BusABC, now: object) -> FrameSource:
         return ListenedFrames(bus, now)  # type: ignore[arg-type]
@@ -244,6 +250,8 @@ class CanHal(Hal):
             self._shutdown()
 
     def _shutdown(self) -> None:
+        if self._master is not None:
+            self._counts = self._master_counts(self._master)  # what the last session did, for bus_report
         if self._source is not None:
             self._source.close()
             self._source = None
@@ -413,8 +421,10 @@ class SimulatedCanHal(CanHal):
         drives = self._drive_set()
         if self._is_open:
             self.close()
-        self._bus = can.Bus(interface="virtual", channel=self._channel, preserve_timestamps=True)
-        self._drive_bus = can.Bus(interface="virtual", channel=self._channel, preserve_timestamps=True)
+        from hal.canopen.sim.bus import SimulationBus
+
+        self._bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
+        self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
         drives.attach(self._drive_bus)
         drives.power_on()
         self._open_traffic()

@@ -133,45 +133,76 @@ class ListenedFrames(FrameSource):
 class TrafficLog:
     """Every frame on the master's side of the bus, in candump ``-L`` format (python-can's writer).
 
+    The tick only appends the frame to a queue (:meth:`frame`: no I/O, never waits); a writer
+    thread formats the lines with python-can's ``CanutilsLogWriter`` and writes them every
+    :data:`WRITE_EVERY_S`. A write that fails is latched (:attr:`error`): the backend raises it as a
+    fault at the next read, as the recorder's failure is one (the audit trail is part of the run).
+
     Args:
-        path: the log file (written as frames come; a crash keeps what was written).
+        path: the log file; it must not exist (a log is never overwritten) unless ``append``.
         epoch_s: whole seconds added to robot time in the log (the session's start, Unix time).
         channel: the interface name written on every line.
+        append: continue an existing log (the same backend opened again).
+
+    Raises:
+        HalError: the file exists (and not ``append``) or cannot be created.
     """
 
-    def __init__(self, path: Path, epoch_s: int, channel: str = "can0") -> None:
+    #: How often the writer thread writes what the tick queued, s.
+    WRITE_EVERY_S = 0.02
+
+    def __init__(self, path: Path, epoch_s: int, channel: str = "can0", append: bool = False) -> None:
         self.path = Path(path)
         self.epoch_s = int(epoch_s)
+        if not append:
+            try:
+                with open(self.path, "x"):  # a new file: an existing log is never overwritten
+                    pass
+            except FileExistsError:
+                raise HalError(f"{self.path}: exists; the bus log is not overwritten: expected a new file") from None
+            except OSError as exc:
+                raise HalError(f"{self.path}: cannot be created ({exc.strerror})") from None
         try:
-            with open(self.path, "x"):  # a new file: an existing log is never overwritten
-                pass
-        except FileExistsError:
-            raise HalError(f"{self.path}: exists; the bus log is not overwritten: expected a new file") from None
+            self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
         except OSError as exc:
-            raise HalError(f"{self.path}: cannot be created ({exc.strerror})") from None
-        self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
+            raise HalError(f"{self.path}: cannot be opened ({exc.strerror})") from None
         self._channel = channel
-
-    @classmethod
-    def reopen(cls, path: Path, epoch_s: int, channel: str) -> TrafficLog:
-        """The log of a backend opened again in the same session: appended to, the same epoch."""
-        log = cls.__new__(cls)
-        log.path, log.epoch_s, log._channel = Path(path), int(epoch_s), channel
-        log._writer = can.CanutilsLogWriter(str(path), channel=channel, append=True)
-        return log
+        self._pending: deque[tuple[int, bytes, float, bool]] = deque()
+        self.error: str | None = None
+        self.frames_written = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="CAN traffic log", daemon=True)
+        self._thread.start()
 
     def frame(self, cob_id: int, data: bytes, robot_t_s: float, sent: bool) -> None:
-        """Log one frame the master sent (``sent``) or received, at robot time ``robot_t_s``."""
-        self._writer.on_message_received(
-            can.Message(
-                timestamp=self.epoch_s + robot_t_s,
-                arbitration_id=cob_id,
-                data=data,
-                is_extended_id=False,
-                is_rx=not sent,
-                channel=self._channel,
-            )
-        )
+        """Queue one frame the master sent (``sent``) or received, at robot time ``robot_t_s`` (never waits)."""
+        self._pending.append((cob_id, data, robot_t_s, sent))
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.WRITE_EVERY_S):
+            self._write_pending()
+        self._write_pending()
+
+    def _write_pending(self) -> None:
+        pending, write, epoch, channel = self._pending, self._writer.on_message_received, self.epoch_s, self._channel
+        try:
+            while pending:
+                cob_id, data, t_s, sent = pending.popleft()
+                write(
+                    can.Message(
+                        timestamp=epoch + t_s, arbitration_id=cob_id, data=data, is_extended_id=False,
+                        is_rx=not sent, channel=channel, check=False,
+                    )
+                )  # fmt: skip
+                self.frames_written += 1
+            self._writer.file.flush()  # whole lines reach the OS: a crash loses at most the queue
+        except (OSError, ValueError) as exc:  # a full disk, a removed stick: latched, raised by the backend
+            self.error = self.error or f"{self.path}: the bus log cannot be written: {exc}"
+            pending.clear()
 
     def close(self) -> None:
-        self._writer.stop()
+        """Write what is queued and close the file (waits for the writer thread). Safe twice."""
+        if self._thread.is_alive():
+            self._stop.set()
+            self._thread.join()
+            self._writer.stop()

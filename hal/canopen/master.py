@@ -140,6 +140,7 @@ class _Drive:
     emcy: EmcyMessage | None = None  # an error reported by EMCY and not reset yet
     recovery: _Recovery | None = None
     controlword: int = CW_DISABLE_VOLTAGE
+    was_stale: bool = False  # its values were not of the last update's SYNC
 
 
 class CanMaster:
@@ -212,6 +213,10 @@ class CanMaster:
         self.frames_received = 0
         self.frames_sent = 0
         self.unknown_frames = 0
+        self._traffic_failed = False
+        #: The time from the last SYNC to the last TPDO that answered it, on the master's clock (s):
+        #: the reception time of a listening source (hardware), the drain's time of a polled one.
+        self.last_tpdo_latency_s = 0.0
         # the sample's arrays: new read-only ones per fresh cycle
         self.q_rad = self.dq_rad_s = self.theta_rad = self.tau_nm = np.zeros(self.n)
         self.q_rad.flags.writeable = False
@@ -411,8 +416,9 @@ class CanMaster:
     # --- the tick: read --------------------------------------------------------------------------
 
     def receive(self) -> bool:
-        """Drain and decode what arrived since the last tick; run the watchdogs. True if every drive's TPDOs of the
-        last SYNC arrived (a fresh cycle: the arrays were updated).
+        """Drain and decode what arrived since the last tick; run the watchdogs. True if the TPDOs of the last SYNC
+        arrived from every drive that is not lost (a fresh cycle: the arrays were updated; a lost drive
+        keeps its last values and shows FAULT).
 
         Raises:
             HalError: the receiving side failed (latched by the frame source, raised once).
@@ -424,6 +430,9 @@ class CanMaster:
             frames = []
         self._log_received(frames)
         self._dispatch(frames)
+        if self.traffic is not None and self.traffic.error is not None and not self._traffic_failed:
+            self._traffic_failed = True
+            self._latch(self.traffic.error)
         now = self._now()
         for node_id in self.heartbeats.newly_lost(now):
             drive = self._by_node[node_id]
@@ -437,7 +446,9 @@ class CanMaster:
         fresh = True
         for drive in self.drives:
             missed = last - min(drive.status_sync, drive.load_sync)
-            if missed > 0:
+            if missed > 0 and drive.lost is None and drive.recovery is None:
+                # A drive already lost (shown in FAULT, without torque) does not hold the others'
+                # readings back; one that just went quiet does, until it counts as lost.
                 fresh = False
             if missed >= self.settings.stale_syncs and drive.lost is None and drive.recovery is None:
                 self._lose(drive, "pdo", f"no TPDO for {missed} SYNCs (limit {self.settings.stale_syncs})")
@@ -451,7 +462,12 @@ class CanMaster:
         return fresh
 
     def _update_arrays(self, sync: int) -> None:
-        """New arrays for the cycle ``sync`` (read-only: a sample that holds the old ones stays as it was)."""
+        """New arrays for the cycle ``sync`` (read-only: a sample that holds the old ones stays as it was).
+
+        A lost drive's joint keeps its last values; when its data come back, its velocity estimate
+        starts again from rest rather than differentiating across the gap (the arm may have moved
+        while nobody saw it: that is a jump for the safety monitor to judge, not a speed).
+        """
         u = self.units
         q_new = np.array([d.load_counts for d in self.drives], dtype=float) * u.rad_per_load_increment
         dq_new = np.zeros(self.n)
@@ -459,6 +475,11 @@ class CanMaster:
             cycles = sync - self._last_fresh_sync
             raw = (q_new - self.q_rad) / (cycles * self.settings.period_s)
             dq_new = self.dq_rad_s + self._alpha * (raw - self.dq_rad_s)
+            for j, drive in enumerate(self.drives):
+                fresh_now = min(drive.status_sync, drive.load_sync) == sync
+                if fresh_now and drive.was_stale:
+                    dq_new[j] = 0.0
+                drive.was_stale = not fresh_now
         theta = np.array([d.motor_counts for d in self.drives], dtype=float) * u.rad_per_motor_increment
         tau = np.array([d.torque_permille for d in self.drives], dtype=float) * u.nm_per_permille
         for array in (q_new, dq_new, theta, tau):
@@ -481,6 +502,8 @@ class CanMaster:
     def _dispatch(self, frames: list[Frame]) -> None:
         routes = self._routes
         sync = self.syncs - 1
+        sync_s = self._last_sync_s
+        latency = -1.0
         for frame in frames:
             route = routes.get(frame.cob_id)
             if route is None:
@@ -498,6 +521,7 @@ class CanMaster:
                 drive.statusword, drive.motor_counts = int(values[0]), int(values[1])
                 drive.power = decode_statusword(drive.statusword)
                 drive.status_sync = sync
+                latency = max(latency, frame.t_s - sync_s)
             elif what == "load":
                 values = self._unpack_load(frame.data)
                 if values is None:
@@ -507,6 +531,7 @@ class CanMaster:
                     continue
                 drive.load_counts, drive.torque_permille = int(values[0]), int(values[1])
                 drive.load_sync = sync
+                latency = max(latency, frame.t_s - sync_s)
             elif what == "heartbeat":
                 self._on_heartbeat(drive, frame)
             elif what == "emcy":
@@ -515,6 +540,8 @@ class CanMaster:
                 done = self.sdo.on_response(drive.node_id, frame.data)
                 if done is not None and done.error and drive.recovery is not None:
                     self._recovery_failed(drive, done.error)
+        if latency >= 0.0:
+            self.last_tpdo_latency_s = latency
 
     def _on_heartbeat(self, drive: _Drive, frame: Frame) -> None:
         state = parse_heartbeat(frame.data)

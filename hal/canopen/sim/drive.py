@@ -211,6 +211,8 @@ class SimulatedSeaDrive:
         self._pdo_frozen = False  # injected: frozen_pdo
         self._drop_until_s: float | None = None  # injected: drop_frames
         self._codecs: dict[int, PdoCodec] = {}
+        # per PDO: (COB-ID, or None while invalid; transmission type; codec); dropped with its codec
+        self._plans: dict[int, tuple[int | None, int, PdoCodec]] = {}
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
         self._tpdo_last: dict[int, bytes] = {}
         self._sync_count = 0
@@ -515,6 +517,7 @@ class SimulatedSeaDrive:
         slot = self._slots.get(index)
         if slot is not None:
             self._codecs.pop(slot.comm, None)
+            self._plans.pop(slot.comm, None)
             self._tpdo_last.pop(slot.comm, None)
             if not self._pdo_valid(slot) or (index, sub) == (slot.comm, 2):
                 # An invalid PDO does not exist, nor do its data; data buffered for a SYNC belong to the old type.
@@ -594,6 +597,28 @@ class SimulatedSeaDrive:
             return _ABORT_NOT_MAPPABLE
         return None
 
+    def rpdo_can_ids(self) -> tuple[int, ...]:
+        """The CAN-IDs of the drive's valid RPDOs now (a bus may hand it only those, its SDO and broadcasts)."""
+        found = []
+        for slot in self._rpdos:
+            cob = self._plan(slot)[0]
+            if cob is not None:
+                found.append(cob)
+        return tuple(found)
+
+    def _plan(self, slot: _PdoSlot) -> tuple[int | None, int, PdoCodec]:
+        """What a PDO does now: its CAN-ID (None while invalid), its transmission type and its codec.
+
+        Cached until one of its parameters is written (a SYNC reads it for every PDO: the
+        parameters themselves are read once per change, not every cycle).
+        """
+        plan = self._plans.get(slot.comm)
+        if plan is None:
+            cob = int(self._get(slot.comm, 1))
+            valid = None if cob & COB_ID_INVALID else cob & _CAN_ID_MASK
+            plan = self._plans[slot.comm] = (valid, int(self._get(slot.comm, 2)), self._codec(slot))
+        return plan
+
     def _codec(self, slot: _PdoSlot) -> PdoCodec:
         """The codec of a PDO's current mapping (cached until one of its parameters is written)."""
         codec = self._codecs.get(slot.comm)
@@ -650,6 +675,7 @@ class SimulatedSeaDrive:
             del self._values[key]
         self._lose_pdos()
         self._codecs.clear()
+        self._plans.clear()
         self._sync_count = 0
         self._heard_s.clear()
         self._consumer_set_s = now_s
@@ -731,17 +757,15 @@ class SimulatedSeaDrive:
         if self._nmt is not NmtState.OPERATIONAL:
             return
         for slot in self._rpdos:
-            cob = int(self._get(slot.comm, 1))
-            if cob & COB_ID_INVALID or (cob & _CAN_ID_MASK) != cob_id:
+            cob, transmission, codec = self._plan(slot)
+            if cob != cob_id:
                 continue
-            codec = self._codec(slot)
             values = codec.decode(data)
             if values is None:
                 self._report_pdo_length_error(now_s)
                 return
             self._clear_pdo_length_error(now_s)
             writes = tuple(zip(codec.mapping.objects, values, strict=True))
-            transmission = int(self._get(slot.comm, 2))
             if transmission <= 240:
                 self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
             elif transmission >= 254:
@@ -763,20 +787,19 @@ class SimulatedSeaDrive:
         """At a SYNC: the synchronous TPDOs due, and the event-driven ones whose data changed."""
         if self._pdo_frozen:
             return
+        get = self._get
         for slot in self._tpdos:
-            cob = int(self._get(slot.comm, 1))
-            if cob & COB_ID_INVALID:
+            cob, transmission, codec = self._plan(slot)
+            if cob is None:
                 continue
-            transmission = int(self._get(slot.comm, 2))
-            codec = self._codec(slot)
-            data = codec.pack(*(self._get(o.index, o.sub) for o in codec.mapping.objects))
+            data = codec.pack(*[get(o.index, o.sub) for o in codec.mapping.objects])
             if 1 <= transmission <= 240:
                 due = self._sync_count % transmission == 0
             else:  # 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
                 due = self._tpdo_last.get(slot.comm) != data
             if due:
                 self._tpdo_last[slot.comm] = data
-                self._emit(cob & _CAN_ID_MASK, data, now_s)
+                self._emit(cob, data, now_s)
 
     # ------------------------------------------------------------------ CiA 402 and faults
 

@@ -20,10 +20,12 @@ the run is deterministic).
 
 from __future__ import annotations
 
+import threading
+
 import can
 import numpy as np
 
-from hal.canopen.cia301.nmt import SYNC_COB_ID
+from hal.canopen.cia301.nmt import SDO_REQUEST_BASE, SYNC_COB_ID
 from hal.canopen.dictionary import DriveDictionary
 from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
 from hal.capabilities import BUS_FAULT_KINDS
@@ -63,6 +65,10 @@ class SimulatedDriveSet:
         self._torques = np.zeros(N_JOINTS)
         self._scheduled: list[tuple[float, str, int, float | None]] = []
         self.syncs = 0
+        self._thread: threading.Thread | None = None
+        self._running = threading.Event()
+        self._pending_first: can.Message | None = None  # the frame a thread's blocking receive took
+        self.thread_error: str | None = None
 
     @property
     def t_s(self) -> float:
@@ -98,8 +104,11 @@ class SimulatedDriveSet:
             return
         recv = self.bus.recv
         drives = self.drives
+        routes = self._routes()
         while True:
-            message = recv(timeout=0)
+            message, self._pending_first = self._pending_first, None
+            if message is None:
+                message = recv(timeout=0)
             if message is None:
                 break
             if message.is_error_frame or message.is_remote_frame:
@@ -107,14 +116,74 @@ class SimulatedDriveSet:
             cob_id = message.arbitration_id
             if cob_id == SYNC_COB_ID:
                 self._sync()
+                routes = self._routes()  # a SYNC may have changed what the drives listen to (a restart)
                 continue
             data = bytes(message.data)
             now = self.t_s
-            for drive in drives:  # every drive sees every frame; each takes what is addressed to it
-                drive.receive(cob_id, data, now)
+            target = routes.get(cob_id)
+            if target is not None:
+                target.receive(cob_id, data, now)
+            else:
+                for drive in drives:  # NMT, heartbeats, anything else: every drive takes what is for it
+                    drive.receive(cob_id, data, now)
         now = self.t_s
         for drive in drives:
             drive.advance(now)
+
+    # --- drives on their own thread (real time, as real drives) ----------------------------------
+
+    def start_thread(self) -> None:
+        """Process the bus in a thread of its own from now on, each frame as it arrives (real drives' timing).
+
+        For a master on the wall clock (``can``, real time): a SYNC is answered within the time
+        the thread takes to wake and process it, not at the master's next call. Stop it with
+        :meth:`stop_thread` before the bus is closed.
+        """
+        if self._thread is not None:
+            return
+        self._running.set()
+        self._thread = threading.Thread(target=self._serve, name="simulated CAN drives", daemon=True)
+        self._thread.start()
+
+    def stop_thread(self) -> None:
+        """Stop the thread of :meth:`start_thread` (waits for it). Raises what it failed with, if it failed.
+
+        Raises:
+            HalError: the drives' thread failed (the plant diverged, a bug): the message says how.
+        """
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._running.clear()
+            thread.join()
+        if self.thread_error is not None:
+            raise HalError(f"simulated drives' thread failed: {self.thread_error}")
+
+    def _serve(self) -> None:
+        try:
+            while self._running.is_set():
+                bus = self.bus
+                if bus is None:
+                    return
+                message = bus.recv(timeout=0.01)  # python-can's blocking receive: woken by the next frame
+                if message is None:
+                    continue
+                self._pending_first = message
+                self.step()
+        except Exception as exc:  # the thread's failure is reported by stop_thread, never lost
+            self.thread_error = f"{type(exc).__name__}: {exc}"
+
+    def _routes(self) -> dict[int, SimulatedSeaDrive]:
+        """CAN-ID -> the one drive a frame is for: each drive's SDO requests and valid RPDOs (a shared CAN-ID is not routed)."""
+        routes: dict[int, SimulatedSeaDrive] = {}
+        shared: set[int] = set()
+        for drive in self.drives:
+            for cob_id in (SDO_REQUEST_BASE + drive.node_id, *drive.rpdo_can_ids()):
+                if cob_id in routes and routes[cob_id] is not drive:
+                    shared.add(cob_id)
+                routes[cob_id] = drive
+        for cob_id in shared:
+            del routes[cob_id]
+        return routes
 
     def _sync(self) -> None:
         now = self.t_s
