@@ -21,6 +21,7 @@ standard tools read a log whose first second is not 0).
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -91,13 +92,20 @@ class _StoringListener(can.Listener):
         self._frames = frames
         self._errors = errors
         self._now = now
+        self.failures = 0
 
     def on_message_received(self, msg: can.Message) -> None:
         if not (msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id):
             self._frames.append(Frame(msg.arbitration_id, bytes(msg.data), self._now()))
 
     def on_error(self, exc: Exception) -> None:
-        self._errors.append(exc)  # latched; the tick raises it (python-can would otherwise end the thread)
+        # Latched (the first one; the tick raises it) and handled, so python-can keeps the thread
+        # alive for a bus that recovers. A bus that keeps failing would make python-can retry at
+        # once, forever: a pause bounds that spin to a hundred tries a second.
+        if not self._errors:
+            self._errors.append(exc)
+        self.failures += 1
+        time.sleep(0.01)
 
 
 class ListenedFrames(FrameSource):
@@ -113,7 +121,6 @@ class ListenedFrames(FrameSource):
         self._errors: list[BaseException] = []
         self._notifier = can.Notifier(bus, [_StoringListener(self._frames, self._errors, now)], timeout=0.05)
         self._reported = False
-        self._lock = threading.Lock()
 
     def drain(self) -> list[Frame]:
         frames = []

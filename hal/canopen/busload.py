@@ -17,6 +17,7 @@ numbers; the default loop rate is the highest of :data:`CANDIDATE_RATES_HZ` with
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from hal.canopen.cia301.pdo import TRANSMISSION_SYNCHRONOUS, PdoMapping
@@ -103,10 +104,11 @@ def check_bus_load(load: BusLoad, where: str) -> None:
         HalConfigError: one line with the numbers and the highest rate that fits.
     """
     if load.total > LOAD_BUDGET:
-        fits = LOAD_BUDGET * load.bitrate / (load.bits_per_cycle + load.heartbeat_bits_per_s / load.rate_hz)
+        # The heartbeats' bits do not scale with the rate: what is left of the budget, in whole cycles.
+        fits = math.floor((LOAD_BUDGET * load.bitrate - load.heartbeat_bits_per_s) / load.bits_per_cycle)
         raise HalConfigError(
             f"{where}: the bus would be {load.total * 100:.1f} % loaded ({load.describe()}); the budget is "
-            f"{LOAD_BUDGET * 100:.0f} %: expected rate_hz at most {fits:.0f} Hz, or a higher bitrate"
+            f"{LOAD_BUDGET * 100:.0f} %: expected rate_hz at most {fits} Hz, or a higher bitrate"
         )
 
 

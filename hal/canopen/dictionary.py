@@ -78,19 +78,23 @@ class DriveDictionary:
         try:
             self._od = canopen.import_od(str(self.path))
         except Exception as exc:  # canopen raises bare configparser/KeyError/ValueError on a broken file
-            raise HalConfigError(f"{self.path}: not a valid EDS file ({type(exc).__name__}: {exc})") from None
+            problem = " ".join(str(exc).split())  # configparser's messages span lines: one line here
+            raise HalConfigError(f"{self.path}: not a valid EDS file ({type(exc).__name__}: {problem})") from None
         self._variable, self._containers = ODVariable, (ODArray, ODRecord)
         for index, sub, what in obj.REQUIRED:
             if self._find(index, sub) is None:
                 raise HalConfigError(
                     f"{self.path}: object 0x{index:04X}:{sub} ({what}) is missing; the backend needs it"
                 )
-        self.units = DriveUnits(
-            rated_torque_mnm=int(self.default(obj.MOTOR_RATED_TORQUE, 0)),
-            motor_increments_per_rev=self.default(obj.POSITION_ENCODER_RESOLUTION, 1)
-            / self.default(obj.POSITION_ENCODER_RESOLUTION, 2),
-            load_increments_per_rev=float(self.default(obj.LOAD_ENCODER_RESOLUTION, 0)),
-        )
+        rated = self.default(obj.MOTOR_RATED_TORQUE, 0)
+        increments = self.default(obj.POSITION_ENCODER_RESOLUTION, 1)
+        revolutions = self.default(obj.POSITION_ENCODER_RESOLUTION, 2)
+        load = self.default(obj.LOAD_ENCODER_RESOLUTION, 0)
+        for value, what in ((rated, "0x6076 motor rated torque"), (increments, "0x608F:1 encoder increments"),
+                            (revolutions, "0x608F:2 motor revolutions"), (load, "0x2011 load encoder increments")):  # fmt: skip
+            if not isinstance(value, int) or value <= 0:
+                raise HalConfigError(f"{self.path}: {what} is {value!r}; expected a positive whole number")
+        self.units = DriveUnits(int(rated), increments / revolutions, float(load))
         if (
             self.units.rated_torque_mnm <= 0
             or self.units.motor_increments_per_rev <= 0
@@ -107,10 +111,9 @@ class DriveDictionary:
             return None
         if isinstance(entry, self._variable):
             return entry if sub == 0 else None
-        try:
-            return entry[sub]
-        except KeyError:
-            return None
+        if sub not in getattr(entry, "subindices", {}):
+            return None  # canopen makes up an array's missing entries from sub 1: only those the EDS has count
+        return entry[sub]
 
     def variable(self, index: int, sub: int = 0) -> Any:
         """The canopen ``ODVariable`` of ``index:sub``.
@@ -134,8 +137,8 @@ class DriveDictionary:
             HalConfigError: the EDS gives no default for it.
         """
         variable = self.variable(index, sub)
-        value = variable.default
-        raw = variable.default_raw
+        value = getattr(variable, "default", None)
+        raw = getattr(variable, "default_raw", None)  # canopen sets it only when the EDS has a DefaultValue
         if value is None and isinstance(raw, str) and raw.upper().startswith("$NODEID"):
             offset = raw[len("$NODEID") :].strip().lstrip("+").strip() or "0"
             try:

@@ -58,6 +58,7 @@ from hal.canopen.cia301.pdo import OPTIONAL_SUBS, PdoCodec, PdoMapping
 from hal.canopen.cia301.sdo import SdoClient, SdoTransfer
 from hal.canopen.cia402.statemachine import (
     CW_DISABLE_VOLTAGE,
+    CW_ENABLE_OPERATION,
     SW_ESTOP_OPERATOR,
     SW_ESTOP_PILOT,
     PowerState,
@@ -519,7 +520,10 @@ class CanMaster:
                     )
                     continue
                 drive.statusword, drive.motor_counts = int(values[0]), int(values[1])
-                drive.power = decode_statusword(drive.statusword)
+                power = decode_statusword(drive.statusword)
+                if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
+                    drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
+                drive.power = power
                 drive.status_sync = sync
                 latency = max(latency, frame.t_s - sync_s)
             elif what == "load":
@@ -595,6 +599,11 @@ class CanMaster:
                 code = LOST_CODES[drive.lost or "recovery"]
             else:
                 state = drive_state(drive.power)
+                if state is DriveState.ENABLED and drive.controlword != CW_ENABLE_OPERATION:
+                    # The master commanded torque off: a drive may sample its statusword at that SYNC
+                    # before it applies the command (CiA 301 leaves the order open). It is not counted
+                    # as enabled; one that stays enabled is reported by its power stepper.
+                    state = DriveState.DISABLED
                 if drive.emcy is not None:
                     state, code = DriveState.FAULT, drive.emcy.code
                 elif state is DriveState.FAULT:
@@ -621,8 +630,9 @@ class CanMaster:
         peak = self._peak_permille
         pack = self._pack_rpdo
         for j, drive in enumerate(self.drives):
-            healthy = drive.lost is None and drive.recovery is None and drive.emcy is None
-            outcome = drive.stepper.step(drive.power, want_torque and healthy)
+            seen = drive.lost is None and drive.recovery is None  # a lost drive's last statusword is stale
+            healthy = seen and drive.emcy is None
+            outcome = drive.stepper.step(drive.power if seen else None, want_torque and healthy)
             if outcome.timed_out is not None:
                 self._latch(f"drive {drive.node_id}: {outcome.timed_out}")
             drive.controlword = outcome.controlword

@@ -200,7 +200,21 @@ class PowerStepper:
                 return self._send(command, None)
             self._reset_phase = 0  # nothing to reset any more
         if not want_torque or state in (None, PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
-            return self._send(CW_DISABLE_VOLTAGE, None)
+            timed_out = None
+            if (
+                state in (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
+                and self._command == CW_DISABLE_VOLTAGE
+            ):
+                # The safety-relevant direction: a drive that keeps its power stage on after
+                # "disable voltage" is reported like one that does not enable.
+                self._waited += 1
+                if self._waited > self.timeout_ticks:
+                    timed_out = (
+                        f"the drive stayed in {state.value} for {self._waited} ticks after controlword "
+                        f"0x{CW_DISABLE_VOLTAGE:04X} (limit {self.timeout_ticks})"
+                    )
+                    self._waited = 0
+            return self._send(CW_DISABLE_VOLTAGE, timed_out)
         wanted = {
             PowerState.NOT_READY_TO_SWITCH_ON: CW_DISABLE_VOLTAGE,
             PowerState.SWITCH_ON_DISABLED: CW_SHUTDOWN,
