@@ -200,7 +200,7 @@ def test_each_fault_removes_torque_within_three_cycles(hil: HilRun, kind: str) -
         rpdos = [(t, data) for t, cob, data in frames if cob == 0x200 + node and t >= onset - 1e-9]
         off = [t for t, data in rpdos if data == b"\x00\x00\x00\x00"]
         assert off, f"node {node}: no torque-off RPDO after the fault's onset at {onset} s"
-        assert off[0] - onset <= 3 * PERIOD_S + 1e-9, (node, off[0], onset)
+        assert off[0] - onset <= 3 * PERIOD_S + 1e-6, (node, off[0], onset)  # the log prints microseconds
         assert all(data == b"\x00\x00\x00\x00" for t, data in rpdos if t >= off[0])  # and it stays off
 
 
