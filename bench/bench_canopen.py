@@ -32,6 +32,7 @@ from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.models.linear import APModel
 from daror_runtime.realtime import release_realtime, request_realtime
+from daror_runtime.runtime import REALTIME_SWITCH_INTERVAL_S
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.canopen.busload import LOAD_BUDGET, bus_load
@@ -115,7 +116,7 @@ def bench_hil_real_time(quick: bool) -> list[BenchFigure]:
     from tests.can_rig import CanOnSimulatedDrives
 
     seconds = 5.0 if quick else 30.0
-    hal = CanOnSimulatedDrives()
+    hal = CanOnSimulatedDrives(paced=False)  # the loop's real-time clock paces it, as on the robot
     hal.open()
     lateness: list[float] = []
     latency: list[float] = []
@@ -140,9 +141,12 @@ def bench_hil_real_time(quick: bool) -> list[BenchFigure]:
                 latency.append(master.last_tpdo_latency_s)
 
             grant = request_realtime()
+            switch = sys.getswitchinterval()
+            sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)  # as Runtime does in real time: 4 threads share the GIL
             try:
                 loop.run(int(seconds * hal.rate_hz), on_tick=observe)
             finally:
+                sys.setswitchinterval(switch)
                 release_realtime()
             recorder.close()
         stats = loop.stats

@@ -42,7 +42,8 @@ class CanOnSimulatedDrives(CanHal):
     kind = "can-rig"
     drives_hardware = False
 
-    def __init__(self, scenario: str = "exo_dummy_arm", **config: object) -> None:
+    def __init__(self, scenario: str = "exo_dummy_arm", paced: bool = True, **config: object) -> None:
+        self._paced = paced  # False: a real-time clock paces the reads (a loop on RealTimeClock)
         self._channel = f"can-rig-{next(_CHANNELS)}"
         plant_scenario = load_scenario(scenario)
         plant_scenario = plant_scenario.model_copy(
@@ -76,7 +77,8 @@ class CanOnSimulatedDrives(CanHal):
         self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
         self.drives.attach(self._drive_bus)
         self.drives.power_on()
-        self.drives.start_thread()
+        started = time.monotonic()
+        self.drives.start_thread(lambda: time.monotonic() - started)
         try:
             super().open()
         except Exception:
@@ -90,7 +92,7 @@ class CanOnSimulatedDrives(CanHal):
         master's receive thread has taken their frames: on a loaded test machine the threads may
         need longer than a period, which a bus on the robot never does (up to 0.5 s is waited).
         """
-        if self._written:
+        if self._written and self._paced:
             self._written = False
             wait = self._last_write_s + self._period_s - time.perf_counter()
             if wait > 0:

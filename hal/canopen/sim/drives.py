@@ -21,6 +21,7 @@ the run is deterministic).
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 import can
 import numpy as np
@@ -69,11 +70,12 @@ class SimulatedDriveSet:
         self._running = threading.Event()
         self._pending_first: can.Message | None = None  # the frame a thread's blocking receive took
         self.thread_error: str | None = None
+        self._clock: Callable[[], float] | None = None  # the drives' time in a thread (None: the plant's)
 
     @property
     def t_s(self) -> float:
-        """Robot time: the plant's, s."""
-        return self.plant.world.t_s
+        """The drives' time, s: the plant's robot time, or the clock given to :meth:`start_thread`."""
+        return self.plant.world.t_s if self._clock is None else self._clock()
 
     def attach(self, bus: can.BusABC | None) -> None:
         """Use ``bus`` from now on (None: detached; frames the drives send are lost, as on an unplugged cable)."""
@@ -132,15 +134,17 @@ class SimulatedDriveSet:
 
     # --- drives on their own thread (real time, as real drives) ----------------------------------
 
-    def start_thread(self) -> None:
+    def start_thread(self, clock: Callable[[], float]) -> None:
         """Process the bus in a thread of its own from now on, each frame as it arrives (real drives' timing).
 
         For a master on the wall clock (``can``, real time): a SYNC is answered within the time
-        the thread takes to wake and process it, not at the master's next call. Stop it with
-        :meth:`stop_thread` before the bus is closed.
+        the thread takes to wake and process it, not at the master's next call, and ``clock`` (s)
+        is the drives' time: heartbeats and their watchdogs run on it whether SYNCs come or not,
+        as a real drive's do. Stop it with :meth:`stop_thread` before the bus is closed.
         """
         if self._thread is not None:
             return
+        self._clock = clock
         self._running.set()
         self._thread = threading.Thread(target=self._serve, name="simulated CAN drives", daemon=True)
         self._thread.start()
@@ -155,6 +159,7 @@ class SimulatedDriveSet:
         if thread is not None:
             self._running.clear()
             thread.join()
+        self._clock = None
         if self.thread_error is not None:
             raise HalError(f"simulated drives' thread failed: {self.thread_error}")
 
@@ -164,8 +169,11 @@ class SimulatedDriveSet:
                 bus = self.bus
                 if bus is None:
                     return
-                message = bus.recv(timeout=0.01)  # python-can's blocking receive: woken by the next frame
+                message = bus.recv(timeout=0.005)  # python-can's blocking receive: woken by the next frame
                 if message is None:
+                    now = self.t_s
+                    for drive in self.drives:
+                        drive.advance(now)  # heartbeats go on while no frame comes
                     continue
                 self._pending_first = message
                 self.step()
