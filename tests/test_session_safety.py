@@ -435,6 +435,7 @@ def kernels_loaded_in_ticks(directory: Path, model: Path, validation: Path) -> l
         end = session.world.pilot_sweep(runtime.settings.identification)
         runtime.pass_time(min(end - hal.time_s, 10.0))
         session.world.pilot_stop()
+        runtime.pass_time(1.0)  # the arm catches up with where the pilot stopped (a sweep cut mid-move)
         runtime.wait(runtime.rom_stop())
         session.select(model, validation)
         session.walk_to("identification")
