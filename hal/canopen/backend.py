@@ -170,9 +170,13 @@ class CanHal(Hal):
         self._open_traffic()
         now = self._now
         self._source = self._frame_source(bus, now)
-        self._master = self._make_master(bus, self._source, now)
+        self._start(self._make_master(bus, self._source, now))
+
+    def _start(self, master: CanMaster) -> None:
+        """Run ``master``'s start-up; the backend is open after it (shut down again if it fails)."""
+        self._master = master
         try:
-            self._master.start()
+            master.start()
         except HalError:
             self._shutdown()
             raise
@@ -429,18 +433,12 @@ class SimulatedCanHal(CanHal):
         drives.power_on()
         self._open_traffic()
         self._source = PolledFrames(self._bus, self._now)
-        self._master = CanMaster(
-            self._bus, self._source, self.dictionary, self.settings(), self._now,
-            pump=drives.step, wait=lambda s: None, traffic=self._traffic,
+        self._start(
+            CanMaster(
+                self._bus, self._source, self.dictionary, self.settings(), self._now,
+                pump=drives.step, wait=lambda s: None, traffic=self._traffic,
+            )
         )  # fmt: skip
-        try:
-            self._master.start()
-        except HalError:
-            self._shutdown()
-            raise
-        self._is_open = True
-        self._sample = None
-        self._pending_fault = None
 
     def _shutdown(self) -> None:
         super()._shutdown()  # the master's bus: this backend made it, CanHal shuts it down

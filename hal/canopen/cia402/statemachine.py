@@ -207,13 +207,7 @@ class PowerStepper:
             ):
                 # The safety-relevant direction: a drive that keeps its power stage on after
                 # "disable voltage" is reported like one that does not enable.
-                self._waited += 1
-                if self._waited > self.timeout_ticks:
-                    timed_out = (
-                        f"the drive stayed in {state.value} for {self._waited} ticks after controlword "
-                        f"0x{CW_DISABLE_VOLTAGE:04X} (limit {self.timeout_ticks})"
-                    )
-                    self._waited = 0
+                timed_out = self._count_wait(state, CW_DISABLE_VOLTAGE)
             return self._send(CW_DISABLE_VOLTAGE, timed_out)
         wanted = {
             PowerState.NOT_READY_TO_SWITCH_ON: CW_DISABLE_VOLTAGE,
@@ -225,14 +219,20 @@ class PowerStepper:
         }[state]
         timed_out = None
         if state is not PowerState.OPERATION_ENABLED and wanted == self._command:
-            self._waited += 1
-            if self._waited > self.timeout_ticks:
-                timed_out = (
-                    f"the drive stayed in {state.value} for {self._waited} ticks after controlword "
-                    f"0x{wanted:04X} (limit {self.timeout_ticks})"
-                )
-                self._waited = 0
+            timed_out = self._count_wait(state, wanted)
         return self._send(wanted, timed_out)
+
+    def _count_wait(self, state: PowerState, command: int) -> str | None:
+        """One more tick in ``state`` after ``command``; the report once it waited past the timeout."""
+        self._waited += 1
+        if self._waited <= self.timeout_ticks:
+            return None
+        report = (
+            f"the drive stayed in {state.value} for {self._waited} ticks after controlword "
+            f"0x{command:04X} (limit {self.timeout_ticks})"
+        )
+        self._waited = 0
+        return report
 
     def _send(self, command: int, timed_out: str | None) -> StepOutcome:
         if command != self._command:
