@@ -501,6 +501,11 @@ class CanMaster:
                 self.traffic.frame(frame.cob_id, frame.data, frame.t_s, sent=False)
 
     def _dispatch(self, frames: list[Frame]) -> None:
+        """Decode ``frames`` into the drives' state.
+
+        A TPDO received before the last SYNC was sent answers an earlier SYNC (it came late): its
+        values are kept, but it does not make the drive's data of the last SYNC fresh.
+        """
         routes = self._routes
         sync = self.syncs - 1
         sync_s = self._last_sync_s
@@ -524,8 +529,9 @@ class CanMaster:
                 if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
                     drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
                 drive.power = power
-                drive.status_sync = sync
-                latency = max(latency, frame.t_s - sync_s)
+                if frame.t_s >= sync_s:
+                    drive.status_sync = sync
+                    latency = max(latency, frame.t_s - sync_s)
             elif what == "load":
                 values = self._unpack_load(frame.data)
                 if values is None:
@@ -534,8 +540,9 @@ class CanMaster:
                     )
                     continue
                 drive.load_counts, drive.torque_permille = int(values[0]), int(values[1])
-                drive.load_sync = sync
-                latency = max(latency, frame.t_s - sync_s)
+                if frame.t_s >= sync_s:
+                    drive.load_sync = sync
+                    latency = max(latency, frame.t_s - sync_s)
             elif what == "heartbeat":
                 self._on_heartbeat(drive, frame)
             elif what == "emcy":

@@ -1,0 +1,152 @@
+"""The CAN master's judgement of what it received, frame by frame (hal/canopen/master.py).
+
+The master is fed frames by a scripted source (no drives, no bus traffic that matters): which
+cycle a TPDO belongs to, when a drive is lost and when it is back, what the sample says of a
+drive the master is switching off, when an EMCY's fault ends.
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+from collections.abc import Iterator
+
+import can
+import pytest
+
+from hal.canopen.bus import Frame, FrameSource
+from hal.canopen.cia402.statemachine import PowerState, statusword_of
+from hal.canopen.dictionary import load_dictionary
+from hal.canopen.master import LOST_CODES, CanMaster, MasterSettings
+from hal.interface import DriveState
+
+NODES = (1, 2, 3, 4)
+PERIOD_S = 0.002
+_CHANNELS = itertools.count()
+
+
+class ScriptedFrames(FrameSource):
+    """Hands the master the frames a test queues (a drain returns them once)."""
+
+    def __init__(self) -> None:
+        self.queued: list[Frame] = []
+
+    def drain(self) -> list[Frame]:
+        frames, self.queued = self.queued, []
+        return frames
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t_s = 0.0
+
+    def __call__(self) -> float:
+        return self.t_s
+
+
+Rig = tuple[CanMaster, ScriptedFrames, Clock]
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    bus = can.Bus(interface="virtual", channel=f"master-test-{next(_CHANNELS)}")
+    source, clock = ScriptedFrames(), Clock()
+    master = CanMaster(bus, source, load_dictionary(), MasterSettings(node_ids=NODES, period_s=PERIOD_S), clock)
+    yield master, source, clock
+    bus.shutdown()
+
+
+def tpdos(node: int, t_s: float, state: PowerState = PowerState.SWITCH_ON_DISABLED, counts: int = 0) -> list[Frame]:
+    """A drive's TPDO1 (statusword, motor position) and TPDO2 (load position, torque) received at ``t_s``."""
+    return [
+        Frame(0x180 + node, struct.pack("<Hi", statusword_of(state), counts), t_s),
+        Frame(0x280 + node, struct.pack("<ih", counts, 0), t_s),
+    ]
+
+
+def heartbeats(t_s: float) -> list[Frame]:
+    return [Frame(0x700 + node, b"\x05", t_s) for node in NODES]
+
+
+def cycle(master: CanMaster, source: ScriptedFrames, clock: Clock, frames: list[Frame], enable: bool = False) -> bool:
+    """Send a cycle at the clock's time, advance it one period, hand ``frames`` to the next read."""
+    master.send_cycle(enable, None)
+    clock.t_s += PERIOD_S
+    source.queued = frames
+    return master.receive()
+
+
+def every_drive(t_s: float, state: PowerState = PowerState.SWITCH_ON_DISABLED) -> list[Frame]:
+    return [f for node in NODES for f in tpdos(node, t_s, state)] + heartbeats(t_s)
+
+
+def test_a_tpdo_that_arrives_before_the_sync_it_would_answer_is_late_and_not_fresh(rig: Rig) -> None:
+    master, source, clock = rig
+    master.heartbeats.start(0.0)
+    assert cycle(master, source, clock, every_drive(clock.t_s + PERIOD_S))  # received after the SYNC: fresh
+    sync_s = clock.t_s
+    late = [f for node in NODES for f in tpdos(node, sync_s - 0.0005)]  # stamped before this cycle's SYNC
+    master.send_cycle(False, None)
+    clock.t_s += PERIOD_S
+    source.queued = late
+    assert not master.receive()  # an answer to the SYNC before: the values are there, the cycle is not fresh
+    for _ in range(2):  # late every cycle: after three SYNCs without an answer, lost
+        stamp = clock.t_s - 0.0005
+        assert not cycle(master, source, clock, [f for node in NODES for f in tpdos(node, stamp)])
+    states, codes, _ = master.drive_states()
+    assert states == (DriveState.FAULT,) * 4
+    assert codes == (LOST_CODES["pdo"],) * 4
+    assert "no TPDO for 3 SYNCs" in (master.take_latched() or "")
+
+
+def test_a_lost_drive_does_not_hold_back_the_others(rig: Rig) -> None:
+    master, source, clock = rig
+    master.heartbeats.start(0.0)
+    assert cycle(master, source, clock, every_drive(clock.t_s + 1e-4))
+    quiet = [f for node in (1, 3, 4) for f in tpdos(node, 0.0)]
+    for _ in range(3):  # drive 2 stops answering: each cycle is stale, the third one loses it
+        frames = [Frame(f.cob_id, f.data, clock.t_s + 1e-4) for f in quiet]
+        assert not cycle(master, source, clock, frames)
+    assert master.drive_states()[0][1] is DriveState.FAULT
+    frames = [Frame(f.cob_id, f.data, clock.t_s + 1e-4) for f in quiet]
+    assert cycle(master, source, clock, frames)  # lost, it no longer holds the other three back
+
+
+def test_a_drive_the_master_switches_off_is_not_shown_enabled(rig: Rig) -> None:
+    """A drive may sample its statusword at the SYNC before it applies the disable of the same SYNC."""
+    master, source, clock = rig
+    master.heartbeats.start(0.0)
+    enabled = PowerState.OPERATION_ENABLED
+    cycle(master, source, clock, every_drive(clock.t_s + 1e-4, enabled), enable=True)
+    cycle(master, source, clock, every_drive(clock.t_s + 1e-4, enabled), enable=True)
+    assert master.drive_states()[0] == (DriveState.ENABLED,) * 4
+    cycle(master, source, clock, every_drive(clock.t_s + 1e-4, enabled), enable=False)
+    assert master.drive_states()[0] == (DriveState.DISABLED,) * 4
+    # a drive that stays enabled after "disable voltage" is reported once its transition timed out
+    reports = []
+    for _ in range(15):
+        cycle(master, source, clock, every_drive(clock.t_s + 1e-4, enabled), enable=False)
+        reports.append(master.take_latched())
+    assert any(r is not None and "stayed in operation enabled" in r for r in reports)
+
+
+def test_an_emcy_fault_ends_when_the_drive_leaves_fault_even_without_an_error_reset_emcy(rig: Rig) -> None:
+    master, source, clock = rig
+    master.heartbeats.start(0.0)
+    cycle(master, source, clock, every_drive(clock.t_s + 1e-4))
+    emcy = Frame(0x082, bytes((0x10, 0x23, 0x03, 0, 0, 0, 0, 0)), clock.t_s + 1e-4)
+    faulted = [
+        f
+        for node in NODES
+        for f in tpdos(node, clock.t_s + 1e-4, PowerState.FAULT if node == 2 else PowerState.SWITCH_ON_DISABLED)
+    ]
+    cycle(master, source, clock, [*faulted, emcy, *heartbeats(clock.t_s)])
+    states, codes, _ = master.drive_states()
+    assert states[1] is DriveState.FAULT
+    assert codes[1] == 0x2310
+    assert "EMCY 0x2310" in (master.take_latched() or "")
+    master.request_fault_reset()
+    cycle(master, source, clock, every_drive(clock.t_s + 1e-4))  # switch on disabled again, no 0x0000 EMCY
+    states, codes, _ = master.drive_states()
+    assert states[1] is DriveState.DISABLED
+    assert codes[1] == 0
