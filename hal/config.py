@@ -103,6 +103,9 @@ class _CanFields(_Config):
             latches a fault (raised by the next ``read``), ms; longer than the producer time. The
             drives watch the master's heartbeat with the same time (a silent master stops them).
         master_node_id: the node id of the master's heartbeat (not one of the drives').
+        sdo_timeout_ms: how long the master waits for a drive's SDO answer at start-up, ms.
+        boot_timeout_ms: how long a drive may take to boot after a reset (and to answer the
+            first SYNC), ms.
         eds: the drives' EDS file (object dictionary); None: the backend's own.
         traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
             not exist yet); None: no log.
@@ -116,6 +119,8 @@ class _CanFields(_Config):
     heartbeat_producer_ms: HeartbeatMs = 100
     heartbeat_consumer_ms: HeartbeatMs = Field(250, validate_default=True)  # checked against the producer's
     master_node_id: NodeId = 127
+    sdo_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 500
+    boot_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 2000
     eds: Text | None = None
     traffic_log: Text | None = None
 

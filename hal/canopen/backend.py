@@ -149,6 +149,8 @@ class CanHal(Hal):
             master_node_id=c.master_node_id,
             peak_torque_nm=float(self.description.sea.max_motor_torque_nm),
             velocity_filter_hz=self._velocity_filter_hz(),
+            sdo_timeout_s=c.sdo_timeout_ms / 1000.0,
+            boot_timeout_s=c.boot_timeout_ms / 1000.0,
         )
 
     def _velocity_filter_hz(self) -> float:

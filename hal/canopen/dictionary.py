@@ -20,6 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import canopen  # the backend's package: a core install without it is told so by the registry
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+
 from hal.canopen import objects as obj
 from hal.errors import HalConfigError
 from hal.files import read_bytes_bounded
@@ -70,9 +73,6 @@ class DriveDictionary:
     """
 
     def __init__(self, path: Path) -> None:
-        import canopen  # the backend's extra: imported only when a CANopen backend is built
-        from canopen.objectdictionary import ODArray, ODRecord, ODVariable
-
         self.path = Path(path)
         read_bytes_bounded(self.path, HalConfigError, EDS_MAX_BYTES, "EDS file")  # regular, bounded, readable
         try:
