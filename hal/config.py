@@ -106,6 +106,8 @@ class _CanFields(_Config):
         sdo_timeout_ms: how long the master waits for a drive's SDO answer at start-up, ms.
         boot_timeout_ms: how long a drive may take to boot after a reset (and to answer the
             first SYNC), ms.
+        rpdo_deadline_ms: the drives' RPDO deadline monitoring: a drive that receives no RPDO
+            this long faults by itself, torque off (0: off); None: five SYNC periods (10 ms at 500 Hz).
         eds: the drives' EDS file (object dictionary); None: the backend's own.
         traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
             not exist yet); None: no log.
@@ -121,6 +123,7 @@ class _CanFields(_Config):
     master_node_id: NodeId = 127
     sdo_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 500
     boot_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 2000
+    rpdo_deadline_ms: Annotated[Integer, Field(ge=0, le=65_535)] | None = None
     eds: Text | None = None
     traffic_log: Text | None = None
 

@@ -270,7 +270,7 @@ def test_start_up_configures_drives_that_know_only_the_eds(make_rig: Callable[..
 
 def test_start_up_sdo_traffic_is_cia_301_conform(rig: Rig) -> None:
     """The bytes of start-up: NMT reset then boot-up; the identity reads answered with the EDS's values; every
-    PDO changed in CiA 301's order; only the optional event timer refused (the drives have none)."""
+    PDO changed in CiA 301's order; only the optional event timers refused (the drives have none)."""
     for n in NODE_IDS:
         received, sent = rig.drives.received(n), rig.drives.sent(n)
         reset = next(f for f in received if f.cob_id == 0x000 and f.data == bytes((0x82, n)))
@@ -282,12 +282,13 @@ def test_start_up_sdo_traffic_is_cia_301_conform(rig: Rig) -> None:
         assert reads == {(0x1000, 0): 0x00020192, (0x6076, 0): 10000, (0x608F, 1): 65536, (0x608F, 2): 1,
                          (0x2011, 0): 65536}  # fmt: skip
         aborts = [(index, sub, code) for kind, index, sub, code in responses if kind == "abort"]
-        assert aborts == [(0x1800, 5, 0x06090011), (0x1801, 5, 0x06090011)]  # sub-index does not exist
+        # sub-index does not exist: durand's PDOs have no event timer (the RPDO's would be its deadline)
+        assert aborts == [(0x1400, 5, 0x06090011), (0x1800, 5, 0x06090011), (0x1801, 5, 0x06090011)]
         writes = [
             (index, sub, int.from_bytes(data, "little")) for kind, index, sub, data in requests if kind == "write"
         ]
         writes_ok = [(index, sub) for kind, index, sub, _ in responses if kind == "written"]
-        assert writes_ok == [(i, s) for i, s, _ in writes if (i, s) not in ((0x1800, 5), (0x1801, 5))]
+        assert writes_ok == [(i, s) for i, s, _ in writes if (i, s) not in ((0x1400, 5), (0x1800, 5), (0x1801, 5))]
         for comm, mapping, cob, entries in (
             (0x1400, 0x1600, 0x200 + n, (0x60400010, 0x60710010)),
             (0x1800, 0x1A00, 0x180 + n, (0x60410010, 0x60640020)),

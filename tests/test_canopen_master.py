@@ -7,11 +7,13 @@ drive the master is switching off, when an EMCY's fault ends.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import struct
 from collections.abc import Iterator
 
 import can
+import numpy as np
 import pytest
 
 from hal.canopen.bus import Frame, FrameSource
@@ -150,3 +152,31 @@ def test_an_emcy_fault_ends_when_the_drive_leaves_fault_even_without_an_error_re
     states, codes, _ = master.drive_states()
     assert states[1] is DriveState.DISABLED
     assert codes[1] == 0
+
+
+def test_a_drive_that_hears_nothing_stops_by_its_own_rpdo_deadline() -> None:
+    """drop_frames: the master's torque-off cannot reach the drive; its RPDO deadline (5 SYNCs) takes the torque off."""
+    from hal.config import hal_config
+    from hal.interface import Command, HalFaultError, open_hal
+
+    hal = open_hal(hal_config("can-sim"))
+    hal.open()
+    try:
+        torque = Command(np.full(4, 2.0), True)
+        for _ in range(20):
+            hal.read()
+            hal.write(torque)
+        assert hal.applied_motor_torque_nm[1] == pytest.approx(2.0)
+        hal.world.inject_fault("drop_frames", 2, 0.1)  # 100 ms: far longer than the deadline
+        applied = []
+        for _ in range(30):  # 60 ms
+            with contextlib.suppress(HalFaultError):
+                hal.read()
+            hal.write(torque)
+            applied.append(hal.applied_motor_torque_nm[1])
+        off = next(i for i, value in enumerate(applied) if value == 0.0)
+        assert off <= 6  # the 10 ms deadline at 500 Hz (and one cycle of the drive's own timing)
+        assert all(value == 0.0 for value in applied[off:])
+        assert hal.applied_motor_torque_nm[[0, 2, 3]] == pytest.approx(2.0)  # the other drives heard on
+    finally:
+        hal.close()

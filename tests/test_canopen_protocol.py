@@ -606,10 +606,11 @@ def test_configuration_of_tpdo1_on_node_3_byte_by_byte() -> None:
     assert all(what.startswith("TPDO1 ") for what in whats)
 
 
-def test_configuration_of_rpdo1_on_node_3_has_no_inhibit_time_or_event_timer() -> None:
+def test_configuration_of_rpdo1_on_node_3_has_its_deadline_and_no_inhibit_time() -> None:
     assert _writes(DAROR_MAPPING.rpdo, 3) == [
         (0x1400, 1, "03 02 00 80"),
         (0x1400, 2, "01"),
+        (0x1400, 5, "00 00"),  # deadline monitoring off unless asked (the master asks: 5 SYNC periods)
         (0x1600, 0, "00"),
         (0x1600, 1, "10 00 40 60"),  # controlword
         (0x1600, 2, "10 00 71 60"),  # target torque
@@ -629,14 +630,16 @@ pdo_mappings = st.builds(
 )
 
 
-@given(pdo=pdo_mappings, node=st.integers(1, 127))
-def test_configuration_order_is_the_one_cia_301_requires(pdo: PdoMapping, node: int) -> None:
-    writes = pdo.configuration(node)
+@given(pdo=pdo_mappings, node=st.integers(1, 127), deadline_ms=st.integers(0, 65_535))
+def test_configuration_order_is_the_one_cia_301_requires(pdo: PdoMapping, node: int, deadline_ms: int) -> None:
+    writes = pdo.configuration(node, deadline_ms)
     comm, mapping, cob = pdo.communication_index, pdo.mapping_index, pdo.cob_id(node)
     u32le = lambda value: struct.pack("<I", value)  # noqa: E731
     head = [(comm, 1, u32le(cob | 1 << 31)), (comm, 2, bytes((pdo.transmission_type,)))]
     if pdo.direction == "tpdo":
-        head += [(comm, 3, b"\0\0"), (comm, 5, b"\0\0")]
+        head += [(comm, 3, b"\0\0"), (comm, 5, b"\0\0")]  # a TPDO has no deadline: sent on SYNC only
+    else:
+        head += [(comm, 5, struct.pack("<H", deadline_ms))]  # an RPDO's event timer: its deadline
     entries = [(mapping, n, u32le(o.entry)) for n, o in enumerate(pdo.objects, start=1)]
     tail = [(mapping, 0, bytes((len(pdo.objects),))), (comm, 1, u32le(cob))]
     assert [w[:3] for w in writes] == [*head, (mapping, 0, b"\0"), *entries, *tail]

@@ -151,6 +151,9 @@ class CanHal(Hal):
             velocity_filter_hz=self._velocity_filter_hz(),
             sdo_timeout_s=c.sdo_timeout_ms / 1000.0,
             boot_timeout_s=c.boot_timeout_ms / 1000.0,
+            rpdo_deadline_ms=(
+                c.rpdo_deadline_ms if c.rpdo_deadline_ms is not None else math.ceil(5000.0 / self._rate_hz)
+            ),
         )
 
     def _velocity_filter_hz(self) -> float:

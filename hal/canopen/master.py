@@ -99,6 +99,8 @@ class MasterSettings:
         velocity_filter_hz: first-order low-pass of the link velocity estimated from the load encoder.
         sdo_timeout_s: how long an SDO transfer may wait for its answer.
         boot_timeout_s: how long a drive may take to send its boot-up message after a reset.
+        rpdo_deadline_ms: the drives' RPDO deadline monitoring (RPDO event timer): a drive that
+            receives no RPDO this long faults by itself (0: off).
     """
 
     node_ids: tuple[int, ...]
@@ -112,6 +114,7 @@ class MasterSettings:
     velocity_filter_hz: float = 50.0
     sdo_timeout_s: float = 0.5
     boot_timeout_s: float = 2.0
+    rpdo_deadline_ms: int = 0
 
 
 @dataclass
@@ -343,13 +346,8 @@ class CanMaster:
              "the master's heartbeat, consumed"),
         ]  # fmt: skip
         for pdo in self.mapping.all:
-            writes += pdo.configuration(node_id)
-        optional = {
-            (pdo.communication_index, sub)
-            for pdo in self.mapping.all
-            if pdo.direction == "tpdo"
-            for sub in OPTIONAL_SUBS
-        }
+            writes += pdo.configuration(node_id, s.rpdo_deadline_ms if pdo.direction == "rpdo" else 0)
+        optional = {(pdo.communication_index, sub) for pdo in self.mapping.all for sub in OPTIONAL_SUBS}
         return reads + [
             sdo.write(node_id, index, sub, data, what, optional=(index, sub) in optional)
             for index, sub, data, what in writes

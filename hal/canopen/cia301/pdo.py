@@ -36,7 +36,7 @@ __all__ = [
 COB_ID_INVALID = 0x8000_0000
 #: Transmission type 1: a TPDO is sent after every SYNC; an RPDO's data act at the next SYNC.
 TRANSMISSION_SYNCHRONOUS = 1
-#: Sub-indices of a TPDO's communication parameter that CiA 301 makes optional (inhibit time, event timer).
+#: Sub-indices of a PDO's communication parameter that CiA 301 makes optional (inhibit time, event timer).
 OPTIONAL_SUBS = (3, 5)
 
 #: The ``struct`` code of each CiA 301 basic data type a PDO may carry (the EDS data type codes).
@@ -136,12 +136,13 @@ class PdoMapping:
         base = {1: 0x180, 2: 0x280, 3: 0x380, 4: 0x480}[self.number]
         return base + node_id + (0x80 if self.direction == "rpdo" else 0)
 
-    def configuration(self, node_id: int) -> list[tuple[int, int, bytes, str]]:
+    def configuration(self, node_id: int, deadline_ms: int = 0) -> list[tuple[int, int, bytes, str]]:
         """The SDO writes that configure this PDO on ``node_id``, in CiA 301's order: ``(index, sub, data, what)``.
 
         A TPDO's inhibit time (sub 3) and event timer (sub 5) are optional in CiA 301; a drive
         without them has neither (see :data:`OPTIONAL_SUBS`): the master accepts "sub-index does
-        not exist" for those two and nothing else.
+        not exist" for those two and nothing else. An RPDO's event timer (sub 5, also optional) is
+        its deadline monitoring: ``deadline_ms`` without the RPDO and the drive faults (0: off).
         """
         comm, mapping, cob = self.communication_index, self.mapping_index, self.cob_id(node_id)
         u8, u16, u32 = (
@@ -158,6 +159,8 @@ class PdoMapping:
                 (comm, 3, u16(0), f"{self.name} inhibit time 0"),
                 (comm, 5, u16(0), f"{self.name} event timer 0 (sent on SYNC only)"),
             ]
+        else:
+            writes.append((comm, 5, u16(deadline_ms), f"{self.name} deadline {deadline_ms} ms (event timer)"))
         writes.append((mapping, 0, u8(0), f"{self.name} mapping cleared"))
         for n, mapped in enumerate(self.objects, start=1):
             writes.append((mapping, n, u32(mapped.entry), f"{self.name} mapping entry {n}: {mapped}"))

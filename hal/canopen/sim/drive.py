@@ -74,6 +74,7 @@ __all__ = [
     "ERROR_HEARTBEAT",
     "ERROR_PDO_LENGTH",
     "ERROR_RESET",
+    "ERROR_RPDO_TIMEOUT",
     "ERROR_TEMPERATURE",
     "FAULT_KINDS",
     "SimulatedSeaDrive",
@@ -85,6 +86,7 @@ ERROR_DRIVE_OVER_CURRENT = 0x2310  # continuous over current (the power stage fa
 ERROR_TEMPERATURE = 0x4310  # excess temperature drive
 ERROR_HEARTBEAT = 0x8130  # life guard error or heartbeat error
 ERROR_PDO_LENGTH = 0x8210  # PDO not processed due to length error
+ERROR_RPDO_TIMEOUT = 0x8250  # RPDO timeout (deadline monitoring, the RPDO's event timer)
 
 #: Error register (0x1001) bits.
 _REGISTER_GENERIC = 0x01
@@ -214,6 +216,8 @@ class SimulatedSeaDrive:
         # per PDO: (COB-ID, or None while invalid; transmission type; codec); dropped with its codec
         self._plans: dict[int, tuple[int | None, int, PdoCodec]] = {}
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
+        self._rpdo_heard_s: dict[int, float] = {}  # when each RPDO last arrived (its deadline monitoring)
+        self._operational_since_s = 0.0
         self._tpdo_last: dict[int, bytes] = {}
         self._sync_count = 0
         self._hb_period_s: float | None = None
@@ -396,12 +400,32 @@ class SimulatedSeaDrive:
         self._transmit_tpdos(now_s)
 
     def advance(self, now_s: float) -> None:
-        """Time passes until ``now_s``, s: the end of a fault reaction, the heartbeat consumer, heartbeats due."""
+        """Time passes until ``now_s``, s: the end of a fault reaction, the watchdogs (the master's
+        heartbeat, the RPDO deadline), heartbeats due."""
         if not self._powered:
             return
         self._end_fault_reaction()
         self._check_consumer(now_s)
+        self._check_rpdo_deadline(now_s)
         self._produce_heartbeat(now_s)
+
+    def _check_rpdo_deadline(self, now_s: float) -> None:
+        """RPDO deadline monitoring: an RPDO with an event timer that went quiet longer faults a commanded drive.
+
+        A drive that keeps its last torque with nobody commanding it is what CiA 301's deadline
+        monitoring prevents; the timer runs while the drive is operational and its power stage on.
+        """
+        if self._nmt is not NmtState.OPERATIONAL or self._power not in _COMMANDED_STATES:
+            return
+        for slot in self._rpdos:
+            cob, _, _ = self._plan(slot)
+            deadline_ms = int(self._get(slot.comm, 5)) if self._exists(slot.comm, 5) else 0
+            if cob is None or deadline_ms == 0:
+                continue
+            heard = self._rpdo_heard_s.get(slot.comm, self._operational_since_s)
+            if now_s - heard > deadline_ms / 1000.0:
+                self._fault(ERROR_RPDO_TIMEOUT, _REGISTER_COMMUNICATION, now_s)
+                return
 
     def inject(self, kind: str, now_s: float, duration_s: float | None = None) -> None:
         """Do to the drive at ``now_s``, s, what a bench test rig would do to a real one.
@@ -641,23 +665,25 @@ class SimulatedSeaDrive:
         except ValueError:
             return
         if command is NmtCommand.START:
-            self._enter(NmtState.OPERATIONAL)
+            self._enter(NmtState.OPERATIONAL, now_s)
         elif command is NmtCommand.STOP:
-            self._enter(NmtState.STOPPED)
+            self._enter(NmtState.STOPPED, now_s)
         elif command is NmtCommand.ENTER_PRE_OPERATIONAL:
-            self._enter(NmtState.PRE_OPERATIONAL)
+            self._enter(NmtState.PRE_OPERATIONAL, now_s)
         elif command is NmtCommand.RESET_NODE:
             self.power_on(now_s)
         else:
             self._restart_communication(now_s)
 
-    def _enter(self, state: NmtState) -> None:
-        """Go to NMT ``state``: entering OPERATIONAL restarts the SYNC count; leaving it ends the PDOs."""
+    def _enter(self, state: NmtState, now_s: float) -> None:
+        """Go to NMT ``state``: entering OPERATIONAL restarts the SYNC count and the RPDO deadlines; leaving it ends the PDOs."""
         if state is self._nmt:
             return
         if state is NmtState.OPERATIONAL:
             self._sync_count = 0
             self._tpdo_last.clear()
+            self._rpdo_heard_s.clear()
+            self._operational_since_s = now_s
         elif self._nmt is NmtState.OPERATIONAL or state is NmtState.STOPPED:
             self._lose_pdos()  # STOPPED: no SDO either, the drive could not be commanded at all
         self._nmt = state
@@ -765,6 +791,7 @@ class SimulatedSeaDrive:
                 self._report_pdo_length_error(now_s)
                 return
             self._clear_pdo_length_error(now_s)
+            self._rpdo_heard_s[slot.comm] = now_s
             writes = tuple(zip(codec.mapping.objects, values, strict=True))
             if transmission <= 240:
                 self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
