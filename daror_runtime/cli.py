@@ -65,12 +65,20 @@ def _joint_angles(text: str) -> list[float]:
     return values
 
 
-def _progress(console: Console, label: str, counter: str) -> Any:
-    """A transient rich progress bar: ``label``, the bar, ``counter`` (a task format), time left."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+def _progress(console: Console, label: str, counter: str, elapsed: bool = False) -> Any:
+    """A transient rich progress bar: ``label``, the bar, ``counter`` (a task format), time elapsed
+    (with ``elapsed``), time left."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    shown = (TimeElapsedColumn(),) if elapsed else ()
     return Progress(
-        TextColumn(label), BarColumn(), TextColumn(counter), TimeRemainingColumn(), console=console, transient=True
+        TextColumn(label),
+        BarColumn(),
+        TextColumn(counter),
+        *shown,
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
     )
 
 
@@ -230,6 +238,16 @@ FIT_OPTION_FLAGS = {
     "dummy_arm": "--dummy-arm",
     "elbow_stiffness": "--elbow-stiffness/--no-elbow-stiffness",
     "seed": "--seed",
+    "thesis": "--thesis",
+    "layers": "--layers",
+    "width": "--width",
+    "activation": "--activation",
+    "inputs": "--inputs",
+    "l1": "--l1",
+    "inits": "--inits",
+    "folds": "--folds",
+    "adam_steps": "--adam-steps",
+    "lbfgs": "--lbfgs/--no-lbfgs",
 }
 
 
@@ -444,6 +462,98 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
     console.print(f"  {sum(s.fitted + s.refused for s in result.sizes)} fits in {result.duration_s:.1f} s")
     for path in paths:
         console.print(f"{path}: written")
+    return 0
+
+
+# --- hpsearch -----------------------------------------------------------------------------
+
+#: The top-level modules of the optional extra ``nn`` that the search imports.
+_NN_MODULES = ("jax", "jaxlib", "optax")
+
+
+def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
+    """The hyper-parameter search of PENN and NNN (docs/hpsearch.md): every check first, then the run, then the files."""
+    from daror_runtime.bench import machine
+    from daror_runtime.data.load import load_stationary
+    from daror_runtime.models.registry import ExtraNotInstalledError
+    from daror_runtime.util.outputs import output_lock
+
+    try:
+        from daror_runtime.neural.hpsearch.executors import require_ray
+        from daror_runtime.neural.hpsearch.grid import grid_from_argument
+        from daror_runtime.neural.hpsearch.report import OUTPUT_NAMES, ranking, write_outputs
+        from daror_runtime.neural.hpsearch.search import check_data, run_search
+        from daror_runtime.neural.hpsearch.work import default_cache_dir
+    except ImportError as exc:
+        if (exc.name or "").split(".")[0] not in _NN_MODULES:
+            raise
+        raise ExtraNotInstalledError(
+            "the search trains networks with JAX and needs the optional extra 'nn', which is not installed: "
+            f"pip install 'daror-runtime[nn]' ({exc})"
+        ) from None
+    grid = grid_from_argument(args.grid).with_loss(args.loss)
+    if args.executor == "ray":
+        require_ray()
+        if args.ray_address is not None and args.workers is not None:
+            raise UsageError("--workers: a Ray cluster (--ray-address) runs as many units at once as it has CPUs")
+    elif args.ray_address is not None:
+        raise UsageError("--ray-address goes with --executor ray")
+    out = _output_dir(args.out, args.train)
+    if out.is_dir() and any(out.iterdir()) and not args.force:
+        raise UsageError(
+            f"{out}: the folder is not empty; the search writes {', '.join(OUTPUT_NAMES)} there: "
+            "choose another --out, or give --force to replace them"
+        )
+    if out.is_dir():
+        for name in OUTPUT_NAMES:
+            _output_file(out / name, args.train)
+    data = load_stationary(args.train)
+    check_data(grid, data)
+    cache = args.cache_dir if args.cache_dir is not None else default_cache_dir()
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--cache-dir {cache}: cannot be used as a folder ({exc.strerror})") from None
+    workers = args.workers or os.cpu_count() or 1
+    log.info(
+        "hpsearch requested", grid=grid.name, networks=grid.n_networks, loss=grid.training.loss,
+        executor=args.executor, workers=workers, train=str(args.train), out=str(out), cache=str(cache),
+    )  # fmt: skip
+    with output_lock(out):
+        with _progress(
+            console,
+            f"[bold]hpsearch[/bold] {grid.name}",
+            "{task.completed:.0f}/{task.total:.0f} networks",
+            elapsed=True,
+        ) as bar:
+            task = bar.add_task("hpsearch", total=grid.n_networks)
+            run = run_search(
+                grid,
+                data,
+                executor=args.executor,
+                workers=workers,
+                ray_address=args.ray_address,
+                cache_dir=cache,
+                one_xla_thread=args.executor == "ray" or workers > 1,
+                on_progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )
+        paths = write_outputs(run, out, machine())
+    n = len(run.rows)
+    console.print(
+        f"{n} networks ({len(run.results)} shapes) in {run.wall_s:.1f} s, {n / run.wall_s:.2f} networks/s; "
+        f"{grid.training.loss} loss"
+    )
+    ranked = ranking(run.rows)
+    for model in grid.models:
+        configs = [c for c in ranked if c.best.model == model]
+        best = configs[0].best
+        console.print(
+            f"  best {model.upper()}: {best.layers} x {best.width} {best.activation}, {best.inputs} inputs, "
+            f"lambda {best.l1:g}: MVL {best.mvl:.5g}, validation RMSE {best.val_rmse_nm:.4f} Nm; "
+            f"{sum(c.best.collapsed for c in configs)} of {len(configs)} configurations collapsed"
+        )
+    console.print(f"{out}: {', '.join(p.name for p in paths)} written")
+    log.info("hpsearch written", out=str(out), networks=n, wall_s=round(run.wall_s, 3))
     return 0
 
 
@@ -806,6 +916,32 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument(
         "--seed", type=int, default=None, help=f"random seed of the models that use one ({taken_by('seed')})"
     )
+    # The neural kinds' options (daror_runtime.neural.presets): each replaces one field of the preset.
+    # Values are checked by the kind's options model, so a kind that does not take one refuses it.
+    nets = taken_by("layers")
+    fit.add_argument(
+        "--thesis",
+        action="store_true",
+        default=None,
+        help=f"{taken_by('thesis')}: the thesis's network and loss (Tables I, II; Eq. 3.7) instead of the default",
+    )
+    fit.add_argument("--layers", type=int, default=None, metavar="N", help=f"{nets}: hidden layers (1-32)")
+    fit.add_argument("--width", type=int, default=None, metavar="N", help=f"{nets}: units per hidden layer (1-256)")
+    fit.add_argument("--activation", default=None, metavar="A", help=f"{nets}: tanh, sigmoid, relu or softplus")
+    fit.add_argument("--inputs", default=None, metavar="q|sincos", help=f"{nets}: q, or [sin q, cos q] (Eq. 4.28)")
+    fit.add_argument("--l1", type=float, default=None, metavar="X", help=f"{taken_by('l1')}: L1 rate lambda")
+    fit.add_argument(
+        "--inits", type=int, default=None, metavar="N", help=f"{taken_by('inits')}: initialisations (best MVL kept)"
+    )
+    fit.add_argument("--folds", type=int, default=None, metavar="K", help=f"{taken_by('folds')}: validation blocks")
+    fit.add_argument(
+        "--adam-steps", dest="adam_steps", type=int, default=None, metavar="N", help=f"{nets}: full-batch Adam steps"
+    )
+    lbfgs = fit.add_mutually_exclusive_group()
+    lbfgs.add_argument(
+        "--lbfgs", dest="lbfgs", action="store_true", default=None, help=f"{taken_by('lbfgs')}: finish with L-BFGS"
+    )
+    lbfgs.add_argument("--no-lbfgs", dest="lbfgs", action="store_false")
     fit.set_defaults(handler=cmd_fit)
 
     ev = commands.add_parser("evaluate", help="RMSE and nRMSE of models on a dataset (Table III)")
@@ -873,6 +1009,39 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, required=True, metavar="DIR", help="directory for data_efficiency.json, .png and .md"
     )
     efficiency.set_defaults(handler=cmd_study_data_efficiency)
+
+    hp = commands.add_parser(
+        "hpsearch", help="hyper-parameter search of PENN and NNN: Tables I and II (thesis Sec. 4.2.5)"
+    )
+    hp.add_argument(
+        "--train", type=Path, required=True, metavar="FILE", help="training data: stationary dataset or raw log"
+    )
+    hp.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="folder: networks.csv, ranking.csv, ranking.md, summary.json",
+    )
+    hp.add_argument(
+        "--grid",
+        default="thesis",
+        metavar="G",
+        help="thesis (864 networks, the default), small (64) or a grid YAML file",
+    )
+    hp.add_argument(
+        "--loss", choices=["scaled", "thesis"], help="scaled (the default) or thesis (Eq. 3.7); replaces the grid's"
+    )
+    hp.add_argument("--executor", choices=["local", "ray"], default="local", help="local processes (default) or Ray")
+    hp.add_argument(
+        "--workers", type=_positive_int, metavar="N", help="worker processes or local Ray CPUs (default: every core)"
+    )
+    hp.add_argument("--ray-address", metavar="A", help="with --executor ray: a running cluster (default: a local one)")
+    hp.add_argument(
+        "--cache-dir", type=Path, metavar="D", help="JAX's compilation cache (default $XDG_CACHE_HOME/daror/jax)"
+    )
+    hp.add_argument("--force", action="store_true", help="write into a folder that is not empty (replaces our files)")
+    hp.set_defaults(handler=cmd_hpsearch)
 
     con = commands.add_parser(
         "console",

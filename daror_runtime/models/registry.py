@@ -12,7 +12,10 @@ training data, whether the residual analysis can augment it, whether a session m
 kind has its own options model (:class:`ModelOptions` and subclasses, frozen, unknown fields
 refused), so an option given to a kind that does not take it is refused, not ignored.
 
-The built-in kinds (``ap``, ``plf``, ``plf+``) are listed here. Other packages add kinds through
+The built-in kinds (``ap``, ``plf``, ``plf+``, ``penn``, ``nnn``) are listed here. The neural kinds
+need the optional extra ``nn`` (JAX) to be *fitted* only: their fitters live in
+``daror_runtime.neural``, their model class in ``daror_runtime.models.neural`` (numpy and numba),
+so a neural model file loads and runs on the base install. Other packages add kinds through
 the entry point group :data:`ENTRY_POINT_GROUP`, each entry naming a :class:`ModelKind` object
 (this project's ``augmented`` kind comes from ``daror_runtime.residual`` that way: the models
 package never names the residual analysis). The entry points are read once, the first time a
@@ -27,10 +30,10 @@ import importlib.metadata
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, Literal, Self
 
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator
 
 from daror_runtime.errors import DarorError, ExtraMissingError, UnknownModelKindError, UsageError
 
@@ -43,11 +46,13 @@ __all__ = [
     "BUILTIN_KINDS",
     "ENTRY_POINT_GROUP",
     "APOptions",
+    "ExtraNotInstalledError",
     "KindRegistry",
     "ModelKind",
     "ModelKindPluginError",
     "ModelOptionError",
     "ModelOptions",
+    "NetworkOptions",
     "fit_model",
     "installation_options",
     "kind_entry",
@@ -72,6 +77,16 @@ class ModelOptionError(UsageError):
 
 class ModelKindPluginError(DarorError):
     """A model kind registered through an entry point that cannot be used (a broken installation)."""
+
+
+class ExtraNotInstalledError(ExtraMissingError, UsageError):
+    """A model kind's optional extra is not installed: one line saying what to install (CLI exit code 2).
+
+    An :class:`~daror_runtime.errors.ExtraMissingError` (what callers catch) that is also a
+    :class:`UsageError`: like a HAL backend that is not installed
+    (``hal.errors.BackendUnavailableError``), the person asked for something this installation
+    cannot do until they install it, and nothing was written.
+    """
 
 
 # --- options ----------------------------------------------------------------------------------
@@ -113,6 +128,38 @@ class APOptions(ModelOptions):
     def for_installation(cls, dummy_arm: bool, name: str | None = None) -> Self:
         """AP with the Dummy Arm (and its elbow stiffness) exactly when it is installed."""
         return cls(name=name, dummy_arm=dummy_arm)
+
+
+class NetworkOptions(ModelOptions):
+    """Options of the neural kinds PENN and NNN (``daror_runtime.neural.presets``): None keeps the preset's value.
+
+    The preset is the default network (or, with ``thesis``, the thesis's Table I / II network and
+    its loss, Eq. 3.7); each option given replaces one field of it. Values are checked here; a
+    combination that makes no network (too many weights) is refused by the fitter.
+    """
+
+    seed: StrictInt | None = Field(
+        None, ge=0, le=2**53 // 1000 - 1, description="seed of the initialisations (default 0)"
+    )
+    thesis: StrictBool | None = Field(
+        None, description="start from the thesis's network and loss (Tables I, II; Eq. 3.7)"
+    )
+    layers: StrictInt | None = Field(None, ge=1, le=32, description="hidden layers")
+    width: StrictInt | None = Field(None, ge=1, le=256, description="units per hidden layer")
+    activation: Literal["tanh", "sigmoid", "relu", "softplus"] | None = Field(None, description="of the hidden layers")
+    inputs: Literal["q", "sincos"] | None = Field(None, description="q, or [sin q, cos q] (Eq. 4.28)")
+    l1: float | None = Field(None, ge=0.0, le=1e3, allow_inf_nan=False, description="L1 rate lambda")
+    inits: StrictInt | None = Field(None, ge=1, le=100, description="initialisations trained; the best MVL is kept")
+    folds: StrictInt | None = Field(None, ge=2, le=20, description="validation blocks of time (k)")
+    adam_steps: StrictInt | None = Field(None, ge=0, le=1_000_000, description="full-batch Adam steps")
+    lbfgs: StrictBool | None = Field(None, description="finish with L-BFGS")
+
+    @field_validator("l1", mode="before")
+    @classmethod
+    def _l1_is_a_number(cls, value: object) -> object:
+        if isinstance(value, bool | str):  # pydantic would read true as 1.0 and "0.1" as 0.1
+            raise ValueError(f"expected a number, got {value!r}")
+        return value
 
 
 # --- entries ------------------------------------------------------------------------------------
@@ -200,6 +247,31 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
         f"{__name__}:_fit_plf_plus",
         residual_base=True,
         session_training=True,
+    ),
+    # The neural kinds: the fitter needs JAX (the extra ``nn``), the model class does not. Not a
+    # residual base (the residual analysis augments models linear in their parameters). Not trained
+    # in a session yet: a fit takes seconds of CPU (docs/neural_draft.md), which in real time would
+    # run on the job thread beside the 1 kHz loop on a 2-core machine; that needs its own measurement
+    # of the tick's jitter and a job that can be cancelled, before a session may start one.
+    ModelKind(
+        "penn",
+        "Potential Energy Neural Network: torque = dV/dq of a network V(q), Sec. 3.2.2, 4.2.3",
+        "daror_runtime.models.neural:PennModel",
+        "daror_runtime.neural.fit:fit_penn",
+        options=NetworkOptions,
+        extra="nn",
+        residual_base=False,
+        session_training=False,
+    ),
+    ModelKind(
+        "nnn",
+        "Naive Neural Network: a network outputs the torque (not conservative), Sec. 3.1.1, 4.2.4",
+        "daror_runtime.models.neural:NnnModel",
+        "daror_runtime.neural.fit:fit_nnn",
+        options=NetworkOptions,
+        extra="nn",
+        residual_base=False,
+        session_training=False,
     ),
 )
 
@@ -355,9 +427,9 @@ def _resolve(target: str, entry: ModelKind) -> object:
     except ImportError as exc:
         if entry.extra is None:
             raise
-        raise ExtraMissingError(
-            f"model kind {entry.kind} needs the optional extra '{entry.extra}' "
-            f"(pip install 'daror-runtime[{entry.extra}]'): {exc}"
+        raise ExtraNotInstalledError(
+            f"model kind {entry.kind} needs the optional extra '{entry.extra}', which is not installed: "
+            f"pip install 'daror-runtime[{entry.extra}]' ({exc})"
         ) from None
     return getattr(module, attribute)
 

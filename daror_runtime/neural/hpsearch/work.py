@@ -1,0 +1,241 @@
+"""The search's work unit, one network shape, and what a worker does with it.
+
+A :class:`WorkUnit` is one network shape (model, layers, width, activation, inputs) with every L1
+rate and seed of the grid: all of them are trained in one
+:func:`~daror_runtime.neural.training.train_group` call (one compiled program, ``jax.vmap`` over
+the networks). :func:`train_unit` runs in a worker process (a local process or a Ray task): it
+prepares the process once (:func:`prepare_worker`: XLA's threads, JAX's persistent compilation
+cache), trains the unit and returns one :class:`NetworkRow` per network, plain numbers only, so
+the result is small to send back.
+
+**What a row says about a network** (the fold network at its minimal validation loss, as the thesis
+selects it; with ``validation_folds`` > 1 the fold networks, one per held-out block):
+
+* ``mvl``: the minimal validation loss (the loss's data term on the held-out block, no penalty:
+  dimensionless for the scaled loss, Nm^2 for the thesis's) and ``mvl_step``, its loss evaluation;
+* ``val_rmse_nm``: the RMSE (Nm, over every joint of every point, Eq. 4.31) of the fold network at
+  the MVL step on its held-out block; with several held-out blocks, the root of the mean over the
+  blocks of each block's mean squared error (so for the thesis's loss it is ``sqrt(mvl)``);
+* ``train_loss_at_mvl``: the fold networks' training loss (data term plus penalty) at the MVL step;
+* ``torque_rms_nm`` and ``collapsed``: the RMS of that network's torque over all the training
+  points; collapsed when it is below :data:`~daror_runtime.neural.fit.COLLAPSE_FRACTION` of the
+  data's torque RMS (the network learned nothing, as the thesis's loss does at lambda 0.1).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.models.neural import NetworkSpec, network_torque_batch
+from daror_runtime.neural.fit import COLLAPSE_FRACTION
+from daror_runtime.neural.training import NetworkResult, PreparedData, TrainingSettings, prepare_data, train_group
+
+__all__ = [
+    "ONE_XLA_THREAD",
+    "NetworkRow",
+    "UnitResult",
+    "WorkUnit",
+    "WorkerSetup",
+    "default_cache_dir",
+    "ignore_interrupts",
+    "prepare_worker",
+    "train_unit",
+]
+
+#: XLA flags that keep a worker's computations on its own thread (two workers on two cores: XLA's
+#: own threads would only compete with the other worker; docs/hpsearch.md has the measurement).
+ONE_XLA_THREAD = ("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1")
+
+
+def default_cache_dir() -> Path:
+    """JAX's persistent compilation cache of the search: ``$XDG_CACHE_HOME/daror/jax`` (``~/.cache/daror/jax``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "daror" / "jax"
+
+
+@dataclass(frozen=True)
+class WorkerSetup:
+    """How a worker process is prepared before its first unit.
+
+    Attributes:
+        cache_dir: JAX's persistent compilation cache (None: none); shared by the workers.
+        one_xla_thread: set :data:`ONE_XLA_THREAD` in ``XLA_FLAGS`` (only effective before the
+            process's first JAX computation, which is why the worker does it, not the caller).
+    """
+
+    cache_dir: str | None
+    one_xla_thread: bool
+
+
+_prepared_lock = threading.Lock()
+_prepared: list[WorkerSetup] = []
+
+
+def prepare_worker(setup: WorkerSetup) -> None:
+    """Prepare this process for training (once; later calls do nothing): XLA's threads, the compilation cache.
+
+    Every program is cached, however small or quick to compile: a cached program loads in
+    milliseconds, and the search compiles 144 of them.
+    """
+    with _prepared_lock:
+        if _prepared:
+            return
+        if setup.one_xla_thread:
+            flags = os.environ.get("XLA_FLAGS", "").split()
+            os.environ["XLA_FLAGS"] = " ".join(flags + [f for f in ONE_XLA_THREAD if f not in flags])
+        if setup.cache_dir is not None:
+            jax.config.update("jax_compilation_cache_dir", setup.cache_dir)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+            jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        _prepared.append(setup)
+
+
+def ignore_interrupts(setup: WorkerSetup) -> None:
+    """A local worker's initialiser: Ctrl-C is the parent's to handle (it ends the workers), then prepare."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    prepare_worker(setup)
+
+
+@dataclass(frozen=True)
+class WorkUnit:
+    """One network shape and every ``(lambda, seed)`` of the grid: one ``train_group`` call.
+
+    Attributes:
+        index: the unit's place in the grid's order of shapes (results are reported in it).
+        spec: the shape.
+        lambdas: L1 rates, in the grid's order.
+        seeds: initialisation seeds, in the grid's order.
+        settings: how to train.
+    """
+
+    index: int
+    spec: NetworkSpec
+    lambdas: tuple[float, ...]
+    seeds: tuple[int, ...]
+    settings: TrainingSettings
+
+    @property
+    def n_networks(self) -> int:
+        return len(self.lambdas) * len(self.seeds)
+
+    def cost(self) -> float:
+        """A relative estimate of the unit's training time, to start the expensive units first.
+
+        Per point and step a hidden layer costs about ``width * (width + 8)`` (its product and its
+        activation); a PENN's torque is a gradient, and its training a gradient of that: about
+        twice an NNN's (measured: 21 x 25 PENN 88 ms a step, NNN 47 ms; docs/hpsearch.md).
+        """
+        s = self.spec
+        per_layer = s.width * (s.width + 8)
+        return (2.0 if s.model == "penn" else 1.0) * (s.layers * per_layer + s.n_weights) * self.n_networks
+
+
+@dataclass(frozen=True)
+class NetworkRow:
+    """One trained network of the search (see the module docstring for what each figure is).
+
+    ``group_wall_s``, ``group_cpu_s`` and ``group_compile_s`` are of the whole unit (its networks
+    are trained together): wall-clock seconds, the worker's CPU seconds (all threads), of which
+    compiling or loading the compiled program from the cache.
+    """
+
+    model: str
+    layers: int
+    width: int
+    activation: str
+    inputs: str
+    l1: float
+    seed: int
+    mvl: float
+    mvl_step: int
+    val_rmse_nm: float
+    train_loss_at_mvl: float
+    torque_rms_nm: float
+    collapsed: bool
+    group_wall_s: float
+    group_cpu_s: float
+    group_compile_s: float
+
+
+@dataclass(frozen=True)
+class UnitResult:
+    """A trained unit: its rows (lambdas outer, seeds inner) and its cost."""
+
+    unit: WorkUnit
+    rows: tuple[NetworkRow, ...]
+    wall_s: float
+    cpu_s: float
+    compile_s: float
+
+
+def _mean_square(network_params: np.ndarray, result: NetworkResult, q: np.ndarray, tau: np.ndarray) -> float:
+    """Mean squared torque error (Nm^2, over points and joints) of one weight vector; inf if not finite."""
+    try:
+        network = result.scaling.network(result.spec, network_params)
+    except ValueError:  # weights that are not finite numbers: training diverged
+        return float("inf")
+    with np.errstate(all="ignore"):
+        error = network_torque_batch(network, q) - tau
+        value = float(np.mean(error**2))
+    return value if np.isfinite(value) else float("inf")
+
+
+def _torque_rms(network_params: np.ndarray, result: NetworkResult, q: np.ndarray) -> float:
+    """RMS (Nm) of a network's torque over ``q``; inf when it is not finite."""
+    return float(np.sqrt(_mean_square(network_params, result, q, np.zeros_like(q))))
+
+
+def _row(
+    result: NetworkResult, prepared: PreparedData, data_rms: float, unit_result: tuple[float, float, float]
+) -> NetworkRow:
+    blocks = result.settings.held_out()
+    squares = [
+        _mean_square(params, result, prepared.q[prepared.fold == block], prepared.tau[prepared.fold == block])
+        for params, block in zip(result.mvl_parameters, blocks, strict=True)
+    ]
+    torque_rms = _torque_rms(result.mvl_parameters[0], result, prepared.q)
+    wall, cpu, compile_s = unit_result
+    spec = result.spec
+    return NetworkRow(
+        model=spec.model,
+        layers=spec.layers,
+        width=spec.width,
+        activation=spec.activation,
+        inputs=spec.inputs,
+        l1=result.l1,
+        seed=result.seed,
+        mvl=result.mvl,
+        mvl_step=result.mvl_step,
+        val_rmse_nm=float(np.sqrt(np.mean(squares))),
+        train_loss_at_mvl=float(result.train_curve[result.mvl_step]),
+        torque_rms_nm=torque_rms,
+        collapsed=bool(data_rms > 0 and torque_rms < COLLAPSE_FRACTION * data_rms),
+        group_wall_s=wall,
+        group_cpu_s=cpu,
+        group_compile_s=compile_s,
+    )
+
+
+def train_unit(unit: WorkUnit, data: StationaryDataset, setup: WorkerSetup) -> UnitResult:
+    """Train every network of ``unit`` on ``data`` together (:func:`train_group`) and describe each.
+
+    Raises:
+        DataError, IdentifiabilityError: data that cannot be trained on (see
+            :func:`~daror_runtime.neural.training.prepare_data`; the caller checks this first).
+    """
+    prepare_worker(setup)
+    results = train_group(unit.spec, data, unit.lambdas, unit.seeds, unit.settings)
+    prepared = prepare_data(unit.spec, data, unit.settings)
+    data_rms = float(np.sqrt(np.mean(prepared.tau**2)))
+    first = results[0]
+    cost = (first.wall_s, first.cpu_s, first.compile_s)
+    rows = tuple(_row(r, prepared, data_rms, cost) for r in results)
+    return UnitResult(unit, rows, first.wall_s, first.cpu_s, first.compile_s)
