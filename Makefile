@@ -15,7 +15,7 @@ $(VENV)/.installed-base: pyproject.toml | $(BIN)/python
 
 # Everything, optional extras included (what `make test` and `make bench` need).
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[nn,can,dev]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[nn,can,dev,ray]'
 	touch $@ $(VENV)/.installed-base
 
 demo: $(VENV)/.installed-base

@@ -142,22 +142,20 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
 
     from daror_runtime.data.load import raw_log_path, write_dataset
     from daror_runtime.identification.protocol import run_protocol
-    from daror_runtime.identification.trajectory_planning import build_trajectory
-    from daror_runtime.identification.waypoints import load_waypoints
     from daror_runtime.models.files import load_model
     from daror_runtime.models.linear import APModel
     from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.outputs import output_lock
     from hal.config import hal_config
     from hal.interface import open_hal
-    from hal.isb import IsbLimits, load_isb_limits
+    from hal.isb import load_isb_limits
     from hal.sim.scenario import load_scenario
 
     out = _output_file(args.out)
     raw_path = _output_file(raw_log_path(out, f".{args.raw_format}"))
     scenario = load_scenario(args.scenario)
     settings = load_session_settings(args.settings).identification
-    waypoints = load_waypoints(args.waypoints or settings.waypoints_file)
+    _check_identify_run(args)
     isb = load_isb_limits(args.isb_limits) if args.isb_limits is not None else None
     hal = open_hal(hal_config("sim", "--scenario/--rate-hz", scenario=args.scenario, rate_hz=args.rate_hz))
     if args.feedforward == "ap":
@@ -166,8 +164,8 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
         feedforward = None
     else:
         feedforward = load_model(args.feedforward)[0]
-    trajectory = build_trajectory(waypoints, args.trajectory, limits=isb or IsbLimits(), description=hal.description)
-    log.info("identify requested", scenario=scenario.name, trajectory=args.trajectory, out=str(out))
+    trajectory, label, predicted_s = _identify_trajectory(args, settings.waypoints_file, isb, hal.description)
+    log.info("identify requested", scenario=scenario.name, trajectory=label, out=str(out))
     # One writer per output: a second run naming the same --out is refused while this one runs. The
     # recording has a name of its own, so no run ever deletes another's (or a crashed run's) recording.
     with output_lock(out):
@@ -175,7 +173,7 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
         hal.open()
         with _progress(
             console,
-            f"[bold]{args.trajectory}[/bold] on {scenario.name}",
+            f"[bold]{label}[/bold] on {scenario.name}",
             "{task.completed:.0f}/{task.total:.0f} s robot time",
         ) as bar:
             task = bar.add_task("identify", total=trajectory.duration_s)
@@ -203,12 +201,51 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
         f"  {result.robot_time_s:.0f} s of robot time in {result.wall_time_s:.1f} s "
         f"({result.real_time_factor:.0f}x real time, lock-step)"
     )
+    if predicted_s is not None:
+        console.print(
+            f"  the protocol's predicted robot time: {predicted_s:.2f} s (measured {result.robot_time_s:.2f} s)"
+        )
     # The process ends next: spare it the collections at exit over the ~120,000 objects numba keeps
     # (0.25 s of the command; the objects are freed as usual, only no longer traversed).
     import gc
 
     gc.freeze()
     return 0
+
+
+def _check_identify_run(args: argparse.Namespace) -> None:
+    """Exactly one of --trajectory and --protocol; --waypoints only with --trajectory."""
+    if (args.trajectory is None) == (args.protocol is None):
+        raise UsageError("expected --trajectory training|validation or --protocol PROTOCOL.yaml (one of them)")
+    if args.protocol is not None and args.waypoints is not None:
+        raise UsageError(
+            "--waypoints: a designed protocol carries its own poses; leave --waypoints out with --protocol"
+        )
+
+
+def _identify_trajectory(
+    args: argparse.Namespace, waypoints_file: Path | None, isb: Any, description: Any
+) -> tuple[Any, str, float | None]:
+    """The trajectory ``daror identify`` runs, its label, and a designed protocol's predicted robot time (s).
+
+    A designed protocol is checked against ``--isb-limits`` when given, else against the limits it
+    was designed in.
+    """
+    from daror_runtime.identification.protocol_file import load_protocol
+    from daror_runtime.identification.trajectory_planning import build_trajectory, build_visit_trajectory
+    from daror_runtime.identification.waypoints import load_waypoints
+    from hal.isb import IsbLimits
+
+    if args.protocol is None:
+        waypoints = load_waypoints(args.waypoints or waypoints_file)
+        trajectory = build_trajectory(waypoints, args.trajectory, limits=isb or IsbLimits(), description=description)
+        return trajectory, args.trajectory, None
+    protocol, visits = load_protocol(args.protocol)
+    limits = isb or protocol.limits
+    trajectory = build_visit_trajectory(
+        visits, protocol.stops_s, protocol.trajectory_settings(), limits=limits, description=description
+    )
+    return trajectory, f"protocol {args.protocol.name}", protocol.prediction.robot_time_s
 
 
 def _unique_recording(out: Path) -> Path:
@@ -248,6 +285,7 @@ FIT_OPTION_FLAGS = {
     "folds": "--folds",
     "adam_steps": "--adam-steps",
     "lbfgs": "--lbfgs/--no-lbfgs",
+    "base": "--base",
 }
 
 
@@ -371,13 +409,20 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
         _residual_base_takes_dummy_arm(args.base.lower())
     _output_dir(args.out, args.train, args.validate)
     if args.out.is_dir():
-        for name in ("summary.json", "model.json"):
+        for name in ("summary.json", "model.json", "model_learned.json"):
             _output_file(args.out / name, args.train, args.validate)
     description = load_description(args.robot)
     log.info("residual requested", train=str(args.train), validate=str(args.validate), base=args.base)
     with output_lock(args.out):
         run = run_residual(
-            args.train, args.validate, args.out, description, args.base.lower(), families, dummy_arm=args.dummy_arm
+            args.train,
+            args.validate,
+            args.out,
+            description,
+            args.base.lower(),
+            families,
+            dummy_arm=args.dummy_arm,
+            learned=args.learned,
         )
     before, after = run.closure.before, run.closure.after
     table = Table(title=f"Validation errors, {args.base.upper()} before and after ({len(run.inputs.validate)} points)")
@@ -398,7 +443,21 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
         console.print(f"unexplained: joint {c.joint} residual depends on {c.signal} (R^2 {c.r2:.2f})")
     for note in run.diagnosis.notes:
         console.print(f"note: {note}")
-    console.print(f"{args.out}: summary.json, report.md, model.json, diagnosis.json and plots written")
+    if run.learned is not None:
+        learned = run.learned
+        table = Table(title="What remains, learned: validation RMSE (Nm)")
+        for column in ("", "named effects", "+ PENN", "+ NNN"):
+            table.add_column(column, justify="right" if column else "left")
+        rows = [learned.named.rmse_per_joint_nm, learned.penn.rmse_per_joint_nm, learned.nnn.rmse_per_joint_nm]
+        for j in range(4):
+            table.add_row(f"joint {j + 1}", *(f"{r[j]:.4f}" for r in rows))
+        table.add_row("RMSE", *(f"{m.rmse_nm:.4f}" for m in (learned.named, learned.penn, learned.nnn)))
+        console.print(table)
+        console.print(f"learned ({learned.verdict.replace('_', ' ')}): {learned.sentence}")
+    written = "summary.json, report.md, model.json" + (
+        ", model_learned.json" if "model_learned.json" in run.files else ""
+    )
+    console.print(f"{args.out}: {written}, diagnosis.json and plots written")
     log.info(
         "residual written",
         out=str(args.out),
@@ -406,7 +465,67 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
         rmse_before=before.rmse_nm,
         rmse_after=after.rmse_nm,
         unexplained=run.diagnosis.unexplained,
+        learned=None if run.learned is None else run.learned.verdict,
     )
+    return 0
+
+
+# --- protocol ---------------------------------------------------------------------------
+
+
+def _per_joint_nm(text: str) -> tuple[float, float, float, float]:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected four comma-separated torques in Nm") from None
+    if len(values) != 4 or not all(v >= 0 and v < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected four torques of 0 Nm or more (joints 1-4)")
+    return values[0], values[1], values[2], values[3]
+
+
+def cmd_protocol_design(args: argparse.Namespace, console: Console) -> int:
+    """Design a short identification protocol for a budget of robot time (docs/identification.md, section 8)."""
+    from daror_runtime.identification.design import DesignSettings, design_protocol
+    from daror_runtime.identification.design_model import parse_effects
+    from daror_runtime.identification.protocol_file import write_protocol
+    from daror_runtime.util.outputs import output_lock
+    from hal.isb import IsbLimits, load_isb_limits
+    from hal.robot import load_description
+
+    out = _output_file(args.out, args.limits)
+    limits = load_isb_limits(args.limits) if args.limits is not None else IsbLimits()
+    description = load_description(args.robot)
+    defaults = DesignSettings()
+    settings = DesignSettings(
+        base=args.base.lower(),
+        effects=parse_effects(args.effects),
+        approach=args.approach,
+        stop_s=args.stop_s,
+        candidates=args.candidates,
+        seed=args.seed,
+        direction_error_nm=args.direction_error_nm or defaults.direction_error_nm,
+        sensor_noise_nm=args.sensor_noise_nm or defaults.sensor_noise_nm,
+    )
+    result = design_protocol(args.budget_s, limits, description, settings)
+    with output_lock(out):
+        write_protocol(out, result.protocol)
+    p = result.protocol.prediction
+    console.print(f"{out}: {result.protocol.description}")
+    console.print(
+        f"  robot time {p.robot_time_s:.2f} s = approach {p.approach_s:.2f} + settle {p.settle_s:.2f} + moves "
+        f"{p.moves_s:.2f} + stops {p.stops_s:.2f} s (budget {args.budget_s:g} s)"
+    )
+    console.print(
+        f"  information matrix: log det {p.log_det:.2f}; condition number {p.condition_number:.3g} at unit diagonal, "
+        f"{p.workspace_condition_number:.3g} relative to stops spread over the pilot's range"
+    )
+    joints = " ".join(f"{v:.3f}" for v in p.validation_rmse_per_joint_nm)
+    console.print(f"  predicted validation RMSE {p.validation_rmse_nm:.4f} Nm (per joint {joints})")
+    console.print("  predicted standard errors of the identifiable combinations:")
+    for b in p.base_parameters:
+        console.print(f"    {b.expression:60s} +- {b.std_error:.3g}")
+    console.print(f"  designed from {result.candidates} candidate poses in {result.wall_s:.2f} s")
     return 0
 
 
@@ -465,6 +584,55 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
     return 0
 
 
+def cmd_study_protocol(args: argparse.Namespace, console: Console) -> int:
+    """Validation RMSE against robot time: designed protocols, random subsets, the full protocol."""
+    from daror_runtime.models.linear import APModel
+    from daror_runtime.studies.protocol_study import (
+        DEFAULT_BUDGETS_S,
+        parse_budgets,
+        run_protocol_study,
+    )
+    from daror_runtime.studies.protocol_study_report import output_paths, summary_table, write_outputs
+    from daror_runtime.util.outputs import output_lock
+    from hal.config import hal_config
+    from hal.interface import open_hal
+    from hal.isb import IsbLimits, load_isb_limits
+    from hal.sim.scenario import load_scenario
+
+    budgets = parse_budgets(args.budgets) if args.budgets is not None else list(DEFAULT_BUDGETS_S)
+    approaches = [a.strip() for a in args.approaches.split(",") if a.strip()]
+    for approach in approaches:
+        if approach not in ("both", "once"):
+            raise UsageError(f"--approaches: {approach!r}; expected both and/or once, comma-separated")
+    if args.draws < 1:
+        raise UsageError(f"--draws {args.draws}: expected at least 1")
+    _output_dir(args.out, args.limits)
+    if Path(args.out).is_dir():
+        for path in output_paths(args.out):
+            _output_file(path, args.limits)
+    scenario = load_scenario(args.scenario)
+    limits = load_isb_limits(args.limits) if args.limits is not None else IsbLimits()
+
+    def plant() -> Any:
+        return open_hal(hal_config("sim", "--scenario", scenario=args.scenario))
+
+    description = plant().description
+    feedforward = APModel.from_description(description, args.dummy_arm, args.dummy_arm)
+    with _progress(console, f"[bold]protocol study[/bold] on {scenario.name}", "", elapsed=True) as bar:
+        task = bar.add_task("study", total=None)
+        result = run_protocol_study(
+            scenario.name, plant, description, feedforward, args.dummy_arm, budgets, approaches, args.draws,
+            args.seed, limits, progress=lambda what: bar.update(task, description=what),
+        )  # fmt: skip
+    with output_lock(args.out):
+        paths = write_outputs(result, args.out)
+    console.print(summary_table(result))
+    console.print(f"  {result.wall_s:.0f} s of wall time")
+    for path in paths:
+        console.print(f"{path}: written")
+    return 0
+
+
 # --- hpsearch -----------------------------------------------------------------------------
 
 #: The top-level modules of the optional extra ``nn`` that the search imports.
@@ -514,19 +682,21 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
         cache.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsageError(f"--cache-dir {cache}: cannot be used as a folder ({exc.strerror})") from None
-    workers = args.workers or os.cpu_count() or 1
+    # the cores this process may run on (a shared machine or a container may give fewer than it has)
+    workers = args.workers or (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    )
     log.info(
         "hpsearch requested", grid=grid.name, networks=grid.n_networks, loss=grid.training.loss,
         executor=args.executor, workers=workers, train=str(args.train), out=str(out), cache=str(cache),
     )  # fmt: skip
     with output_lock(out):
+        # the bar fills with the estimated work done (the expensive shapes run first), the counter
+        # counts networks
         with _progress(
-            console,
-            f"[bold]hpsearch[/bold] {grid.name}",
-            "{task.completed:.0f}/{task.total:.0f} networks",
-            elapsed=True,
+            console, f"[bold]hpsearch[/bold] {grid.name}", "{task.fields[networks]} networks", elapsed=True
         ) as bar:
-            task = bar.add_task("hpsearch", total=grid.n_networks)
+            task = bar.add_task("hpsearch", total=1.0, networks=f"0/{grid.n_networks}")
             run = run_search(
                 grid,
                 data,
@@ -534,8 +704,8 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
                 workers=workers,
                 ray_address=args.ray_address,
                 cache_dir=cache,
-                one_xla_thread=args.executor == "ray" or workers > 1,
-                on_progress=lambda done, total: bar.update(task, completed=done, total=total),
+                one_xla_thread=True,  # always: the same numbers whatever the number of workers
+                on_progress=lambda done, total, work: bar.update(task, completed=work, networks=f"{done}/{total}"),
             )
         paths = write_outputs(run, out, machine())
     n = len(run.rows)
@@ -854,7 +1024,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     ident = commands.add_parser("identify", help="run the identification protocol on the simulated plant")
     ident.add_argument("--scenario", required=True, help="scenario name (see 'daror simulate list') or a .yaml path")
-    ident.add_argument("--trajectory", choices=["training", "validation"], required=True)
+    ident.add_argument("--trajectory", choices=["training", "validation"], help="the shipped protocol's run")
+    ident.add_argument(
+        "--protocol", type=Path, help="a designed protocol YAML (daror protocol design) instead of --trajectory"
+    )
     ident.add_argument("--out", type=Path, required=True, help="stationary dataset to write (.csv, .npz, .mat)")
     ident.add_argument("--waypoints", type=Path, help="waypoint YAML (default: the shipped 83 waypoints)")
     ident.add_argument("--isb-limits", type=Path, help="the pilot's ISB limits YAML, enforced every tick")
@@ -942,6 +1115,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--lbfgs", dest="lbfgs", action="store_true", default=None, help=f"{taken_by('lbfgs')}: finish with L-BFGS"
     )
     lbfgs.add_argument("--no-lbfgs", dest="lbfgs", action="store_false")
+    fit.add_argument(
+        "--base",
+        default=None,
+        metavar="KIND",
+        help=f"{taken_by('base')}: the physical model fitted first "
+        f"({', '.join(k.kind for k in every_kind if k.physical)}; default plf+)",
+    )
     fit.set_defaults(handler=cmd_fit)
 
     ev = commands.add_parser("evaluate", help="RMSE and nRMSE of models on a dataset (Table III)")
@@ -973,13 +1153,19 @@ def build_parser() -> argparse.ArgumentParser:
     residual.add_argument(
         "--effects",
         help="comma-separated families to test (default all): direction_offset, joint_stiffness, gravity_tilt, "
-        "encoder_offset, torque_gain",
+        "encoder_offset, torque_gain; none: the base model alone",
     )
     dummy_arm_bases = " or ".join(k.kind for k in every_kind if k.residual_base and k.takes("dummy_arm"))
     residual.add_argument(
         "--dummy-arm", action="store_true", help=f"with --base {dummy_arm_bases}: add the Dummy Arm (Eq. 4.5, 4.7)"
     )
     residual.add_argument("--robot", type=Path, help="robot description (default: the packaged DAROR-01)")
+    residual.add_argument(
+        "--learned",
+        action="store_true",
+        help="last step (needs the extra nn): learn what the named effects leave with a PENN and an NNN, and say "
+        "whether it is conservative; model_learned.json when it is",
+    )
     residual.add_argument(
         "--out", type=Path, required=True, help="output folder: summary.json, report.md, plots, model.json"
     )
@@ -1009,6 +1195,61 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, required=True, metavar="DIR", help="directory for data_efficiency.json, .png and .md"
     )
     efficiency.set_defaults(handler=cmd_study_data_efficiency)
+    pstudy = study_cmds.add_parser(
+        "protocol",
+        help="validation RMSE against robot time: designed protocols, random subsets, the full protocol (issue 14)",
+    )
+    pstudy.add_argument("--scenario", required=True, help="scenario name (see 'daror simulate list') or a .yaml path")
+    pstudy.add_argument("--dummy-arm", action="store_true", help="the Dummy Arm is installed (AP feed-forward)")
+    pstudy.add_argument(
+        "--limits", type=Path, metavar="ISB.yaml", help="the pilot's ISB limits (default: the defaults)"
+    )
+    pstudy.add_argument("--budgets", metavar="S,S,...", help="robot-time budgets in s (default 45,60,90,120,180,240)")
+    pstudy.add_argument(
+        "--approaches", default="both,once", metavar="A,A", help="designs to run: both and/or once (default both,once)"
+    )
+    pstudy.add_argument("--draws", type=int, default=100, help="random subsets per budget and method (default 100)")
+    pstudy.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the random subsets (default 0)")
+    pstudy.add_argument(
+        "--out", type=Path, required=True, metavar="DIR", help="directory for protocol_study.json, .png and .md"
+    )
+    pstudy.set_defaults(handler=cmd_study_protocol)
+
+    protocol = commands.add_parser("protocol", help="short identification protocols designed for a pilot (issue 14)")
+    protocol_cmds = protocol.add_subparsers(dest="protocol_command", required=True, metavar="WHAT")
+    pdesign = protocol_cmds.add_parser(
+        "design", help="choose the poses that identify the model best within a budget of robot time (D-optimal)"
+    )
+    pdesign.add_argument(
+        "--budget-s", type=float, required=True, help="robot time of the whole run, approach included (s)"
+    )
+    pdesign.add_argument("--limits", type=Path, metavar="ISB.yaml", help="the pilot's recorded ISB limits")
+    pdesign.add_argument("--base", default="plf+", help="model to identify: plf+ (default) or plf")
+    pdesign.add_argument(
+        "--effects",
+        metavar="E,E",
+        help="linear effects of the augmented model on top: direction_offset, joint_stiffness (optionally :JOINT)",
+    )
+    pdesign.add_argument(
+        "--approach",
+        choices=["both", "once"],
+        default="both",
+        help="stop at every pose arriving from both directions (default; the direction error cancels) or once",
+    )
+    pdesign.add_argument("--stop-s", type=float, default=1.0, help="stop at every data pose (s, default 1.0)")
+    pdesign.add_argument(
+        "--direction-error-nm", type=_per_joint_nm, metavar="D1,D2,D3,D4",
+        help="direction-dependent torque error per joint (default 0.25,0.75,0.35,0.15)",
+    )  # fmt: skip
+    pdesign.add_argument(
+        "--sensor-noise-nm", type=_per_joint_nm, metavar="S1,S2,S3,S4",
+        help="torque noise of a stop per joint (default 0.024 each)",
+    )  # fmt: skip
+    pdesign.add_argument("--candidates", type=_positive_int, default=1024, help="candidate poses drawn (default 1024)")
+    pdesign.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the candidate poses (default 0)")
+    pdesign.add_argument("--robot", type=Path, help="robot description YAML (default: the packaged DAROR-01)")
+    pdesign.add_argument("--out", type=Path, required=True, metavar="PROTOCOL.yaml", help="protocol file to write")
+    pdesign.set_defaults(handler=cmd_protocol_design)
 
     hp = commands.add_parser(
         "hpsearch", help="hyper-parameter search of PENN and NNN: Tables I and II (thesis Sec. 4.2.5)"
@@ -1127,6 +1368,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             getattr(args, "simulate_command", None),
             getattr(args, "fsm_command", None),
             getattr(args, "study_command", None),
+            getattr(args, "protocol_command", None),
         )
         if x
     )

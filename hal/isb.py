@@ -409,25 +409,29 @@ class Shoulder:
         t = self.thorax_in_world
         return t @ thorax_rotation(isb) @ t.T
 
-    def q_from_isb(self, isb: FloatArray, seed: FloatArray | None = None) -> FloatArray:
+    def q_from_isb(
+        self, isb: FloatArray, seed: FloatArray | None = None, unreachable_as_nan: bool = False
+    ) -> FloatArray:
         """Joint angles of ISB poses: the solution inside the joint limits nearest to ``seed``.
 
         Args:
             isb: [elevation, horizontal rotation, axial rotation, elbow] (4,) or (N, 4), rad.
             seed: joint angles (4,) or (N, 4), rad; default ``q_neutral``. Of the (at most two)
                 inverse-kinematics branches inside the limits, the one nearest to it is returned.
+            unreachable_as_nan: a pose without a solution gives a row of NaN instead of an error
+                (for screening many poses at once).
 
         Returns:
             q (4,) or (N, 4), rad.
 
         Raises:
             UnreachablePoseError: a pose has no solution inside the joint limits (the message names
-                the row and the reason).
+                the row and the reason); not with ``unreachable_as_nan``.
             hal.errors.ShapeError: wrong shapes.
         """
         isb, single = _as_isb(isb)
         r3 = self.shoulder_rotation(isb) @ self.r3_neutral
-        q = self.q_from_rotor3(r3, isb[:, 3], seed=seed, isb_for_messages=isb)
+        q = self.q_from_rotor3(r3, isb[:, 3], seed=seed, isb_for_messages=isb, unreachable_as_nan=unreachable_as_nan)
         return q[0] if single else q
 
     def q_from_rotor3(
@@ -436,6 +440,7 @@ class Shoulder:
         elbow_rad: FloatArray | float,
         seed: FloatArray | None = None,
         isb_for_messages: FloatArray | None = None,
+        unreachable_as_nan: bool = False,
     ) -> FloatArray:
         """Joint angles that put rotor 3 at world orientation ``r3`` (3, 3) or (N, 3, 3).
 
@@ -448,6 +453,7 @@ class Shoulder:
             elbow_rad: q4, float or (N,).
             seed: as in :meth:`q_from_isb`.
             isb_for_messages: the ISB angles (N, 4) the rotations came from, quoted in errors.
+            unreachable_as_nan: see :meth:`q_from_isb`.
 
         Raises:
             UnreachablePoseError: see :meth:`q_from_isb`.
@@ -485,7 +491,7 @@ class Shoulder:
         best = np.argmin(distance, axis=1)
         elbow_ok = (elbow >= self.lower_rad[3] - _LIMIT_SLACK_RAD) & (elbow <= self.upper_rad[3] + _LIMIT_SLACK_RAD)
         ok = np.isfinite(distance[np.arange(n), best]) & elbow_ok
-        if not np.all(ok):
+        if not np.all(ok) and not unreachable_as_nan:
             row = int(np.flatnonzero(~ok)[0])
             raise UnreachablePoseError(
                 self._why_unreachable(row, reach[row], candidates[row], elbow[row], isb_for_messages, n)
@@ -493,6 +499,7 @@ class Shoulder:
         out = np.empty((n, N_JOINTS))
         out[:, :3] = np.clip(candidates[np.arange(n), best], self.lower_rad[:3], self.upper_rad[:3])
         out[:, 3] = np.clip(elbow, self.lower_rad[3], self.upper_rad[3])
+        out[~ok] = np.nan
         return out[0] if single else out
 
     def _seed(self, seed: FloatArray | None, n: int) -> FloatArray:

@@ -185,8 +185,11 @@ def test_sizes_and_kinds_are_checked() -> None:
     assert check_kind("PLF+") == "plf+"
     with pytest.raises(UsageError, match="nothing to learn"):
         check_kind("ap")
-    with pytest.raises(UnknownModelKindError, match="penn"):
-        check_kind("penn")
+    with pytest.raises(UnknownModelKindError, match="gp"):
+        check_kind("gp")
+    for neural in ("penn", "nnn", "penn-residual"):
+        with pytest.raises(UsageError, match=f"--kind {neural}: the study refits .* 'daror hpsearch'"):
+            check_kind(neural)
 
 
 def test_default_sizes_is_a_geometric_ladder() -> None:
@@ -311,7 +314,8 @@ def test_cli_end_to_end(files: tuple[Path, Path, Path], tmp_path: Path, capsys: 
         (["--sizes", "10,x"], "--sizes: 'x'"),
         (["--seed", "-3"], "--seed -3"),
         (["--kind", "ap"], "--kind ap"),
-        (["--kind", "penn"], "unknown model kind 'penn'"),
+        (["--kind", "gp"], "unknown model kind 'gp'"),
+        (["--kind", "penn"], "--kind penn: the study refits the model"),
         (["--validate", "SHORT"], "short_val.csv: 12 stationary points; expected at least 20"),
         (["--train", "MISSING"], "missing.csv"),
     ],

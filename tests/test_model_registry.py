@@ -52,7 +52,11 @@ from hal.robot import RobotDescription
 from tests.test_model_files_hostile import signed
 
 ROOT = Path(__file__).resolve().parents[1]
-EVERY_KIND = ("ap", "plf", "plf+", "augmented")
+#: The kinds built into daror_runtime.models.registry, in their order.
+BUILT_IN = ("ap", "plf", "plf+", "penn", "nnn", "penn-residual")
+EVERY_KIND = (*BUILT_IN, "augmented")
+#: The kinds a session may train (the neural ones are fitted with `daror fit`, docs/decisions.md D93).
+SESSION_KINDS = ("ap", "plf", "plf+", "augmented")
 
 
 # --- the one list --------------------------------------------------------------------------------
@@ -101,17 +105,20 @@ def test_a_built_in_kind_is_found_without_reading_the_entry_points() -> None:
     fresh = KindRegistry(BUILTIN_KINDS, entry_points)
     assert fresh.entry("plf+").kind == "plf+"
     assert reads == []
-    with pytest.raises(UnknownModelKindError, match=r"unknown model kind 'penn'; expected one of ap, plf, plf\+$"):
-        fresh.entry("penn")
-    assert fresh.names() == ("ap", "plf", "plf+")
+    with pytest.raises(
+        UnknownModelKindError,
+        match=r"unknown model kind 'gp'; expected one of ap, plf, plf\+, penn, nnn, penn-residual$",
+    ):
+        fresh.entry("gp")
+    assert fresh.names() == BUILT_IN
     assert reads == [1]  # read once, on the first unknown name; the list reuses it
 
 
 def test_capabilities_are_attributes_of_the_entries() -> None:
     assert kind_names(lambda k: not k.needs_data) == ("ap",)
     assert kind_names(lambda k: k.residual_base) == ("ap", "plf", "plf+")
-    assert kind_names(lambda k: k.session_training) == EVERY_KIND
-    assert kind_names(lambda k: k.takes("dummy_arm")) == ("ap",)
+    assert kind_names(lambda k: k.session_training) == SESSION_KINDS
+    assert kind_names(lambda k: k.takes("dummy_arm")) == ("ap", "penn-residual")
 
 
 def test_the_residual_analysis_builds_every_base_the_registry_names(description: RobotDescription) -> None:
@@ -189,7 +196,9 @@ def test_the_installed_robot_decides_only_what_the_kind_models() -> None:
 def test_settings_accept_the_kinds_a_session_may_train() -> None:
     for kind in kind_names(lambda k: k.session_training):
         assert SessionSettings(model_kind=kind).model_kind == kind
-    with pytest.raises(ValidationError, match=r"unknown model kind 'penn'; expected one of ap, plf, plf\+, augmented"):
+    with pytest.raises(ValidationError, match=r"unknown model kind 'gp'; expected one of ap, plf, plf\+, augmented"):
+        SessionSettings(model_kind="gp")
+    with pytest.raises(ValidationError, match="model kind 'penn' cannot be trained in a session; expected one of"):
         SessionSettings(model_kind="penn")
     with pytest.raises(ValidationError, match=r"unknown model kind 'PLF\+'"):
         SessionSettings(model_kind="PLF+")  # keys are exact, as in model files
@@ -209,7 +218,7 @@ SECRET = ModelKind("secret", "not for sessions", "x:Y", "x:fit", session_trainin
 
 def test_a_kind_a_session_may_not_train_is_refused_by_settings_and_console(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(registry, "_REGISTRY", KindRegistry(BUILTIN_KINDS, fake_registry(SECRET)))
-    assert kind_names() == ("ap", "plf", "plf+", "secret")
+    assert kind_names() == (*BUILT_IN, "secret")
     with pytest.raises(ValidationError, match="model kind 'secret' cannot be trained in a session; expected one of"):
         SessionSettings(model_kind="secret")
     context = ParseContext(state_names=("idle",), has_world=False)
@@ -220,11 +229,11 @@ def test_a_kind_a_session_may_not_train_is_refused_by_settings_and_console(monke
 
 def test_the_console_trains_and_lists_the_registrys_kinds() -> None:
     context = ParseContext(state_names=("idle",), has_world=False)
-    for kind in EVERY_KIND:
+    for kind in SESSION_KINDS:
         assert parse_line(f"train {kind}", context).args == (kind,)
     with pytest.raises(CommandError, match=r"'penn' is not one of ap, plf, plf\+, augmented"):
         parse_line("train penn", context)
-    assert list(completion_words(context)["train"]) == list(EVERY_KIND)
+    assert list(completion_words(context)["train"]) == list(SESSION_KINDS)
     train = next(c for c in COMMANDS if c.name == "train")
     assert "KIND: ap, plf, plf+, augmented" in train.details
 
@@ -250,7 +259,7 @@ LAX = ModelKind("broken", "a plugin kind with lax options", "x:Y", "x:fit", opti
 
 def test_a_plugin_kind_follows_the_built_in_kinds() -> None:
     fresh = KindRegistry(BUILTIN_KINDS, fake_registry(SEEDED))
-    assert fresh.names() == ("ap", "plf", "plf+", "seeded")
+    assert fresh.names() == (*BUILT_IN, "seeded")
     assert fresh.entry("seeded") is SEEDED
     assert fresh.entry("seeded").option_names == ("name", "seed")
 
@@ -267,7 +276,7 @@ def test_a_plugin_kinds_options_are_checked_like_the_built_in_ones(monkeypatch: 
 def test_a_plugin_cannot_replace_a_built_in_kind() -> None:
     impostor = ModelKind("plf+", "an impostor", "x:Y", "x:fit", session_training=True)
     fresh = KindRegistry(BUILTIN_KINDS, fake_registry(impostor))
-    assert fresh.names() == ("ap", "plf", "plf+")  # reads the plugins: the impostor is ignored
+    assert fresh.names() == BUILT_IN  # reads the plugins: the impostor is ignored
     assert fresh.entry("plf+") is BUILTIN_KINDS[2]
 
 
@@ -283,7 +292,7 @@ def test_a_plugin_cannot_replace_a_built_in_kind() -> None:
 def test_a_broken_plugin_is_named_and_keeps_only_its_own_kind_out(value: str, problem: str) -> None:
     points = [importlib.metadata.EntryPoint("broken", value, ENTRY_POINT_GROUP)]
     fresh = KindRegistry(BUILTIN_KINDS, lambda: points)
-    assert fresh.names() == ("ap", "plf", "plf+")
+    assert fresh.names() == BUILT_IN
     with pytest.raises(
         ModelKindPluginError, match=f"model kind 'broken' is registered but cannot be used: .*{problem}"
     ):
@@ -337,7 +346,7 @@ def test_model_files_look_their_kind_up_in_the_registry(
     save_model(path, APModel.from_description(description, True, True))
     document = json.loads(path.read_text(encoding="utf-8"))
     for kind, error, message in [
-        ("penn", ModelFileError, "unknown model kind 'penn'; expected one of ap, plf, plf+"),  # + the fake plugins
+        ("gp", ModelFileError, "unknown model kind 'gp'; expected one of ap, plf, plf+, penn, nnn, penn-residual"),
         ("broken", ModelKindPluginError, "model kind 'broken' is registered but cannot be used"),
     ]:
         path.write_text(json.dumps(signed({**document, "kind": kind})), encoding="utf-8")

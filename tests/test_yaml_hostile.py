@@ -210,8 +210,13 @@ SPECIFIC: dict[str, dict[str, Hostile]] = {
             2,
         ),
         "model_kind not registered": text(
+            "support_level: 0.8\nmodel_kind: gp\n",
+            "field model_kind: unknown model kind 'gp'; expected one of ap, plf, plf+, augmented",
+            2,
+        ),
+        "model_kind not trained in a session": text(
             "support_level: 0.8\nmodel_kind: penn\n",
-            "field model_kind: unknown model kind 'penn'; expected one of ap, plf, plf+, augmented",
+            "field model_kind: model kind 'penn' cannot be trained in a session; expected one of ap, plf, plf+, augmented",
             2,
         ),
         "model_kind in capitals": text("model_kind: PLF+\n", "field model_kind: unknown model kind 'PLF+'", 1),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from daror_runtime.control.motor_position import DEFAULT_KD_NMS_PER_RAD, DEFAULT_KP_NM_PER_RAD
 from hal.yamlfile import Integer, Number
@@ -46,6 +46,22 @@ class IdentificationSettings(BaseModel):
         le=10.0,
         description="waypoints this close outside the recorded ISB range are kept; the trajectory may use it too",
     )
+    protocol_file: Path | None = Field(
+        None,
+        description="a designed protocol (daror protocol design) for the training run instead of the waypoints'",
+    )
+    protocol_budget_s: Number | None = Field(
+        None,
+        gt=0.0,
+        le=3600.0,
+        description="design the training run for the pilot's recorded ISB limits, this many seconds of robot time",
+    )
+
+    @model_validator(mode="after")
+    def _one_training_protocol(self) -> IdentificationSettings:
+        if self.protocol_file is not None and self.protocol_budget_s is not None:
+            raise ValueError("protocol_file and protocol_budget_s both choose the training run; set one of them")
+        return self
 
     def approach_duration_s(self, distance_rad: float) -> float:
         """Duration (s) of the minimum-jerk approach over ``distance_rad`` (the joint that moves most).

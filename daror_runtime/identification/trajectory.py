@@ -144,8 +144,8 @@ class ReferenceTrajectory:
 
     @property
     def start_q_rad(self) -> FloatArray:
-        """Where the robot must be before the trajectory starts (4,) rad."""
-        return np.array(self.stops[0].q_rad)
+        """Where the robot must be before the trajectory starts (4,) rad: where its first piece begins."""
+        return self._coefficients[0, :N_JOINTS, 0].copy()
 
     @property
     def waypoint_stops(self) -> tuple[Stop, ...]:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -49,9 +50,11 @@ from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 
 __all__ = [
     "MIN_JERK_PEAK",
+    "MoveError",
     "TrajectoryError",
     "TrajectorySettings",
     "build_trajectory",
+    "build_visit_trajectory",
     "integrate_move",
     "minimum_jerk",
     "prepend_approach",
@@ -66,6 +69,16 @@ _SPEED_HEADROOM = 0.95
 
 class TrajectoryError(InputError):
     """A waypoint set cannot be turned into a safe trajectory; the message names the waypoint."""
+
+
+class MoveError(TrajectoryError):
+    """A visit or a move of a visit sequence fails a check; ``from_visit``/``to_visit`` number the
+    move's ends, or the visit twice (from 1)."""
+
+    def __init__(self, message: str, from_visit: int, to_visit: int) -> None:
+        super().__init__(message)
+        self.from_visit = from_visit
+        self.to_visit = to_visit
 
 
 @dataclass(frozen=True)
@@ -418,12 +431,15 @@ class _Builder:
     def error(self, what: str) -> TrajectoryError:
         return TrajectoryError(f"{self.kind} trajectory, {what}")
 
-    def add_stop(self, q: FloatArray, waypoint: int | None, run: Literal["forward", "reverse"]) -> None:
+    def add_stop(
+        self, q: FloatArray, waypoint: int | None, run: Literal["forward", "reverse"], stop_s: float | None = None
+    ) -> None:
+        """Stand still at ``q`` for ``stop_s`` (default the settings' ``stop_s``), seconds."""
         block = np.zeros((1, 2 * N_JOINTS, 4))
         block[0, :N_JOINTS, 0] = q
         self.starts.append(np.array([self.t_s]))
         self.coefficients.append(block)
-        end = self.t_s + self.settings.stop_s
+        end = self.t_s + (self.settings.stop_s if stop_s is None else stop_s)
         self.stops.append(Stop(self.t_s, end, waypoint, run, (float(q[0]), float(q[1]), float(q[2]), float(q[3]))))
         self.t_s = end
 
@@ -593,6 +609,77 @@ def build_trajectory(
         b.t_s,
         tuple(b.stops),
         order,
+        settings,
+    )
+
+
+def build_visit_trajectory(
+    visits: WaypointSet,
+    stops_s: Sequence[float],
+    settings: TrajectorySettings,
+    limits: IsbLimits | None = None,
+    description: RobotDescription | None = None,
+) -> ReferenceTrajectory:
+    """One run through ``visits`` in their file order, with a stop of ``stops_s[i]`` s at visit ``i + 1``.
+
+    A designed protocol (:mod:`daror_runtime.identification.design`) is a sequence of visits: the
+    same pose may appear several times, and a visit with a stop of 0 s is passed through (the
+    move ends at rest there and the next one starts: a via pose that sets the direction the
+    robot arrives from). Unlike :func:`build_trajectory` there are no sub-waypoints and no reverse
+    run. Moves are timed, integrated and checked exactly as there. The trajectory's kind is
+    ``training``: every stop gives data (:func:`~daror_runtime.identification.protocol.stationary_points_of_run`);
+    a stop's ``waypoint`` is its visit number.
+
+    Raises:
+        MoveError: a move leaves the joint or ISB limits, passes near a singularity or is too
+            fast; it names both visits (and their lines, for a set read from a file).
+        TrajectoryError: a visit is unreachable, outside the limits or near a singularity; fewer
+            than two visits; a negative or non-finite stop; no stop at all.
+    """
+    limits = IsbLimits() if limits is None else limits
+    if description is None:
+        description, shoulder = load_description(), default_shoulder()
+    else:
+        shoulder = Shoulder.from_description(description)
+    n = len(visits)
+    durations = [float(v) for v in stops_s]
+    if len(durations) != n:
+        raise TrajectoryError(f"{n} visits need {n} stop durations, got {len(durations)}")
+    bad = [i + 1 for i, v in enumerate(durations) if not (math.isfinite(v) and v >= 0.0)]
+    if bad:
+        raise TrajectoryError(f"protocol, visits {bad}: a stop must last 0 s or more")
+    if not any(v > 0.0 for v in durations):
+        raise TrajectoryError("protocol: no visit has a stop, so the run would give no data")
+    device_speed = np.asarray(description.limits.max_velocity_rad_s, dtype=float)
+    max_speed = np.minimum(device_speed, settings.max_joint_speed_rad_s)
+    b = _Builder("training", visits, settings, limits, shoulder, max_speed)
+    q_of = []
+    for k in range(1, n + 1):
+        try:
+            q_of.append(b.check_waypoint(k))
+        except TrajectoryError as exc:
+            raise MoveError(str(exc), k, k) from None
+    r3_of = [shoulder.shoulder_rotation(w.isb_rad) @ shoulder.r3_neutral for w in visits.waypoints]
+    q = q_of[0]
+    if durations[0] > 0.0:
+        b.add_stop(q, 1, "forward", durations[0])
+    for k in range(1, n):
+        what = f"move from {visits.describe(k)} to {visits.describe(k + 1)}"
+        try:
+            path, velocity = b.move(q, r3_of[k - 1], r3_of[k], visits.waypoints[k].isb_rad[3], what)
+        except TrajectoryError as exc:
+            raise MoveError(str(exc), k, k + 1) from None
+        b.add_move(path, velocity)
+        q = path[-1].copy()
+        if durations[k] > 0.0:
+            b.add_stop(q, k + 1, "forward", durations[k])
+    return ReferenceTrajectory(
+        "training",
+        np.concatenate(b.starts),
+        np.concatenate(b.coefficients),
+        b.t_s,
+        tuple(b.stops),
+        tuple(range(1, n + 1)),
         settings,
     )
 

@@ -58,6 +58,10 @@ class CompensationModel(ABC):
     display_name: ClassVar[str]
     #: True when the torque is the gradient of a potential by construction (Sec. 3.1.3).
     conservative_by_construction: ClassVar[bool]
+    #: True for a kind composed on another model, stored in its parameters under ``base`` as
+    #: ``{"kind", "name", "parameters"}``: the model-file layer builds that model first (by its kind)
+    #: and passes it to :meth:`from_parameters` in place of the entry (``penn-residual``).
+    nested_base: ClassVar[bool] = False
 
     def __init__(self, description: RobotDescription, name: str | None = None) -> None:
         self.description = description

@@ -79,6 +79,9 @@ MAX_PARAMETER_VECTOR = 12
 DEFAULT_PARAMETER_BOUND = ParameterBound(1e4, "SI units")
 #: Parameters that are yes/no values (``true``, ``false`` or ``null``; never 1 or "yes").
 FLAG_PARAMETERS = frozenset({"includes_dummy_arm", "includes_elbow_stiffness"})
+#: A model composed on a base model (``penn-residual``) stores the base as ``{"kind", "name",
+#: "parameters"}`` under this key; the base's parameters are checked as a model's own.
+NESTED_BASE = "base"
 #: Largest magnitude of a number in a model file's robot description (SI units; degrees in ``_deg``).
 DESCRIPTION_MAX_ABS = 1e4
 
@@ -278,9 +281,9 @@ def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _parameter_name(location: Location) -> str:
-    """``parameters.theta.6 (theta3x)``: the field, with the name of a first moment where there is one."""
-    name = f"parameters.{_field(location)}"
+def _parameter_name(location: Location, where: Location = ()) -> str:
+    """``parameters.theta.6 (theta3x)``: the field (below ``where``), with the name of a first moment where there is one."""
+    name = f"parameters.{_field((*where, *location))}"
     if (
         len(location) == 2
         and location[0] == "theta"
@@ -291,29 +294,35 @@ def _parameter_name(location: Location) -> str:
     return name
 
 
-def _parameter_problems(parameters: dict[str, Any]) -> Iterator[str]:
-    """Numbers where numbers are meant, yes/no where yes/no is meant, and every number of a plausible magnitude."""
+def _parameter_problems(parameters: dict[str, Any], where: Location = ()) -> Iterator[str]:
+    """Numbers where numbers are meant, yes/no where yes/no is meant, and every number of a plausible magnitude.
+
+    A base model's parameters (``base.parameters``, :data:`NESTED_BASE`) are checked as a model's own.
+    """
     for key, value in parameters.items():
+        if key == NESTED_BASE and isinstance(value, dict) and isinstance(value.get("parameters"), dict):
+            yield from _parameter_problems(value["parameters"], (*where, key, "parameters"))
+            continue
         if key in FLAG_PARAMETERS:
             if value is not None and not isinstance(value, bool):
-                yield f"field parameters.{key}: expected true or false; got {json.dumps(value)[:40]}"
+                yield f"field {_parameter_name((key,), where)}: expected true or false; got {json.dumps(value)[:40]}"
             continue
         bound = PARAMETER_BOUNDS.get(key, DEFAULT_PARAMETER_BOUND)
         numeric = key in PARAMETER_BOUNDS
         for location, item in _walk(value, (key,)):
             if numeric and isinstance(item, list) and len(item) > MAX_PARAMETER_VECTOR:
                 yield (
-                    f"field {_parameter_name(location)}: {len(item):,} values; expected at most "
+                    f"field {_parameter_name(location, where)}: {len(item):,} values; expected at most "
                     f"{MAX_PARAMETER_VECTOR} (12 first moments, a polynomial up to order 11)"
                 )
                 break
             if isinstance(item, dict | list):
                 continue
             if numeric and not _is_number(item):
-                yield f"field {_parameter_name(location)}: expected a number; got {json.dumps(item)[:40]}"
+                yield f"field {_parameter_name(location, where)}: expected a number; got {json.dumps(item)[:40]}"
             elif _is_number(item) and abs(item) > bound.max_abs:
                 yield (
-                    f"field {_parameter_name(location)}: {item:g} is not a plausible parameter; expected "
+                    f"field {_parameter_name(location, where)}: {item:g} is not a plausible parameter; expected "
                     f"|value| <= {bound.max_abs:g} {bound.unit}"
                 )
 
@@ -325,6 +334,50 @@ def _description_problems(robot: object) -> Iterator[str]:
                 f"field {_field(location)}: {item:g} is not plausible for a robot description; expected "
                 f"|value| <= {DESCRIPTION_MAX_ABS:g} (SI units, degrees where the name ends in _deg)"
             )
+
+
+class _NestedBase(BaseModel):
+    """The entry of a base model inside a composed model's parameters (:data:`NESTED_BASE`)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    kind: str
+    name: str | None = None
+    parameters: dict[str, Any]
+
+
+def model_from_parameters(
+    description: RobotDescription, kind: str, parameters: dict[str, Any], name: str | None = None
+) -> CompensationModel:
+    """The model of kind ``kind`` rebuilt from a model file's ``parameters`` (no file read).
+
+    For a kind composed on another model (``nested_base``), the base under :data:`NESTED_BASE` is
+    built first, by its own kind, and handed to the kind's ``from_parameters`` in its place.
+
+    Raises:
+        ModelFileError: parameters that do not fit the kind (or the base's kind); one line naming
+            the field (``parameters.base.parameters.theta`` for the base's).
+        UnknownModelKindError: the kind, or the base's kind, is not registered.
+        ModelKindPluginError, ExtraMissingError: see :func:`~daror_runtime.models.registry.model_class`.
+    """
+    cls = model_class(kind)
+    if cls.nested_base:
+        try:
+            entry = _NestedBase.model_validate(parameters.get(NESTED_BASE))
+        except ValidationError as exc:
+            problem = exc.errors()[0]
+            field = ".".join(str(x) for x in (NESTED_BASE, *problem["loc"]))
+            raise ModelFileError(f"parameters.{field}: {problem['msg']} (model kind {kind})") from None
+        try:
+            base = model_from_parameters(description, entry.kind, entry.parameters, entry.name)
+        except UnknownModelKindError as exc:
+            raise ModelFileError(f"parameters.{NESTED_BASE}.kind: {exc}") from None
+        except ModelFileError as exc:
+            message = str(exc)
+            inner = message.removeprefix("parameters") if message.startswith("parameters") else f": {message}"
+            raise ModelFileError(f"parameters.{NESTED_BASE}.parameters{inner}") from None
+        parameters = {**parameters, NESTED_BASE: base}
+    return cls.from_parameters(description, parameters, name)
 
 
 def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
@@ -365,8 +418,7 @@ def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
             f"{path}: checksum mismatch; the file was changed or corrupted after it was written, refit or restore it"
         )
     try:
-        cls = model_class(contents.kind)
-        model = cls.from_parameters(contents.robot, contents.parameters, contents.name)
+        model = model_from_parameters(contents.robot, contents.kind, contents.parameters, contents.name)
     except (ModelFileError, UnknownModelKindError) as exc:
         raise ModelFileError(f"{path}: {exc}") from None
     except ModelKindPluginError as exc:  # the installation is broken, not the file: exit code 1

@@ -12,10 +12,11 @@ training data, whether the residual analysis can augment it, whether a session m
 kind has its own options model (:class:`ModelOptions` and subclasses, frozen, unknown fields
 refused), so an option given to a kind that does not take it is refused, not ignored.
 
-The built-in kinds (``ap``, ``plf``, ``plf+``, ``penn``, ``nnn``) are listed here. The neural kinds
-need the optional extra ``nn`` (JAX) to be *fitted* only: their fitters live in
-``daror_runtime.neural``, their model class in ``daror_runtime.models.neural`` (numpy and numba),
-so a neural model file loads and runs on the base install. Other packages add kinds through
+The built-in kinds (``ap``, ``plf``, ``plf+``, ``penn``, ``nnn``, ``penn-residual``) are listed
+here. The neural kinds need the optional extra ``nn`` (JAX) to be *fitted* only: their fitters
+live in ``daror_runtime.neural``, their model classes in ``daror_runtime.models.neural`` and
+``daror_runtime.models.penn_residual`` (numpy and numba), so a neural model file loads and runs
+on the base install. Other packages add kinds through
 the entry point group :data:`ENTRY_POINT_GROUP`, each entry naming a :class:`ModelKind` object
 (this project's ``augmented`` kind comes from ``daror_runtime.residual`` that way: the models
 package never names the residual analysis). The entry points are read once, the first time a
@@ -33,7 +34,16 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Self
 
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from daror_runtime.errors import DarorError, ExtraMissingError, UnknownModelKindError, UsageError
 
@@ -53,6 +63,7 @@ __all__ = [
     "ModelOptionError",
     "ModelOptions",
     "NetworkOptions",
+    "PennResidualOptions",
     "fit_model",
     "installation_options",
     "kind_entry",
@@ -162,6 +173,32 @@ class NetworkOptions(ModelOptions):
         return value
 
 
+class PennResidualOptions(NetworkOptions):
+    """Options of ``penn-residual``: the physical base fitted first, then the network (the residual preset's fields).
+
+    ``base`` is a registered kind with the capability ``physical``; ``dummy_arm`` is passed to a
+    base that takes it (AP) and refused for one that does not. The network options override the
+    residual preset (``daror_runtime.neural.presets.residual_preset``), as for ``penn``.
+    """
+
+    base: str = Field("plf+", description="the physical model fitted first, on which the PENN learns the residual")
+    dummy_arm: StrictBool | None = Field(None, description="a base that takes it (ap): include the Dummy Arm")
+
+    @field_validator("base")
+    @classmethod
+    def _physical(cls, value: str) -> str:
+        physical = kind_names(lambda entry: entry.physical)
+        if value not in physical:
+            raise ValueError(f"{value!r} is not a physical model kind; expected one of {', '.join(physical)}")
+        return value
+
+    @model_validator(mode="after")
+    def _base_takes_the_dummy_arm(self) -> PennResidualOptions:
+        if self.dummy_arm is not None and not kind_entry(self.base).takes("dummy_arm"):
+            raise ValueError(f"the base model {self.base} takes no Dummy Arm (it learns it from the data)")
+        return self
+
+
 # --- entries ------------------------------------------------------------------------------------
 
 
@@ -180,6 +217,8 @@ class ModelKind:
         needs_data: False for a kind built from the robot description alone (AP).
         residual_base: the residual analysis (``daror residual --base``) can augment it.
         session_training: a session may train it (``train KIND``, ``model_kind`` of the settings).
+        physical: a physical model (parameters with a physical meaning, no network): a learned
+            residual (kind ``penn-residual``) may sit on top of it.
     """
 
     kind: str
@@ -191,6 +230,7 @@ class ModelKind:
     needs_data: bool = True
     residual_base: bool = False
     session_training: bool = False
+    physical: bool = False
 
     @property
     def option_names(self) -> tuple[str, ...]:
@@ -231,6 +271,7 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
         needs_data=False,
         residual_base=True,
         session_training=True,
+        physical=True,
     ),
     ModelKind(
         "plf",
@@ -239,6 +280,7 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
         f"{__name__}:_fit_plf",
         residual_base=True,
         session_training=True,
+        physical=True,
     ),
     ModelKind(
         "plf+",
@@ -247,6 +289,7 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
         f"{__name__}:_fit_plf_plus",
         residual_base=True,
         session_training=True,
+        physical=True,
     ),
     # The neural kinds: the fitter needs JAX (the extra ``nn``), the model class does not. Not a
     # residual base (the residual analysis augments models linear in their parameters). Not trained
@@ -272,6 +315,16 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
         extra="nn",
         residual_base=False,
         session_training=False,
+    ),
+    # A physical base (fitted first) plus a PENN on what it leaves: the fitter needs JAX, the model
+    # class does not. Not trained in a session, for the reason the neural kinds are not.
+    ModelKind(
+        "penn-residual",
+        "a physical base (--base, default plf+) plus a PENN on its residual: V = V_base + V_nn (issue 13)",
+        "daror_runtime.models.penn_residual:PennResidualModel",
+        "daror_runtime.neural.residual_fit:fit_penn_residual",
+        options=PennResidualOptions,
+        extra="nn",
     ),
 )
 

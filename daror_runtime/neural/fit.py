@@ -19,8 +19,9 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DarorError
 from daror_runtime.models.base import FitReport, FitResult
 from daror_runtime.models.metrics import error_metrics
-from daror_runtime.models.neural import NeuralModel, NnnModel, PennModel
-from daror_runtime.neural.presets import Preset, init_seeds, preset, with_options
+from daror_runtime.models.neural import MAX_WIDTH, NeuralModel, NnnModel, PennModel
+from daror_runtime.neural.ensemble import mean_network
+from daror_runtime.neural.presets import Preset, init_seeds, preset, residual_preset, with_options
 from daror_runtime.neural.training import NetworkResult, train_group
 from hal.robot import RobotDescription
 
@@ -54,8 +55,9 @@ def fit_nnn(dataset: StationaryDataset, description: RobotDescription, options: 
     return fit_network("nnn", dataset, description, options)
 
 
-def resolve(model: str, options: NetworkOptions) -> Preset:
-    """The preset a fit of ``model`` with ``options`` trains: the default or thesis preset, overridden field by field.
+def resolve(model: str, options: NetworkOptions, residual: bool = False) -> Preset:
+    """The preset a fit of ``model`` with ``options`` trains: the default or thesis preset (with
+    ``residual``, the residual preset), overridden field by field.
 
     Raises:
         ModelOptionError: a combination of options that makes no network (one line).
@@ -64,24 +66,43 @@ def resolve(model: str, options: NetworkOptions) -> Preset:
 
     from daror_runtime.models.registry import ModelOptionError
 
+    start = residual_preset if residual else preset
     try:
-        return with_options(preset(model, bool(options.thesis)), options)
+        chosen = with_options(start(model, bool(options.thesis)), options)
     except ValidationError as exc:
         problem = exc.errors()[0]
         raise ModelOptionError(f"model kind {model}: {problem['msg'].removeprefix('Value error, ')}") from None
+    if chosen.ensemble and chosen.inits * chosen.spec.width > MAX_WIDTH:
+        raise ModelOptionError(
+            f"model kind {model}: the mean of {chosen.inits} networks of {chosen.spec.width} units is one network of "
+            f"{chosen.inits * chosen.spec.width} units; at most {MAX_WIDTH} (fewer --inits or a smaller --width)"
+        )
+    return chosen
+
+
+def _finite(results: list[NetworkResult]) -> list[NetworkResult]:
+    """The results whose MVL and weights are finite (training did not diverge)."""
+    return [r for r in results if math.isfinite(r.mvl) and np.all(np.isfinite(r.parameters))]
 
 
 def _best(results: list[NetworkResult]) -> NetworkResult | None:
     """The result with the lowest MVL among those whose MVL and weights are finite (ties: the lower seed);
     None when training diverged for every one."""
-    finite = [r for r in results if math.isfinite(r.mvl) and np.all(np.isfinite(r.parameters))]
+    finite = _finite(results)
     return min(finite, key=lambda r: (r.mvl, r.seed)) if finite else None
 
 
 def fit_network(
-    model: str, dataset: StationaryDataset, description: RobotDescription, options: NetworkOptions
+    model: str,
+    dataset: StationaryDataset,
+    description: RobotDescription,
+    options: NetworkOptions,
+    residual: bool = False,
 ) -> FitResult:
     """Train the initialisations of ``model``'s preset together, keep the best MVL's final fit.
+
+    ``residual``: start from the residual preset (a network on what a physical model leaves,
+    :func:`daror_runtime.neural.presets.residual_preset`) instead of the default.
 
     Raises:
         IdentifiabilityError: too few points for the validation folds.
@@ -89,18 +110,20 @@ def fit_network(
         ModelOptionError: options that make no network.
     """
     start = time.perf_counter()
-    chosen = resolve(model, options)
+    chosen = resolve(model, options, residual)
     seed = 0 if options.seed is None else options.seed
     seeds = init_seeds(seed, chosen.inits)
     results = train_group(chosen.spec, dataset, [chosen.l1], seeds, chosen.settings)
     best = _best(results)
-    if best is None:
+    if best is None or (chosen.ensemble and len(_finite(results)) < len(results)):
         raise TrainingDivergedError(
-            f"{model}: training diverged (weights not finite) for every initialisation of {chosen.describe()}; "
+            f"{model}: training diverged (weights not finite) for "
+            f"{'an' if best is not None else 'every'} initialisation of {chosen.describe()}; "
             "try another --seed, fewer --adam-steps or a smaller network"
         )
+    network = mean_network([r.network() for r in results]) if chosen.ensemble else best.network()
     model_cls: type[NeuralModel] = PennModel if model == "penn" else NnnModel
-    fitted = model_cls(description, best.network(), options.name)
+    fitted = model_cls(description, network, options.name)
     predicted = fitted.torque_batch(dataset.q_rad)
     training = error_metrics(dataset.tau_nm, predicted)
     duration = time.perf_counter() - start
@@ -129,7 +152,15 @@ def _notes(
     notes = [
         chosen.describe(),
         f"{len(results)} initialisations trained together; minimal validation loss {mvls}",
-        f"chosen: seed {best.seed} (MVL {best.mvl:.5g}{loss_unit} at step {best.mvl_step} of {settings.steps}); "
+        (
+            f"the model is the mean of all {len(results)} initialisations' networks, each "
+            + ("fitted on all the points" if settings.final_fit else "its fold network")
+            + f" at its stopping step (the last within {settings.stop_tolerance:.0%} of its MVL: "
+            + ", ".join(f"seed {r.seed} step {r.stop_step}" for r in results)
+            + ")"
+        )
+        if chosen.ensemble
+        else f"chosen: seed {best.seed} (MVL {best.mvl:.5g}{loss_unit} at step {best.mvl_step} of {settings.steps}); "
         f"stopped at step {best.stop_step}, the last within {settings.stop_tolerance:.0%} of the MVL"
         + (
             f"; the model is the fit on all {len(dataset)} points at that step "

@@ -10,5 +10,7 @@ package turns that list into a tool:
 * :mod:`.diagnosis`: rank the candidates, add the best while the evidence holds, and say what
   structure remains that no family explains;
 * :mod:`.model`: the augmented model, an ordinary model file the runtime can run in the loop;
+* :mod:`.learned`: ``--learned``, what the named effects leave learned by a PENN and an NNN, and
+  whether it is conservative (needs the extra ``nn``);
 * :mod:`.report`: ``summary.json`` (docs/residual.md), a readable report and its plots.
 """

@@ -12,7 +12,8 @@ from __future__ import annotations
 from daror_runtime.models.registry import ModelKind, ModelOptions
 
 #: The augmented kind: a base model plus the effects the training data support. It takes only a
-#: name; a session may train it (it is validated like any other before it drives the arm).
+#: name; a session may train it (it is validated like any other before it drives the arm). It is a
+#: physical model: a PENN residual may sit on it (``daror residual --learned``).
 MODEL_KIND = ModelKind(
     "augmented",
     "a base model plus the physical effects the data support (daror residual)",
@@ -20,4 +21,5 @@ MODEL_KIND = ModelKind(
     "daror_runtime.residual.model:fit_augmented_kind",
     options=ModelOptions,
     session_training=True,
+    physical=True,
 )

@@ -1,4 +1,4 @@
-"""``daror residual`` as a function: load, check, diagnose, close the loop, report."""
+"""``daror residual`` as a function: load, check, diagnose, close the loop, (learn what remains,) report."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from daror_runtime.residual.data import ResidualInputs, load_pair
 from daror_runtime.residual.diagnosis import Closure, Diagnosis, closure, diagnose
 from daror_runtime.residual.effects import FAMILIES, family
 from daror_runtime.residual.evidence import DiagnosisSettings
+from daror_runtime.residual.learned import LearnedRemainder, learn_remainder, require_neural_extra
 from daror_runtime.residual.model import AugmentedModel, augmented_model
 from daror_runtime.residual.report import write_report
 from daror_runtime.residual.structure import base_model
@@ -23,19 +24,28 @@ class ResidualRun:
     closure: Closure
     model: AugmentedModel
     files: dict[str, Path]
+    learned: LearnedRemainder | None = None
+
+
+#: ``--effects none``: test no family (the base model alone, e.g. before ``--learned``).
+NO_FAMILIES = "none"
 
 
 def parse_families(text: str | None) -> tuple[str, ...] | None:
-    """``--effects a,b`` as family names (None: all families).
+    """``--effects a,b`` as family names (None: all families; ``none``: no family, an empty tuple).
 
     Raises:
         UsageError: an unknown or repeated name.
     """
     if text is None:
         return None
+    if text.strip() == NO_FAMILIES:
+        return ()
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     if not names:
-        raise UsageError(f"--effects {text!r}: expected comma-separated family names: {', '.join(FAMILIES)}")
+        raise UsageError(
+            f"--effects {text!r}: expected comma-separated family names: {', '.join(FAMILIES)}, or {NO_FAMILIES}"
+        )
     for name in names:
         family(name)
     if len(set(names)) != len(names):
@@ -52,16 +62,23 @@ def run_residual(
     families: tuple[str, ...] | None = None,
     dummy_arm: bool = False,
     settings: DiagnosisSettings | None = None,
+    learned: bool = False,
 ) -> ResidualRun:
     """The whole analysis; every check runs before anything is fitted or written.
 
+    ``learned``: after the named effects, learn what remains with a PENN and an NNN
+    (:mod:`.learned`) and report what it is.
+
     Raises:
+        ExtraNotInstalledError: ``learned`` without the extra ``nn``.
         DataError: a file that does not match, a pair that does not belong together, or a
             direction effect asked for on data without ``dir``.
         UsageError: an unknown base kind or family.
         IdentifiabilityError: the training data cannot identify the base model.
     """
     base_model(base_kind, description, dummy_arm)  # refuses an unknown base before reading data
+    if learned:
+        require_neural_extra()
     inputs = load_pair(train_path, validate_path)
     settings = settings or DiagnosisSettings()
     if families is not None:
@@ -76,5 +93,6 @@ def run_residual(
     diagnosis = diagnose(inputs.train, description, base_kind, settings, dummy_arm)
     result = closure(diagnosis, inputs.validate)
     model = augmented_model(diagnosis.final_fit)
-    files = write_report(out_dir, diagnosis, result, model, inputs.train, inputs.validate, train_path)
-    return ResidualRun(inputs, diagnosis, result, model, files)
+    remainder = learn_remainder(model, inputs.train, inputs.validate, description) if learned else None
+    files = write_report(out_dir, diagnosis, result, model, inputs.train, inputs.validate, train_path, remainder)
+    return ResidualRun(inputs, diagnosis, result, model, files, remainder)

@@ -9,7 +9,12 @@
 * ``residual_signals.png``: the training residual of the base model (and of the augmented
   model) against each candidate's signal, per joint;
 * ``before_after.png``: validation torque, base and augmented model per joint (like Fig. 5.2);
-* ``model.json``: the augmented model, an ordinary model file.
+* ``model.json``: the augmented model, an ordinary model file;
+* with ``--learned`` (:mod:`.learned`): a ``learned`` block in the summary, the diagnosis and the
+  report, and ``model_learned.json`` (the augmented model plus a PENN residual, kind
+  ``penn-residual``) only when the remainder was conservative and the PENN validated. A run that
+  writes none removes an earlier run's, so the folder never holds a learned model its summary
+  does not describe.
 
 Every file is written to a temporary name and renamed, so a failure leaves no partial file.
 """
@@ -31,6 +36,7 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.files import model_document, training_summary
 from daror_runtime.models.metrics import ErrorMetrics
 from daror_runtime.residual.diagnosis import Closure, Diagnosis
+from daror_runtime.residual.learned import MIN_CONSERVATIVE_SHARE, MIN_LEARNED_GAIN, LearnedRemainder
 from daror_runtime.residual.model import AugmentedModel
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
 from hal.robot import N_JOINTS
@@ -48,9 +54,12 @@ SUMMARY_KEYS = (
 )
 
 
-def summary_document(diagnosis: Diagnosis, result: Closure) -> dict[str, Any]:
-    """``DIR/summary.json`` as docs/residual.md specifies; all RMSE figures on the validation file."""
-    return {
+def summary_document(diagnosis: Diagnosis, result: Closure, learned: LearnedRemainder | None = None) -> dict[str, Any]:
+    """``DIR/summary.json`` as docs/residual.md specifies; all RMSE figures on the validation file.
+
+    The key ``learned`` follows :data:`SUMMARY_KEYS` only when the learned step ran.
+    """
+    document: dict[str, Any] = {
         "base_model": diagnosis.base_kind,
         "rmse_before": result.before.rmse_nm,
         "rmse_after": result.after.rmse_nm,
@@ -69,13 +78,20 @@ def summary_document(diagnosis: Diagnosis, result: Closure) -> dict[str, Any]:
         ],
         "unexplained": diagnosis.unexplained,
     }
+    if learned is not None:
+        document["learned"] = learned.to_dict()
+    return document
 
 
 def diagnosis_document(
-    diagnosis: Diagnosis, result: Closure, train: StationaryDataset, validate: StationaryDataset
+    diagnosis: Diagnosis,
+    result: Closure,
+    train: StationaryDataset,
+    validate: StationaryDataset,
+    learned: LearnedRemainder | None = None,
 ) -> dict[str, Any]:
     """``DIR/diagnosis.json``: the evidence behind the summary."""
-    return {
+    document: dict[str, Any] = {
         "train": {"source": train.source, "n_points": len(train)},
         "validate": {"source": validate.source, "n_points": len(validate)},
         "base_model": diagnosis.base_kind,
@@ -94,6 +110,16 @@ def diagnosis_document(
         "notes": diagnosis.notes,
         "duration_s": diagnosis.duration_s,
     }
+    if learned is not None:
+        document["learned"] = {
+            **learned.to_dict(),
+            "penn_share": learned.penn_share,
+            "min_learned_gain": MIN_LEARNED_GAIN,
+            "min_conservative_share": MIN_CONSERVATIVE_SHARE,
+            "training_notes": learned.notes,
+            "duration_s": learned.duration_s,
+        }
+    return document
 
 
 def _metrics_table(before: ErrorMetrics, after: ErrorMetrics) -> list[str]:
@@ -117,8 +143,45 @@ def _change(before: float, after: float) -> str:
     return f"{(after / before - 1) * 100:+.1f} %" if before > 0 else "n/a"
 
 
+def _learned_section(learned: LearnedRemainder) -> list[str]:
+    """The report's section on the learned remainder (``--learned``)."""
+    lines = [
+        "## What remains, learned (`--learned`)",
+        "",
+        "Two networks learned what the named effects leave in the training data: a PENN (a potential: "
+        "conservative by construction) and an NNN (any field of q). Validation RMSE (Nm):",
+        "",
+        "| | joint 1 | joint 2 | joint 3 | joint 4 | all joints |",
+        "|---|---|---|---|---|---|",
+    ]
+    for label, metrics in (
+        ("named effects (model.json)", learned.named),
+        ("+ PENN residual (conservative)", learned.penn),
+        ("+ NNN residual (not conservative)", learned.nnn),
+    ):
+        joints = " | ".join(f"{v:.4f}" for v in metrics.rmse_per_joint_nm)
+        lines.append(f"| {label} | {joints} | **{metrics.rmse_nm:.4f}** |")
+    share = learned.penn_share
+    lines += [
+        "",
+        f"**{learned.sentence}**",
+        "",
+        f"- closed by the PENN (conservative part): {learned.conservative_part_nm:.4f} Nm RMS; closed only by "
+        f"the NNN (non-conservative part): {learned.non_conservative_part_nm:.4f} Nm RMS; the PENN's share of "
+        f"what the NNN closes: {'n/a' if share is None else f'{share:.2f}'} (conservative at "
+        f">= {MIN_CONSERVATIVE_SHARE}, something to learn when a network lowers the RMSE by >= {MIN_LEARNED_GAIN:.0%})",
+        f"- the networks: {learned.notes['penn'][0]}; {learned.notes['nnn'][0]}; {learned.duration_s:.1f} s",
+    ]
+    return lines
+
+
 def report_markdown(
-    diagnosis: Diagnosis, result: Closure, train: StationaryDataset, validate: StationaryDataset, plots: list[str]
+    diagnosis: Diagnosis,
+    result: Closure,
+    train: StationaryDataset,
+    validate: StationaryDataset,
+    plots: list[str],
+    learned: LearnedRemainder | None = None,
 ) -> str:
     """The readable report (Markdown)."""
     base = diagnosis.base_kind.upper()
@@ -185,6 +248,8 @@ def report_markdown(
             else ""
         )
         lines.append(f"No structure left: the residual depends on no tested signal{detail}.")
+    if learned is not None:
+        lines += ["", *_learned_section(learned)]
     if diagnosis.notes:
         lines += ["", "## Notes", "", *[f"- {n}" for n in diagnosis.notes]]
     lines += ["", "## Plots", ""]
@@ -283,6 +348,8 @@ def plot_before_after(diagnosis: Diagnosis, model: AugmentedModel, validate: Sta
 
 
 REPORT_FILES = ("residual_signals.png", "before_after.png", "model.json", "diagnosis.json", "report.md", "summary.json")
+#: Written with ``--learned`` when the remainder was conservative and the PENN validated.
+LEARNED_MODEL_FILE = "model_learned.json"
 
 
 def write_report(
@@ -293,23 +360,28 @@ def write_report(
     train: StationaryDataset,
     validate: StationaryDataset,
     train_path: Path | str | None = None,
+    learned: LearnedRemainder | None = None,
 ) -> dict[str, Path]:
-    """Write every file of the report into ``out_dir``; returns their paths by role.
+    """Write every file of the report into ``out_dir``; returns their paths by name.
 
     The files are written into a temporary folder beside ``out_dir`` and moved in only when all
-    of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was.
+    of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was. An earlier
+    run's :data:`LEARNED_MODEL_FILE` is removed when this run writes none.
     """
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    names = (LEARNED_MODEL_FILE, *REPORT_FILES) if learned is not None and learned.model is not None else REPORT_FILES
     try:
-        _write_files(staging, diagnosis, result, model, train, validate, train_path)
+        _write_files(staging, diagnosis, result, model, train, validate, train_path, learned)
         out.mkdir(exist_ok=True)
-        for name in REPORT_FILES:
+        if LEARNED_MODEL_FILE not in names:
+            (out / LEARNED_MODEL_FILE).unlink(missing_ok=True)
+        for name in names:
             os.replace(staging / name, out / name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return {name: out / name for name in REPORT_FILES}
+    return {name: out / name for name in names}
 
 
 def _write_files(
@@ -320,6 +392,7 @@ def _write_files(
     train: StationaryDataset,
     validate: StationaryDataset,
     train_path: Path | str | None,
+    learned: LearnedRemainder | None,
 ) -> None:
     paths = {
         "signals_plot": out / "residual_signals.png",
@@ -331,13 +404,17 @@ def _write_files(
     }
     plot_residual_signals(diagnosis, train, paths["signals_plot"])
     plot_before_after(diagnosis, model, validate, paths["before_after_plot"])
-    document = model_document(model, training_summary(train, train_path))
+    summary = training_summary(train, train_path)
+    document = model_document(model, summary)
     write_text_atomic(paths["model"], json.dumps(document, indent=2, allow_nan=False) + "\n")
-    write_text_atomic(paths["diagnosis"], _json(diagnosis_document(diagnosis, result, train, validate)))
+    if learned is not None and learned.model is not None:
+        learned_document = model_document(learned.model, summary)
+        write_text_atomic(out / LEARNED_MODEL_FILE, json.dumps(learned_document, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(paths["diagnosis"], _json(diagnosis_document(diagnosis, result, train, validate, learned)))
     plots = [paths["before_after_plot"].name, paths["signals_plot"].name]
-    write_text_atomic(paths["report"], report_markdown(diagnosis, result, train, validate, plots))
+    write_text_atomic(paths["report"], report_markdown(diagnosis, result, train, validate, plots, learned))
     # The summary last: its presence says the whole report is there.
-    write_text_atomic(paths["summary"], _json(summary_document(diagnosis, result)))
+    write_text_atomic(paths["summary"], _json(summary_document(diagnosis, result, learned)))
 
 
 def _json(document: dict[str, Any]) -> str:

@@ -7,7 +7,8 @@ the parts a session runs at different times:
   ``waypoint_stride``-th of the file, and only those inside the pilot's recorded ISB limits.
 * :func:`prepare_run` (outside the tick, when the operator asks): the trajectory, checked inside the
   pilot's limits, with an approach from where the robot stands; its position controller (stability
-  checked); a started recorder. The tick then only switches to it.
+  checked); a started recorder. The tick then only switches to it. With ``protocol_file`` or
+  ``protocol_budget_s`` the training run is a designed protocol (:func:`designed_training`).
 * :func:`finish_run` (a job, after the tick saw the trajectory end): close the recording, reduce
   it to stationary points, write the dataset and the raw log beside it, atomically.
 """
@@ -22,12 +23,19 @@ import structlog
 
 from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path, write_dataset
 from daror_runtime.errors import InputError
+from daror_runtime.identification.design import DesignSettings, design_protocol
 from daror_runtime.identification.protocol import IdentificationRun, finish_recording, plan_run
+from daror_runtime.identification.protocol_file import IsbPose, load_protocol
 from daror_runtime.identification.settings import IdentificationSettings
-from daror_runtime.identification.trajectory_planning import TrajectorySettings, build_trajectory
+from daror_runtime.identification.trajectory import ReferenceTrajectory
+from daror_runtime.identification.trajectory_planning import (
+    TrajectorySettings,
+    build_trajectory,
+    build_visit_trajectory,
+)
 from daror_runtime.identification.waypoints import WaypointSet, load_waypoints
 from daror_runtime.models.base import CompensationModel
-from hal.isb import AngleRange, IsbLimits
+from hal.isb import AngleRange, IsbLimits, Shoulder
 from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -121,13 +129,56 @@ def prepare_run(
         TrajectoryError: a waypoint or a path leaves the pilot's limits or the device's.
         ControlDesignError: the position gains are unstable for this robot.
     """
-    trajectory_settings = dataclasses.replace(TrajectorySettings.for_kind(kind), rate_hz=1.0 / dt_s)  # type: ignore[arg-type]
-    # Checked against the recorded range widened by the tolerance: still inside what the monitor enforces.
-    limits = widened(limits, settings.waypoint_tolerance_deg)
-    trajectory = build_trajectory(waypoints, kind, trajectory_settings, limits, description)  # type: ignore[arg-type]
+    if kind == "training" and (settings.protocol_file is not None or settings.protocol_budget_s is not None):
+        trajectory = designed_training(settings, limits, description, q_now_rad, dt_s)
+    else:
+        trajectory_settings = dataclasses.replace(TrajectorySettings.for_kind(kind), rate_hz=1.0 / dt_s)  # type: ignore[arg-type]
+        # Checked against the recorded range widened by the tolerance: still inside what the monitor enforces.
+        limits = widened(limits, settings.waypoint_tolerance_deg)
+        trajectory = build_trajectory(waypoints, kind, trajectory_settings, limits, description)  # type: ignore[arg-type]
     dataset_path = next_free_path(directory, f"identification_{kind}", ".csv")
     recording = dataset_path.with_name(f".{dataset_path.name}.rec")
     return plan_run(trajectory, description, q_now_rad, settings, feedforward, dt_s, recording, dataset_path)
+
+
+def designed_training(
+    settings: IdentificationSettings,
+    limits: IsbLimits,
+    description: RobotDescription,
+    q_now_rad: FloatArray,
+    dt_s: float,
+) -> ReferenceTrajectory:
+    """The training run as a designed protocol, checked inside the pilot's recorded limits (not widened).
+
+    With ``protocol_file`` the file's protocol; with ``protocol_budget_s`` one designed now for the
+    recorded limits, its budget counting the approach from where the robot stands.
+
+    Raises:
+        ProtocolFileError: the protocol file is unreadable or wrong.
+        DesignError: no protocol within the budget and the limits identifies the model.
+        TrajectoryError: the protocol leaves the pilot's limits or the device's.
+    """
+    if settings.protocol_file is not None:
+        protocol, visits = load_protocol(settings.protocol_file)
+        return build_visit_trajectory(
+            visits, protocol.stops_s, protocol.trajectory_settings(1.0 / dt_s), limits, description
+        )
+    shoulder = Shoulder.from_description(description)
+    start = IsbPose.from_rad(shoulder.isb_from_q(np.asarray(q_now_rad, dtype=float)))
+    design = DesignSettings(identification=settings)
+    budget = float(settings.protocol_budget_s or 0.0)
+    result = design_protocol(budget, limits, description, design, start=start)
+    log.info(
+        "identification protocol designed",
+        budget_s=budget,
+        robot_s=round(result.protocol.prediction.robot_time_s, 1),
+        poses=result.protocol.prediction.poses,
+        stops=result.protocol.prediction.data_stops,
+    )
+    protocol = result.protocol
+    return build_visit_trajectory(
+        protocol.waypoint_set(), protocol.stops_s, protocol.trajectory_settings(1.0 / dt_s), limits, description
+    )
 
 
 @dataclasses.dataclass(frozen=True)

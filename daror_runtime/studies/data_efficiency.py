@@ -37,7 +37,7 @@ import structlog
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DataError, IdentifiabilityError, UsageError
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
-from daror_runtime.models.registry import fit_model, kind_entry, kind_names
+from daror_runtime.models.registry import ModelKind, fit_model, kind_entry, kind_names
 from hal.robot import N_JOINTS, RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -165,17 +165,31 @@ def check_kind(kind: str) -> str:
     """The registry key of a model kind the study can fit (lower-cased): one that learns from data.
 
     Raises:
-        UnknownModelKindError: ``kind`` is not registered (e.g. ``penn``/``nnn`` before they exist).
+        UnknownModelKindError: ``kind`` is not registered.
         UsageError: ``kind`` is built without data (``ap``, capability ``needs_data`` False):
-            there is nothing to learn.
+            there is nothing to learn; or it trains networks (an optional extra such as ``nn``):
+            hundreds of fits of seconds each.
     """
     key = kind.lower()
-    if not kind_entry(key).needs_data:
+    entry = kind_entry(key)
+    studied = ", ".join(kind_names(_studied))
+    if not entry.needs_data:
         raise UsageError(
             f"--kind {key}: this model is built from the robot description, not fitted, so it has nothing "
-            f"to learn from more data; choose a fitted kind: {', '.join(kind_names(lambda entry: entry.needs_data))}"
+            f"to learn from more data; choose a fitted kind: {studied}"
+        )
+    if not _studied(entry):
+        raise UsageError(
+            f"--kind {key}: the study refits the model for every size and draw (hundreds of fits); a kind that "
+            f"trains networks (extra {entry.extra!r}, seconds a fit) is compared by 'daror hpsearch' instead; "
+            f"choose one of {studied}"
         )
     return key
+
+
+def _studied(entry: ModelKind) -> bool:
+    """A kind the study fits: learned from data by a closed-form fit (no optional extra: no network training)."""
+    return entry.needs_data and entry.extra is None
 
 
 def parse_sizes(text: str) -> list[int]:

@@ -7,8 +7,15 @@ finish are short). Each finished unit is passed to ``on_done`` as it arrives.
 
 * :func:`run_local`: a :class:`concurrent.futures.ProcessPoolExecutor` of ``workers`` processes
   started with ``spawn`` (a fresh interpreter: no copy of a parent that may hold JAX's threads).
-  The workers ignore Ctrl-C; on an interruption or an error the parent ends them (SIGTERM, then
-  waits) before it re-raises, so no worker outlives the command.
+  The training data goes to the workers in a file (a pickle in a private temporary folder, removed
+  at the end) that each reads once when it starts; what goes through the pipes to a worker, its
+  start and its units, is a few hundred bytes each. Through the pipes, the 140 kB of dataset B
+  would outgrow a pipe's 64 kB: a parent writing it to a worker that died meanwhile blocks for
+  ever (the start of a worker is written by the main thread, which would hang the command; a
+  unit, by the queue's thread, which a shutdown then waits for). The workers ignore
+  Ctrl-C; on an interruption or an error the parent ends them (SIGTERM, then waits) before it
+  re-raises, and on Linux a worker whose parent dies (even by SIGKILL) is ended by the kernel, so
+  no worker outlives the command.
 * :func:`run_ray`: the units as Ray tasks of one CPU each, on the cluster at ``address``, or on a
   local instance started here (and shut down at the end) with ``workers`` CPUs. Ray is the
   optional extra ``ray``. A Ray instance the caller already started (``ray.init``) is used as it is.
@@ -19,16 +26,27 @@ from __future__ import annotations
 import importlib
 import multiprocessing
 import multiprocessing.context
+import os
+import pickle
+import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DarorError
 from daror_runtime.models.registry import ExtraNotInstalledError
-from daror_runtime.neural.hpsearch.work import UnitResult, WorkerSetup, WorkUnit, ignore_interrupts, train_unit
+from daror_runtime.neural.hpsearch.work import (
+    UnitResult,
+    WorkerSetup,
+    WorkUnit,
+    start_local_worker,
+    train_unit,
+    train_unit_in_worker,
+)
 
 __all__ = ["EXECUTORS", "WorkerDiedError", "require_ray", "run_local", "run_ray"]
 
@@ -79,37 +97,49 @@ def run_local(
         KeyboardInterrupt: Ctrl-C (the workers are ended first).
         Whatever a unit raised (the workers are ended first).
     """
-    context = _SpawnContext()
-    pool = ProcessPoolExecutor(
-        max_workers=workers, mp_context=context, initializer=ignore_interrupts, initargs=(setup,)
-    )
-    done: list[UnitResult] = []
-    pending: set[Future[UnitResult]] = set()
-    try:
-        pending = {pool.submit(train_unit, unit, data, setup) for unit in units}
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for future in finished:
-                result = future.result()
-                done.append(result)
-                on_done(result)
-    except BrokenProcessPool:
-        _stop(pool, pending, context)
-        raise WorkerDiedError(
-            "a worker process died while training (killed, or out of memory); nothing was written"
-        ) from None
-    except BaseException:
-        _stop(pool, pending, context)
-        raise
-    pool.shutdown()
+    with tempfile.TemporaryDirectory(prefix="daror-hpsearch-") as folder:
+        data_file = Path(folder) / "data.pickle"
+        with open(data_file, "wb") as handle:
+            pickle.dump(data, handle, protocol=pickle.HIGHEST_PROTOCOL)
+        context = _SpawnContext()
+        pool = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=context,
+            initializer=start_local_worker,
+            initargs=(setup, str(data_file), os.getpid()),
+        )
+        done: list[UnitResult] = []
+        pending: set[Future[UnitResult]] = set()
+        try:
+            pending = {pool.submit(train_unit_in_worker, unit, setup) for unit in units}
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    result = future.result()
+                    done.append(result)
+                    on_done(result)
+        except BrokenProcessPool:
+            _stop(pool, context)
+            raise WorkerDiedError("a worker process died (killed, or out of memory); nothing was written") from None
+        except BaseException:
+            _stop(pool, context)
+            raise
+        pool.shutdown()
     return done
 
 
-def _stop(pool: ProcessPoolExecutor, pending: set[Future[UnitResult]], context: _SpawnContext) -> None:
-    for future in pending:
-        future.cancel()
+def _stop(pool: ProcessPoolExecutor, context: _SpawnContext) -> None:
+    """End the pool: no further unit starts, the workers are ended, the pool's threads are joined.
+
+    The pool's own thread cancels the units not started (``cancel_futures``): a unit cancelled from
+    here would stay among the pool's pending items, and when the pool then finds its workers ended
+    it sets the error on that cancelled unit; in Python 3.11 that raises in the pool's thread,
+    which dies before it closes the pipe to the workers, and the command waits for ever on a
+    thread writing into that pipe.
+    """
+    pool.shutdown(wait=False, cancel_futures=True)
     context.end_all()
-    pool.shutdown(wait=True, cancel_futures=True)
+    pool.shutdown(wait=True)
 
 
 def require_ray() -> ModuleType:
@@ -165,7 +195,11 @@ def run_ray(
                 for ref in finished:
                     try:
                         result = ray.get(ref)
-                    except ray.exceptions.WorkerCrashedError:
+                    except (
+                        ray.exceptions.WorkerCrashedError,
+                        ray.exceptions.OutOfMemoryError,
+                        ray.exceptions.NodeDiedError,
+                    ):
                         raise WorkerDiedError(
                             "a Ray worker died while training (killed, or out of memory); nothing was written"
                         ) from None

@@ -75,7 +75,9 @@ Seed = Annotated[Integer, Field(ge=0, le=MAX_SEED)]
 
 
 def _axis(description: str) -> Any:
-    return Field(min_length=1, max_length=MAX_AXIS_VALUES, description=description)
+    # not min_length=1: pydantic checks it on the values that passed, so one bad value of a
+    # one-value axis would also read "should have at least 1 item" (the validator below says it)
+    return Field(max_length=MAX_AXIS_VALUES, description=description)
 
 
 #: How the built-in grids train (D88): the default optimiser of ``daror fit`` (Adam 100 steps, then
@@ -113,6 +115,8 @@ class SearchGrid(BaseModel):
     @field_validator("models", "layers", "widths", "activations", "inputs", "l1", "seeds")
     @classmethod
     def _each_value_once(cls, values: tuple[Any, ...]) -> tuple[Any, ...]:
+        if not values:
+            raise PydanticCustomError("empty", "no value; expected at least one")
         repeated = sorted({v for v in values if values.count(v) > 1}, key=str)
         if repeated:
             raise PydanticCustomError(

@@ -12,9 +12,11 @@ Files in the output folder (:data:`OUTPUT_NAMES`):
   configurations; the most expensive shapes;
 * ``summary.json``: the same facts for scripts, written last (its presence marks a complete set).
 
-Every file is rendered in memory first and written to a temporary name, then renamed; Ctrl-C
-during the writing is held until the last file is in place, so the folder has all of them or
-none of this run's.
+Every file is rendered in memory first, then written in two steps: all four to temporary names
+beside their targets (a failure here, a full disk, removes them: the folder is as it was), then
+renamed into place one after the other (renames in one folder do not fail for want of space).
+Ctrl-C is held from the first temporary file until the last rename, so the folder has all of this
+run's files or none of them (and a folder the search created is removed again).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import csv
 import io
 import json
 import math
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -34,7 +37,7 @@ from typing import Any
 from daror_runtime.neural.fit import COLLAPSE_FRACTION
 from daror_runtime.neural.hpsearch.search import SearchRun
 from daror_runtime.neural.hpsearch.work import NetworkRow
-from daror_runtime.util.atomic import write_text_atomic
+from daror_runtime.util.atomic import atomic_path
 
 __all__ = [
     "OUTPUT_NAMES",
@@ -297,11 +300,11 @@ def _interrupt_held() -> Iterator[None]:
 
 
 def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any]) -> list[Path]:
-    """Write :data:`OUTPUT_NAMES` into ``out_dir`` (created if missing); the paths written, in order.
+    """Write :data:`OUTPUT_NAMES` into ``out_dir`` (created if missing), all or none; the paths written, in order.
 
     Raises:
-        OutputWriteError: the folder cannot be written (exit code 2).
-        DarorError: writing failed otherwise (a full disk); a file not yet renamed into place is not there.
+        OutputWriteError: the folder cannot be written (exit code 2); nothing was written.
+        DarorError: writing failed otherwise (a full disk); nothing was written.
     """
     ranked = ranking(run.rows)
     texts = {
@@ -310,10 +313,22 @@ def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any]) -> lis
         "ranking.md": render_markdown(run, ranked, machine),
         "summary.json": json.dumps(summary_document(run, ranked, machine), indent=2, allow_nan=False) + "\n",
     }
-    paths = []
-    with _interrupt_held():
-        for name in OUTPUT_NAMES:
-            path = out_dir / name
-            write_text_atomic(path, texts[name])
-            paths.append(path)
+    created = not out_dir.exists()
+    paths = [out_dir / name for name in OUTPUT_NAMES]
+    try:
+        with _interrupt_held(), contextlib.ExitStack() as stack:
+            # Each atomic_path renames its temporary file when the stack ends, last entered first:
+            # entered in reverse, summary.json is renamed last. A failure before then removes every
+            # temporary file and renames none.
+            for path in reversed(paths):
+                tmp = stack.enter_context(atomic_path(path))
+                with open(tmp, "w", encoding="utf-8") as handle:
+                    handle.write(texts[path.name])
+                    handle.flush()
+                    os.fsync(handle.fileno())  # a full disk shows here, before any rename, not at the rename
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                os.rmdir(out_dir)
+        raise
     return paths

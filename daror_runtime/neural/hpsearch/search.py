@@ -23,8 +23,10 @@ from daror_runtime.neural.training import prepare_data
 
 __all__ = ["SearchRun", "check_data", "run_search", "schedule", "work_units"]
 
-#: ``on_progress(networks_done, networks_total)``.
-Progress = Callable[[int, int], None]
+#: ``on_progress(networks_done, networks_total, work_done)``: ``work_done`` is the fraction (0 to 1)
+#: of the search's estimated cost (:meth:`WorkUnit.cost`) finished: the most expensive units run
+#: first, so a bar of networks would fill slowly, then fast, and its time left would be wrong.
+Progress = Callable[[int, int, float], None]
 
 
 @dataclass(frozen=True)
@@ -106,7 +108,8 @@ def run_search(
         ray_address: a Ray cluster to run on (``ray`` only; None: a local instance).
         cache_dir: JAX's persistent compilation cache for the workers (None: none).
         one_xla_thread: keep each worker's XLA computations on one thread.
-        on_progress: called with (networks done, networks in all) after each unit.
+        on_progress: called after each unit with (networks done, networks in all, fraction of the
+            estimated work done).
 
     Raises:
         DataError, IdentifiabilityError: see :func:`check_data`.
@@ -117,13 +120,15 @@ def run_search(
     check_data(grid, data)
     units = schedule(work_units(grid))
     total = grid.n_networks
+    total_cost = sum(u.cost() for u in units)
     setup = WorkerSetup(None if cache_dir is None else str(cache_dir), one_xla_thread)
-    count = [0]
+    count, cost = [0], [0.0]
 
     def done(result: UnitResult) -> None:
         count[0] += result.unit.n_networks
+        cost[0] += result.unit.cost()
         if on_progress is not None:
-            on_progress(count[0], total)
+            on_progress(count[0], total, min(1.0, cost[0] / total_cost))
 
     started = datetime.now(UTC).isoformat(timespec="seconds")
     start = time.perf_counter()

@@ -24,8 +24,12 @@ selects it; with ``validation_folds`` > 1 the fold networks, one per held-out bl
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
+import pickle
 import signal
+import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,14 +49,17 @@ __all__ = [
     "WorkUnit",
     "WorkerSetup",
     "default_cache_dir",
-    "ignore_interrupts",
     "prepare_worker",
+    "start_local_worker",
     "train_unit",
+    "train_unit_in_worker",
 ]
 
-#: XLA flags that keep a worker's computations on its own thread (two workers on two cores: XLA's
-#: own threads would only compete with the other worker; docs/hpsearch.md has the measurement).
-ONE_XLA_THREAD = ("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1")
+#: XLA flags that keep a worker's computations on its own thread: the search's parallelism is its
+#: workers, one per core; XLA's own threads would only compete with the other worker's, and a
+#: reduction split over another number of threads rounds differently (the numbers would depend on
+#: the machine's load and the worker count; docs/hpsearch.md).
+ONE_XLA_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
 
 
 def default_cache_dir() -> Path:
@@ -98,10 +105,48 @@ def prepare_worker(setup: WorkerSetup) -> None:
         _prepared.append(setup)
 
 
-def ignore_interrupts(setup: WorkerSetup) -> None:
-    """A local worker's initialiser: Ctrl-C is the parent's to handle (it ends the workers), then prepare."""
+#: The training data of this local worker process (set once by :func:`start_local_worker`).
+_worker_data: list[StationaryDataset] = []
+
+#: Linux's ``prctl`` option: the signal a process gets when its parent dies.
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int) -> None:
+    """Ask Linux to end this process (SIGTERM) when its parent dies; elsewhere nothing.
+
+    A worker must not outlive the command: killed by SIGKILL, the command cannot end its workers
+    itself, and a worker would otherwise train on (for minutes) with nobody to read its result.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before the request: end now
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def start_local_worker(setup: WorkerSetup, data_file: str, parent: int) -> None:
+    """A local worker's initialiser: dies with ``parent`` (the command's pid), leaves Ctrl-C to it
+    (it ends the workers), reads the training data from ``data_file`` (a pickle the parent wrote,
+    see :mod:`.executors`) and keeps it for every unit, prepares the process (:func:`prepare_worker`)."""
+    _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with open(data_file, "rb") as handle:
+        _worker_data[:] = [pickle.load(handle)]  # the parent's own file, in its private folder
     prepare_worker(setup)
+
+
+def train_unit_in_worker(unit: WorkUnit, setup: WorkerSetup) -> UnitResult:
+    """:func:`train_unit` on the data :func:`start_local_worker` kept (a local worker's task).
+
+    Raises:
+        RuntimeError: the process was not started by :func:`start_local_worker`.
+        DataError, IdentifiabilityError: see :func:`train_unit`.
+    """
+    if not _worker_data:
+        raise RuntimeError("train_unit_in_worker runs in a worker started by start_local_worker")
+    return train_unit(unit, _worker_data[0], setup)
 
 
 @dataclass(frozen=True)
