@@ -15,7 +15,7 @@ $(VENV)/.installed-base: pyproject.toml | $(BIN)/python
 
 # Everything, optional extras included (what `make test` and `make bench` need).
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[nn,can,dev,ray]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[nn,can,dev,ray,web]'
 	touch $@ $(VENV)/.installed-base
 
 demo: $(VENV)/.installed-base
@@ -29,7 +29,15 @@ $(VENV)/.system-packages: | $(BIN)/python
 		|| echo "make: can-utils could not be installed; the log2asc test will be skipped"; }
 	touch $@
 
-test: $(VENV)/.installed-all $(VENV)/.system-packages
+# Chromium and its driver (the web console's browser test, tests/test_web_console.py), installed
+# only when /usr/bin/chromium or /usr/bin/chromedriver is missing; without them that test is skipped.
+$(VENV)/.chromium: | $(BIN)/python
+	@{ test -x /usr/bin/chromium && test -x /usr/bin/chromedriver; } || { \
+		(apt-get update -qq && apt-get install -y -qq chromium chromium-driver) >/dev/null 2>&1 \
+		|| echo "make: chromium could not be installed; the web console's browser test will be skipped"; }
+	touch $@
+
+test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest

@@ -781,6 +781,10 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.util.outputs import output_lock
     from hal.interface import open_hal
 
+    if args.web:  # without the web extra: one line saying how to install it, exit 2
+        from daror_runtime.console.web import require_web_extra
+
+        require_web_extra()
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
     settings = load_session_settings(args.settings)
     hal = open_hal(_hal_config(args))  # a backend not built or not installed: one line, exit 2
@@ -792,7 +796,7 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
             parse_context(spec, hal.description, hal.world.fault_kinds if hal.world is not None else None),
         )
     typed = checked is None and stdin_is_terminal()
-    realtime = args.realtime or typed
+    realtime = args.realtime or typed or args.web
     period_s = 1.0 / hal.rate_hz
     clock = RealTimeClock(period_s) if realtime else LockStepClock(period_s)
     check_clock(clock, hal)  # lock-step on hardware: refused here, before anything is written
@@ -828,8 +832,15 @@ def _console_session(
     code = 0
     reason = "the session ended with an error"
     runtime.open()
+    web = None
     try:
         session = make_session(runtime, console)
+        if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
+            from daror_runtime.console.web.serve import start_web
+
+            web = start_web(runtime, session.world, args.host, args.port)
+            session.announcements = web.hub.terminal_reader()
+            console.print(f"web console: {web.address}" + (" (the token is required)" if web.token else ""))
         if realtime and not typed:
             runtime.start_background()
         if checked is not None:
@@ -840,13 +851,17 @@ def _console_session(
             run_interactive(session, history_path(), start=runtime.start_background)
             reason = "quit"
         else:
-            code = run_piped(session, sys.stdin)
+            code = run_piped(session, sys.stdin) if web is None else 0
+            if web is not None:  # the page is the console: until Ctrl-C
+                web.serve_until_interrupted()
             reason = "quit or the end of the input"
     except KeyboardInterrupt:
         runtime.shutdown("interrupted by the operator (Ctrl-C)")
         code = 130
     finally:
         ended = runtime.shutdown(reason)  # torque off first, whatever happened
+        if web is not None:
+            web.stop()
         console.print(ended.sentence(), soft_wrap=True)
         runtime.close()
         console.print(f"session {runtime.session_id}: {out / 'session.json'}")
@@ -1299,6 +1314,11 @@ def build_parser() -> argparse.ArgumentParser:
     con.add_argument("--out", type=Path, help="session directory (default sessions/DATE-TIME)")
     con.add_argument(
         "--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed at a terminal)"
+    )
+    con.add_argument("--web", action="store_true", help="also serve the console in a browser (real time; web extra)")
+    con.add_argument("--port", type=int, default=8765, help="with --web: the port (default 8765)")
+    con.add_argument(
+        "--host", default="127.0.0.1", help="with --web: the address (default 127.0.0.1; others need the printed token)"
     )
     con.set_defaults(handler=cmd_console)
 

@@ -25,6 +25,7 @@ from daror_runtime.errors import DarorError
 from daror_runtime.fsm.spec import FsmSpec
 from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.runtime import Runtime
+from daror_runtime.session.events import Announcement
 from hal.robot import RobotDescription
 
 __all__ = ["CommandError", "ConsoleSession", "QuitRequested", "ScriptCheckError", "parse_context"]
@@ -69,12 +70,20 @@ class ConsoleSession:
         out: where answers are printed.
         world: the simulated world (None on hardware: ``sim`` commands are refused).
         request_timeout_s: how long a request may wait for its tick (robot time in lock-step).
+        announcements: what this console drains its announcements from (default: the runtime's
+            feed; the web console's hub when a browser shares the session, so both show them).
     """
 
     def __init__(
-        self, runtime: Runtime, out: Console, world: SimWorld | None = None, request_timeout_s: float = 5.0
+        self,
+        runtime: Runtime,
+        out: Console,
+        world: SimWorld | None = None,
+        request_timeout_s: float = 5.0,
+        announcements: Callable[[], list[Announcement]] | None = None,
     ) -> None:
         self.runtime = runtime
+        self.announcements = announcements if announcements is not None else runtime.drain_announcements
         self.out = out
         self.world = world
         self.timeout_s = request_timeout_s
@@ -136,7 +145,7 @@ class ConsoleSession:
 
     def show_announcements(self) -> None:
         """Print what the runtime announced since the last call, one line each."""
-        for item in self.runtime.drain_announcements():
+        for item in self.announcements():
             self.say(announcement_line(item))
 
     def say(self, text: str) -> None:

@@ -11,7 +11,7 @@ Built-in grids (:data:`BUILTIN_GRIDS`):
   initialisations: 144 shapes, 864 networks;
 * ``small``: a quick look (2 x 2 x 2 x 2 shapes, 64 networks, about a minute).
 
-Both train with :data:`SEARCH_TRAINING` (docs/decisions.md, D88): ``daror fit``'s default optimiser
+Both train with :data:`SEARCH_TRAINING` (docs/hpsearch.md): ``daror fit``'s default optimiser
 (Adam then L-BFGS, 300 loss evaluations), 4 folds with the last one held out (75 % training, 25 %
 validation, as the thesis), and no final fit on all the data (the search ranks the fold networks'
 minimal validation loss; it builds no model).
@@ -80,7 +80,7 @@ def _axis(description: str) -> Any:
     return Field(max_length=MAX_AXIS_VALUES, description=description)
 
 
-#: How the built-in grids train (D88): the default optimiser of ``daror fit`` (Adam 100 steps, then
+#: How the built-in grids train (docs/hpsearch.md): the default optimiser of ``daror fit`` (Adam 100 steps, then
 #: L-BFGS 200 iterations), 4 folds with the last held out, no final fit.
 SEARCH_TRAINING = TrainingSettings(loss="scaled", folds=4, validation_folds=1, final_fit=False)
 

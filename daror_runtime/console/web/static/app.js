@@ -1,0 +1,153 @@
+// The operator's web console: renders the runtime's status, posts console lines, plots live rows.
+"use strict";
+const $ = (id) => document.getElementById(id);
+const WINDOW_S = 20;
+const daror = (window.daror = { rowsReceived: 0, messages: 0, answers: 0, status: null, lastAnswer: null });
+const charts = {
+  q: new StripChart($("plot-q"), 4, WINDOW_S),
+  tau: new StripChart($("plot-tau"), 4, WINDOW_S),
+  cmd: new StripChart($("plot-cmd"), 4, WINDOW_S),
+};
+const CHECKLIST = { settings: "settings", pilot_installation: "installation", safety_experience: "safety_experience", rom_limits: "a_priori_model" };
+const EVENT_LINE = { advance: "advance", revert: "revert", reset: "reset", acknowledge: "ack" };
+let fsm = null;
+let sliderBusy = false;
+
+function esc(s) { return String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
+
+async function send(line) {
+  const r = await fetch("/api/command", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ line }) });
+  const answer = await r.json();
+  daror.lastAnswer = answer;
+  daror.answers++;
+  $("answer").textContent = "> " + answer.line + "\n" + answer.answer;
+  $("answer").className = answer.ok ? "" : "refused";
+  if (answer.status) render(answer.status);
+  return answer;
+}
+daror.send = send;
+
+function drawFsm(current) {
+  if (!fsm) return;
+  let html = "";
+  for (const sup of fsm.superstates) {
+    html += `<div class="superstate"><div class="title">${esc(sup.name)}</div>`;
+    for (const s of sup.states) {
+      html += `<div class="fsm-state${s.name === current ? " current" : ""}" id="fsm-${esc(s.name)}" title="${esc(s.description)}">${s.number}. ${esc(s.name)}</div>`;
+    }
+    html += "</div>";
+  }
+  html += `<div class="superstate"><div class="title">fault</div><div class="fsm-state fail${fsm.fail.name === current ? " current" : ""}" id="fsm-${esc(fsm.fail.name)}" title="${esc(fsm.fail.description)}">${esc(fsm.fail.name)}</div></div>`;
+  $("fsm").innerHTML = html;
+}
+
+function render(st) {
+  daror.status = st;
+  $("state-badge").textContent = st.state + (st.superstate ? " (" + st.superstate + ")" : "");
+  $("state-badge").className = "badge " + (st.number === null ? "bad" : "ok");
+  $("state-badge").dataset.state = st.state;
+  $("state-description").textContent = st.description + " — mode " + st.mode;
+  const pressed = Object.entries(st.estop_pressed).filter(([, v]) => v).map(([k]) => k);
+  $("estop-badge").textContent = pressed.length ? "E-STOP: " + pressed.join(", ") : "e-stops released (tested: " + (st.estop_tested.join(", ") || "none") + ")";
+  $("estop-badge").className = "badge " + (pressed.length ? "bad" : "ok");
+  $("fault-badge").textContent = st.faults.length ? st.faults.length + " fault(s)" : "no faults";
+  $("fault-badge").className = "badge " + (st.faults.length ? "bad" : "ok");
+  $("clock").textContent = st.t_s === null ? "" : "t = " + st.t_s.toFixed(1) + " s, " + st.loop.clock + ", worst lateness " + st.loop.worst_lateness_ms.toFixed(2) + " ms";
+  drawFsm(st.state);
+  // operator events: a button each, disabled with the unmet guards beside it
+  let ev = "";
+  for (const [event, line] of Object.entries(EVENT_LINE)) {
+    const gate = st.gates[event];
+    let why = "", ready = false;
+    if (!gate || !gate.possible) why = `<span class="small">${esc(gate ? gate.why_not || "not from this state" : "not from this state")}</span>`;
+    else {
+      const unmet = gate.guards.filter((g) => !g.holds);
+      ready = unmet.length === 0;
+      why = ready ? `<span class="met">ready${gate.guards.length ? ": " + gate.guards.map((g) => esc(g.name)).join(", ") + " hold" : ""}</span>`
+        : `<span class="unmet" id="unmet-${event}">blocked by: ${unmet.map((g) => `<b>${esc(g.name)}</b> (${esc(g.description)})`).join("; ")}</span>`;
+    }
+    ev += `<div class="event"><button id="event-${event}" data-line="${line}" ${ready ? "" : "disabled"}>${event}</button>${why}</div>`;
+  }
+  $("events").innerHTML = ev;
+  // checklists of this state
+  const checklist = CHECKLIST[st.state];
+  let cl = "";
+  if (checklist) {
+    const done = st.confirmed.includes(checklist);
+    cl = `<div class="row"><button id="confirm-${checklist}" data-line="confirm ${checklist}" ${done ? "disabled" : ""}>confirm ${checklist.replace(/_/g, " ")}</button><span class="${done ? "met" : "unmet"}">${done ? "confirmed" : "not confirmed"}</span></div>`;
+  }
+  $("checklists").innerHTML = cl || '<span class="small">no checklist in this state</span>';
+  $("next-steps").innerHTML = st.next_steps.map((s) => `<li>${esc(s.what)}${s.type.length ? " <code>" + s.type.map(esc).join(" ; ") + "</code>" : ""}</li>`).join("");
+  $("world-card").style.display = st.has_world ? "" : "none";
+  // support
+  if (!sliderBusy) $("support").value = st.support_level;
+  $("support-value").textContent = Number(st.support_level).toFixed(2);
+  $("support-delivered").textContent = "delivered " + Number(st.delivered_support_level).toFixed(2);
+  // model
+  const m = st.model;
+  $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}` : '<span class="small">no model in use</span>';
+  const r = st.model_refused;
+  $("model-refused").textContent = r ? "refused: " + r.name + ", validation RMSE " + Number(r.validation_rmse_nm).toFixed(3) + " Nm (limit " + r.max_validation_rmse_nm + " Nm): never used" : "";
+  $("isb").textContent = st.isb_limits_deg ? Object.entries(st.isb_limits_deg).map(([k, v]) => `${k} ${v[0].toFixed(0)}..${v[1].toFixed(0)}°`).join(", ") : (st.rom_recording ? "recording…" : "not recorded");
+  const run = st.identification_running;
+  const pairs = (o) => Object.entries(o).map(([k, v]) => `${k.replace(/_/g, " ")}: ${typeof v === "number" ? Number(v.toFixed(3)) : (typeof v === "object" && v !== null ? JSON.stringify(v) : v)}`).join(", ");
+  $("identification").textContent = run ? `running: ${Math.min(100, 100 * run.elapsed_s / run.duration_s).toFixed(0)} % — ` + pairs(run) : (st.jobs_pending ? "work running outside the loop (saving data, training)…" : (st.last_identification ? "last run: " + pairs(st.last_identification) : "no run"));
+  $("faults").innerHTML = st.faults.map((f) => `<li class="refused">${esc(f.kind || "")}: ${esc(f.reason || f.message || JSON.stringify(f))}</li>`).join("") || '<li class="small">none</li>';
+  for (const note of st.notes || []) $("faults").innerHTML += `<li class="small">note: ${esc(note)}</li>`;
+}
+
+function addLog(lines) {
+  if (!lines.length) return;
+  const el = $("log");
+  el.textContent = (el.textContent + lines.join("\n") + "\n").split("\n").slice(-300).join("\n");
+  el.scrollTop = el.scrollHeight;
+}
+
+let lastCount = 0, lastTime = performance.now();
+function connect() {
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+  ws.onopen = () => { $("conn").textContent = "live"; $("conn").className = "badge ok"; };
+  ws.onclose = () => { $("conn").textContent = "disconnected: retrying"; $("conn").className = "badge off"; setTimeout(connect, 1000); };
+  ws.onmessage = (msg) => {
+    const m = JSON.parse(msg.data);
+    daror.messages++;
+    for (const row of m.rows) {
+      charts.q.push(row[0], row.slice(1, 5));
+      charts.tau.push(row[0], row.slice(5, 9));
+      charts.cmd.push(row[0], row.slice(9, 13));
+    }
+    daror.rowsReceived += m.rows.length;
+    addLog(m.log);
+    if (m.status) render(m.status);
+  };
+}
+
+const DRAW_EVERY_MS = 100; // 10 frames/s: the plots move smoothly enough, the lab PC keeps its CPU for the loop
+let lastDraw = 0;
+function frame() {
+  const now = performance.now();
+  if (now - lastDraw >= DRAW_EVERY_MS) { lastDraw = now; charts.q.draw(); charts.tau.draw(); charts.cmd.draw(); }
+  if (now - lastTime > 1000) {
+    $("rate").textContent = ((daror.rowsReceived - lastCount) * 1000 / (now - lastTime)).toFixed(0) + " rows/s";
+    lastCount = daror.rowsReceived; lastTime = now;
+  }
+  requestAnimationFrame(frame);
+}
+
+document.addEventListener("click", (e) => {
+  const b = e.target.closest("button[data-line]");
+  if (b && !b.disabled) send(b.dataset.line);
+});
+$("send").onclick = () => { const v = $("line").value.trim(); if (v) send(v); };
+$("line").addEventListener("keydown", (e) => { if (e.key === "Enter") $("send").click(); });
+$("model-select").onclick = () => send(("model " + $("model-file").value.trim() + " " + $("model-validation").value.trim()).trim());
+$("isb-load").onclick = () => send("rom load " + $("isb-file").value.trim());
+$("support").addEventListener("input", () => { sliderBusy = true; $("support-value").textContent = Number($("support").value).toFixed(2); });
+$("support").addEventListener("change", async () => { await send("support " + $("support").value); sliderBusy = false; });
+
+(async () => {
+  fsm = await (await fetch("/api/fsm")).json();
+  render(await (await fetch("/api/status")).json());
+  connect();
+  requestAnimationFrame(frame);
+})();
