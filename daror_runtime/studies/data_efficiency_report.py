@@ -8,7 +8,6 @@ no display needed, so it works the same on the lab PC, over SSH and in CI.
 
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from matplotlib.figure import Figure
 from rich.table import Table
 
 from daror_runtime.studies.data_efficiency import DataEfficiencyResult
+from daror_runtime.studies.report_format import cell, png_bytes
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
 from daror_runtime.util.outputs import OutputPathError
 
@@ -108,13 +108,7 @@ def render_png(result: DataEfficiencyResult, dpi: int = 120) -> bytes:
         f"({result.validate_points} points), {result.draws} draws per size",
         fontsize=10,
     )
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=dpi)
-    return buffer.getvalue()
-
-
-def _fmt(value: float | None, digits: int = 4) -> str:
-    return "-" if value is None else f"{value:.{digits}g}"
+    return png_bytes(figure, dpi)
 
 
 def render_markdown(result: DataEfficiencyResult) -> str:
@@ -144,9 +138,9 @@ def render_markdown(result: DataEfficiencyResult) -> str:
     ]
     for s in result.sizes:
         lines.append(
-            f"| {s.n} | {s.fitted} | {s.refused} | {_fmt(s.rmse_mean)} | {_fmt(s.rmse_std, 3)} | {_fmt(s.rmse_min)} "
-            f"| {_fmt(s.rmse_p5)} | {_fmt(s.rmse_median)} | {_fmt(s.rmse_p95)} | {_fmt(s.rmse_max)} "
-            f"| {_fmt(s.nrmse_mean)} |"
+            f"| {s.n} | {s.fitted} | {s.refused} | {cell(s.rmse_mean)} | {cell(s.rmse_std, 3)} | {cell(s.rmse_min)} "
+            f"| {cell(s.rmse_p5)} | {cell(s.rmse_median)} | {cell(s.rmse_p95)} | {cell(s.rmse_max)} "
+            f"| {cell(s.nrmse_mean)} |"
         )
     lines += ["", f"![validation RMSE against training points]({PNG_NAME})", ""]
     return "\n".join(lines)
@@ -165,8 +159,8 @@ def summary_table(result: DataEfficiencyResult) -> Table:
     for s in result.sizes:
         style = "bold green" if s.n == result.enough_points else None
         table.add_row(
-            str(s.n), str(s.fitted), str(s.refused), _fmt(s.rmse_mean), _fmt(s.rmse_std, 3), _fmt(s.rmse_p5),
-            _fmt(s.rmse_median), _fmt(s.rmse_p95), _fmt(s.rmse_max), _fmt(s.nrmse_mean),
+            str(s.n), str(s.fitted), str(s.refused), cell(s.rmse_mean), cell(s.rmse_std, 3), cell(s.rmse_p5),
+            cell(s.rmse_median), cell(s.rmse_p95), cell(s.rmse_max), cell(s.nrmse_mean),
             style=style,
         )  # fmt: skip
     return table

@@ -250,6 +250,23 @@ def stop_groups(points: StationaryDataset) -> list[np.ndarray]:
     return np.split(order, np.flatnonzero(new)[1:])
 
 
+def _score_draw(
+    train: StationaryDataset,
+    validate: StationaryDataset,
+    description: RobotDescription,
+    rmse: list[float],
+    nrmse: list[float],
+) -> bool:
+    """Fit one random draw and append its validation RMSE (Nm) and nRMSE; False if the draw identifies too little."""
+    try:
+        metrics = _score(train, validate, description)
+    except IdentifiabilityError:
+        return False
+    rmse.append(metrics.rmse_nm)
+    nrmse.append(metrics.nrmse)
+    return True
+
+
 def _summarise(budget_s: float, method: str, points: list[int], times: list[float], refused: int,
                rmse: list[float], nrmse: list[float], stops: list[int] | None = None) -> RandomSubsets:  # fmt: skip
     summary = SizeResult.from_draws(round(float(np.mean(points))) if points else 0, refused, rmse, nrmse)
@@ -270,16 +287,12 @@ def random_points(
     """The thesis's method: ``n`` random points, ``n`` the budget's share of the full run's points."""
     n = int(np.clip(round(len(train) * budget_s / full_robot_s), 1, len(train)))
     rng = np.random.default_rng([seed, 1, round(budget_s * 1000)])
-    rmse, nrmse, refused = [], [], 0
+    rmse: list[float] = []
+    nrmse: list[float] = []
+    refused = 0
     for _ in range(draws):
         index = np.sort(rng.choice(len(train), size=n, replace=False))
-        try:
-            metrics = _score(train.subset(index), validate, description)
-        except IdentifiabilityError:
-            refused += 1
-            continue
-        rmse.append(metrics.rmse_nm)
-        nrmse.append(metrics.nrmse)
+        refused += not _score_draw(train.subset(index), validate, description, rmse, nrmse)
     return _summarise(budget_s, "points", [n] * draws, [budget_s] * draws, refused, rmse, nrmse)
 
 
@@ -312,13 +325,7 @@ def random_stops(
         counts.append(index.size)
         sizes.append(len(tour))
         robot.append(times.tour_time(tour))
-        try:
-            metrics = _score(train.subset(index), validate, description)
-        except IdentifiabilityError:
-            refused += 1
-            continue
-        rmse.append(metrics.rmse_nm)
-        nrmse.append(metrics.nrmse)
+        refused += not _score_draw(train.subset(index), validate, description, rmse, nrmse)
     return _summarise(budget_s, "stops", counts, robot, refused, rmse, nrmse, sizes)
 
 

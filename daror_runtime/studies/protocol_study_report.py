@@ -6,7 +6,6 @@ failure while rendering leaves the output directory untouched (as the data-effic
 
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from matplotlib.figure import Figure
 from rich.table import Table
 
 from daror_runtime.studies.protocol_study import DesignedRun, ProtocolStudyResult, RandomSubsets
+from daror_runtime.studies.report_format import cell, png_bytes
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
 from daror_runtime.util.outputs import OutputPathError
 
@@ -86,13 +86,7 @@ def render_png(result: ProtocolStudyResult, dpi: int = 120) -> bytes:
         f"{result.draws} random draws per budget",
         fontsize=9,
     )
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=dpi)
-    return buffer.getvalue()
-
-
-def _fmt(value: float | None, digits: int = 4) -> str:
-    return "-" if value is None else f"{value:.{digits}g}"
+    return png_bytes(figure, dpi)
 
 
 def table_rows(result: ProtocolStudyResult) -> list[list[str]]:
@@ -111,11 +105,11 @@ def table_rows(result: ProtocolStudyResult) -> list[list[str]]:
                 row.append(f"{run.validation.rmse_nm:.4f} ({run.robot_time_s:.1f} s, {run.stops} stops)")
         stops, points = result.random_stops[k], result.random_points[k]
         row.append(
-            f"{_fmt(stops.summary.rmse_median)} ({_fmt(stops.summary.rmse_p5)}-{_fmt(stops.summary.rmse_p95)}; "
+            f"{cell(stops.summary.rmse_median)} ({cell(stops.summary.rmse_p5)}-{cell(stops.summary.rmse_p95)}; "
             f"{stops.mean_stops or 0:.0f} stops)"
         )
         row.append(
-            f"{_fmt(points.summary.rmse_median)} ({_fmt(points.summary.rmse_p5)}-{_fmt(points.summary.rmse_p95)}; n = {points.summary.n})"
+            f"{cell(points.summary.rmse_median)} ({cell(points.summary.rmse_p5)}-{cell(points.summary.rmse_p95)}; n = {points.summary.n})"
         )
         rows.append(row)
     return rows
