@@ -408,22 +408,43 @@ def test_a_failed_write_leaves_the_folder_as_it_was(
 
 
 def test_ray_gives_the_same_numbers_and_force_replaces_only_our_files(
-    searched: Path, folder: Path, capsys: pytest.CaptureFixture[str]
+    searched: Path,
+    folder: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     ray = pytest.importorskip("ray", reason="the optional extra ray (make test installs it)")
     out = folder / "ray"
     shutil.copytree(searched, out)
     (out / "notes.txt").write_text("mine")
+    # Ray's workers inherit this environment: a relu network fails in them (the tiny grid has none)
+    for name, value in _with_sitecustomize(tmp_path, _FAILING_UNIT, DAROR_TEST_FAILING_ACTIVATION="relu").items():
+        monkeypatch.setenv(name, value)
+    failing = folder / "relu.yaml"
+    failing.write_text(TINY_GRID.replace("[sigmoid]", "[relu]"))
+    failed = folder / "ray_failed"
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # the test's local instance
     try:
+        capsys.readouterr()  # Ray's own messages about the test's instance
         code = main(_argv(folder, out, "--executor", "ray", "--force"))
+        first_err = capsys.readouterr().err
+        argv = _argv(folder, failed, "--executor", "ray")
+        argv[argv.index("--grid") + 1] = str(failing)
+        failed_code = main(argv)
+        err = capsys.readouterr().err
     finally:
         ray.shutdown()
-    assert code == 0, capsys.readouterr().err
+    assert code == 0, first_err
     assert sorted(p.name for p in out.iterdir()) == sorted([*OUTPUT_NAMES, "notes.txt"])
     assert (out / "notes.txt").read_text() == "mine"
     assert json.loads((out / "summary.json").read_text())["executor"] == "ray"
     assert _results(_rows(out / "networks.csv")) == _results(_rows(searched / "networks.csv"))
+    # a unit's error is reported as the local executor reports it: its own message, no Ray traceback
+    assert failed_code == 1
+    assert err.splitlines()[0] == "daror hpsearch: failed: injected: the relu unit failed"
+    assert "Traceback" not in err
+    assert not failed.exists()
 
 
 # --- refusals: exit code 2, one line, nothing written --------------------------------------------
@@ -566,9 +587,12 @@ def _wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
     return False
 
 
-#: Loaded at the start of every interpreter of the test (``sitecustomize``), the workers included: a
-#: tanh network's training fails, as a unit can fail in a worker (an error of XLA, of memory).
-_FAIL_TANH = """
+#: Loaded at the start of every interpreter that has it on its path (``sitecustomize``), the
+#: workers included: training a network of the activation ``DAROR_TEST_FAILING_ACTIVATION`` names
+#: fails, as a unit can fail in a worker (an error of XLA, of memory).
+_FAILING_UNIT = """
+import os
+
 import daror_runtime.neural.training as training
 from daror_runtime.errors import DarorError
 
@@ -576,8 +600,8 @@ _train_group = training.train_group
 
 
 def train_group(spec, *args, **kwargs):
-    if spec.activation == "tanh":
-        raise DarorError("injected: the tanh unit failed")
+    if spec.activation == os.environ.get("DAROR_TEST_FAILING_ACTIVATION"):
+        raise DarorError(f"injected: the {spec.activation} unit failed")
     return _train_group(spec, *args, **kwargs)
 
 
@@ -595,16 +619,17 @@ if "--multiprocessing-fork" in sys.argv:
 """
 
 
-def _with_sitecustomize(tmp_path: Path, source: str) -> dict[str, str]:
+def _with_sitecustomize(tmp_path: Path, source: str, **variables: str) -> dict[str, str]:
     """An environment whose interpreters (the command's and its workers') run ``source`` first."""
     site = tmp_path / "site"
     site.mkdir()
     (site / "sitecustomize.py").write_text(source)
-    return {**os.environ, "PYTHONPATH": str(site)}
+    return {**os.environ, "PYTHONPATH": str(site), **variables}
 
 
 def _start(folder: Path, tmp_path: Path, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
-    """``daror hpsearch`` (the long grid, 2 workers, out: ``tmp_path/out``) in a fresh process."""
+    """``daror hpsearch`` (the long grid, 2 workers, out: ``tmp_path/out``) in a fresh process; its
+    temporary folder (the data file for the workers) in ``tmp_path``: a killed command leaves it."""
     argv = _argv(folder, tmp_path / "out", "--workers", "2")
     argv[argv.index("--grid") + 1] = str(folder / "long.yaml")
     return subprocess.Popen(
@@ -613,14 +638,16 @@ def _start(folder: Path, tmp_path: Path, env: dict[str, str] | None = None) -> s
         stderr=subprocess.PIPE,
         text=True,
         cwd=tmp_path,
-        env=env,
+        env={**(os.environ if env is None else env), "TMPDIR": str(tmp_path)},
     )
 
 
 def test_a_failing_unit_ends_the_search_with_its_error_and_nothing_written(folder: Path, tmp_path: Path) -> None:
     """The first unit fails while the others wait in the queue to the workers: the command ends the
     workers and reports the error."""
-    process = _start(folder, tmp_path, _with_sitecustomize(tmp_path, _FAIL_TANH))
+    process = _start(
+        folder, tmp_path, _with_sitecustomize(tmp_path, _FAILING_UNIT, DAROR_TEST_FAILING_ACTIVATION="tanh")
+    )
     try:
         _, err = process.communicate(timeout=60)
     finally:
@@ -688,6 +715,7 @@ def test_ctrl_c_ends_the_workers_and_writes_nothing(command: tuple[subprocess.Po
     assert process.returncode == 130
     assert "interrupted" in err
     assert not out.exists()
+    assert not list(out.parent.glob("daror-hpsearch-*"))  # the data file removed
     assert all(_gone(pid) for pid in workers)
 
 
@@ -698,3 +726,4 @@ def test_the_workers_end_when_the_command_is_killed(command: tuple[subprocess.Po
     process.wait()
     assert _wait_until(lambda: all(_gone(pid) for pid in workers), 5)
     assert not out.exists()
+    assert len(list(out.parent.glob("daror-hpsearch-*"))) == 1  # the data file, left behind (documented)

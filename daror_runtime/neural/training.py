@@ -482,9 +482,9 @@ def train_group(
     n_fold = len(settings.held_out())
 
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    known = _compiled.cache_info().currsize
+    known = _compiled.cache_info().misses
     program = _compiled(spec, settings, len(pairs), prepared.q.shape[0], n_fold, train_mask.shape[0])
-    compile_s = time.perf_counter() - wall0 if _compiled.cache_info().currsize > known else 0.0
+    compile_s = time.perf_counter() - wall0 if _compiled.cache_info().misses > known else 0.0
     s = prepared.scaling
     out = program(
         init, lam, prepared.q, prepared.tau, prepared.torque_scale,

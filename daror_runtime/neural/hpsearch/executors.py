@@ -24,6 +24,7 @@ finish are short). Each finished unit is passed to ``on_done`` as it arrives.
 from __future__ import annotations
 
 import importlib
+import logging
 import multiprocessing
 import multiprocessing.context
 import os
@@ -175,15 +176,21 @@ def run_ray(
         ExtraNotInstalledError: Ray is not installed.
         WorkerDiedError: a Ray worker died.
         KeyboardInterrupt: Ctrl-C (the tasks are cancelled first).
-        Whatever a unit raised (Ray's task error).
+        Whatever a unit raised (the unit's own exception, as the local executor raises it).
     """
     ray = require_ray()
     started = not ray.is_initialized()
-    if started:
+    if started:  # Ray's own messages at ERROR only: the command's output is its progress and its result
         if address is None:
-            ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+            ray.init(
+                address="local",
+                num_cpus=workers,
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level=logging.ERROR,
+            )
         else:
-            ray.init(address=address, log_to_driver=False)
+            ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(train_unit)
         data_ref = ray.put(data)
@@ -201,8 +208,12 @@ def run_ray(
                         ray.exceptions.NodeDiedError,
                     ):
                         raise WorkerDiedError(
-                            "a Ray worker died while training (killed, or out of memory); nothing was written"
+                            "a Ray worker died (killed, or out of memory); nothing was written"
                         ) from None
+                    except ray.exceptions.RayTaskError as exc:  # the unit's own error, not Ray's traceback text
+                        if isinstance(exc.cause, BaseException):
+                            raise exc.cause from None
+                        raise
                     done.append(result)
                     on_done(result)
         except BaseException:
