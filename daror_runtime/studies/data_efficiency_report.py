@@ -18,8 +18,7 @@ from matplotlib.figure import Figure
 from rich.table import Table
 
 from daror_runtime.studies.data_efficiency import DataEfficiencyResult
-from daror_runtime.studies.report_format import cell, png_bytes
-from daror_runtime.util.atomic import atomic_path, write_text_atomic
+from daror_runtime.studies.report_format import cell, png_bytes, write_study_files
 from daror_runtime.util.outputs import OutputPathError
 
 JSON_NAME = "data_efficiency.json"
@@ -193,11 +192,4 @@ def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Pa
     document = json.dumps(result.to_dict(), indent=2, allow_nan=False) + "\n"
     png = render_png(result)
     markdown = render_markdown(result)
-    json_path, png_path, md_path = output_paths(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    with atomic_path(png_path) as tmp:
-        tmp.write_bytes(png)
-    write_text_atomic(md_path, markdown)
-    # The JSON last: its presence marks a complete set for scripts that poll the directory.
-    write_text_atomic(json_path, document)
-    return json_path, png_path, md_path
+    return write_study_files(folder, output_paths(folder), document, png, markdown)

@@ -15,8 +15,7 @@ from matplotlib.figure import Figure
 from rich.table import Table
 
 from daror_runtime.studies.protocol_study import DesignedRun, ProtocolStudyResult, RandomSubsets
-from daror_runtime.studies.report_format import cell, png_bytes
-from daror_runtime.util.atomic import atomic_path, write_text_atomic
+from daror_runtime.studies.report_format import cell, png_bytes, write_study_files
 from daror_runtime.util.outputs import OutputPathError
 
 JSON_NAME = "protocol_study.json"
@@ -168,10 +167,4 @@ def write_outputs(result: ProtocolStudyResult, out_dir: Path | str) -> tuple[Pat
     document = json.dumps(result.to_dict(), indent=2, allow_nan=False) + "\n"
     png = render_png(result)
     markdown = render_markdown(result)
-    json_path, png_path, md_path = output_paths(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    with atomic_path(png_path) as tmp:
-        tmp.write_bytes(png)
-    write_text_atomic(md_path, markdown)
-    write_text_atomic(json_path, document)
-    return json_path, png_path, md_path
+    return write_study_files(folder, output_paths(folder), document, png, markdown)
