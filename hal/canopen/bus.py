@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -42,18 +43,18 @@ class Frame(NamedTuple):
     t_s: float
 
 
-class FrameSource:
+class FrameSource(ABC):
     """Frames that arrived since the last :meth:`drain`."""
 
+    @abstractmethod
     def drain(self) -> list[Frame]:
         """Every frame received since the last call, in arrival order.
 
         Raises:
             HalError: the receiving side failed (the message says how); latched, raised once.
         """
-        raise NotImplementedError
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - a default: a polled source has nothing to stop
         """Stop receiving (a thread is stopped; a polled source does nothing)."""
 
 
