@@ -1,12 +1,13 @@
 """The web console (issue 15): what serving a browser does to the 1 kHz loop in real time.
 
 The loop at 1 kHz on its thread (SCHED_FIFO when granted), on the simulated plant, in its first
-state, for the same time without and with the web console: the server (uvicorn on its own thread),
-its sampler (50 Hz from ``Runtime.last_sample``), two browsers' worth of websocket clients reading
-the live stream (20 messages/s each) and a button press (a console line, ``status``) every 500 ms.
+state, for the same time without and with the web console: the server (its own process), the
+bridge in the runtime's process (a row into the shared ring every 20 ms and the status every
+200 ms, from the service thread), two browsers' worth of websocket clients reading the live
+stream (20 messages/s each) and a button press (a console line, ``status``) every 2 s.
 Every tick's lateness is kept (a clock that records what the real-time clock returns); the figures
-are the mean, the 99th and 99.9th percentiles and the worst, and the ratio with/without of the mean
-and the 99th percentile (target: within 5 %).
+are the mean, the 99th and 99.9th percentiles and the worst, and the ratios with/without
+(target: within 5 %).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def read(slot):
             received[slot] += len(json.loads(socket.recv(timeout=5.0))["rows"])
 def press():
     while time.monotonic() < end:
-        time.sleep(0.5)
+        time.sleep(2.0)
         body = json.dumps({"line": "status"}).encode()
         request = urllib.request.Request(url + "/api/command", data=body, headers={"Content-Type": "application/json"})
         urllib.request.urlopen(request, timeout=5.0).read()
@@ -119,39 +120,69 @@ def measure(seconds: float, web: bool, clients: int = 2, press: bool = True) -> 
     }
 
 
+def _median(runs: list[dict[str, float]], key: str) -> float:
+    return float(np.median([run[key] for run in runs]))
+
+
+def _spread(runs: list[dict[str, float]], key: str, scale: float = 1e3) -> str:
+    values = [run[key] * scale for run in runs]
+    return f"{min(values):.2f}-{max(values):.2f}"
+
+
 def bench_web_tick_lateness(quick: bool) -> list[BenchFigure]:
-    seconds = 5.0 if quick else 30.0
-    base = measure(seconds, web=False)
-    served = measure(seconds, web=True)
+    """Rounds of without (A), with (B) and without again (A'), interleaved, the order rotating: the VM drifts.
+
+    The mean lateness of a 1 kHz loop is well under a microsecond and dominated by a handful of
+    scheduler stalls per run, which come and go with the machine's other tenants: one run each
+    way cannot tell 5 %. So the figures are medians over rounds of each run's mean, 99th and
+    99.9th percentile; the ratios are of those medians, B/A, and A'/A beside them: what the same
+    loop without a web console scores against itself, the resolution of the comparison.
+    """
+    rounds, seconds = (2, 5.0) if quick else (6, 10.0)
+    runs: dict[str, list[dict[str, float]]] = {"A": [], "B": [], "A'": []}
+    orders = (("A", "B", "A'"), ("B", "A'", "A"), ("A'", "A", "B"))
+    for k in range(rounds):
+        for label in orders[k % 3]:
+            runs[label].append(measure(seconds, web=label == "B"))
     figures = []
-    for label, figures_of in (("without the web console", base), ("with the web console streaming", served)):
+    for label, what in (
+        ("A", "without the web console"),
+        ("B", "with the web console streaming"),
+        ("A'", "without it again (control)"),
+    ):
+        group = runs[label]
         note = (
-            f"{seconds:g} s, {figures_of['ticks']:.0f} ticks: p99.9 {figures_of['p999_ms']:.3f} ms, worst"
-            f" {figures_of['worst_ms']:.3f} ms, {figures_of['overruns']:.0f} overruns,"
-            f" {figures_of['missed']:.0f} missed deadlines, {figures_of['faults']:.0f} faults"
+            f"{rounds} runs of {seconds:g} s interleaved; per-run mean {_spread(group, 'mean_ms')} us,"
+            f" p99 {_spread(group, 'p99_ms')} us; median p99.9 {_median(group, 'p999_ms'):.3f} ms, worst"
+            f" {max(run['worst_ms'] for run in group):.3f} ms, {sum(run['overruns'] for run in group):.0f} overruns,"
+            f" {sum(run['faults'] for run in group):.0f} faults"
         )
-        if figures_of is served:
-            note += f"; {figures_of['rows_per_s']:.0f} rows/s to each of 2 browsers"
+        if label == "B":
+            note += f"; {min(run['rows_per_s'] for run in group):.0f}+ rows/s to each of 2 browsers"
         figures.append(
             BenchFigure(
-                f"1 kHz real time, {label}: tick lateness mean (p99)",
-                figures_of["mean_ms"],
-                figures_of["p99_ms"],
+                f"1 kHz real time, {what} ({label}): tick lateness mean (p99), median of runs",
+                _median(group, "mean_ms"),
+                _median(group, "p99_ms"),
                 "ms",
-                int(figures_of["ticks"]),
+                len(group),
                 note=note,
             )
         )
-    figures.append(
-        BenchFigure(
-            "web console: tick lateness with / without, mean (p99)",
-            served["mean_ms"] / base["mean_ms"],
-            served["p99_ms"] / base["p99_ms"],
-            "ratio",
-            1,
-            target=1.05,
+    for what, key in (("mean", "mean_ms"), ("p99", "p99_ms"), ("p99.9", "p999_ms")):
+        base = _median(runs["A"], key)
+        control = _median(runs["A'"], key) / base
+        figures.append(
+            BenchFigure(
+                f"web console: tick lateness {what}, B/A (median of runs)",
+                _median(runs["B"], key) / base,
+                _median(runs["B"], key) / base,
+                "ratio",
+                rounds,
+                target=1.05,
+                note=f"control A'/A: {control:.2f}",
+            )
         )
-    )
     return figures
 
 

@@ -851,10 +851,12 @@ def _console_session(
             run_interactive(session, history_path(), start=runtime.start_background)
             reason = "quit"
         else:
-            code = run_piped(session, sys.stdin) if web is None else 0
-            if web is not None:  # the page is the console: until Ctrl-C
-                web.serve_until_interrupted()
-            reason = "quit or the end of the input"
+            if web is None:
+                code = run_piped(session, sys.stdin)
+                reason = "quit or the end of the input"
+            else:  # the page is the console: until Ctrl-C, or until the server is lost (nothing would control the robot)
+                reason = web.serve_until_interrupted()
+                console.print(f"web console: {reason}", soft_wrap=True)
     except KeyboardInterrupt:
         runtime.shutdown("interrupted by the operator (Ctrl-C)")
         code = 130

@@ -110,6 +110,14 @@ class Clock(ABC):
     def wait(self) -> TickTiming:
         """Return at the start of the next tick (a clock never started starts at its first wait)."""
 
+    def until_quiet_s(self) -> float:
+        """Seconds until the loop is between ticks and not about to wake (0: now, or no such time).
+
+        Other threads of the loop's process do their short work then (:meth:`Runtime.add_publisher`):
+        the loop does not need the interpreter, so they never make it wait for it. Virtual time: 0.
+        """
+        return 0.0
+
     def advance(self, ticks: int) -> None:
         """Count ``ticks`` ticks that ran on their deadlines without :meth:`wait` (a lock-step batch).
 
@@ -192,6 +200,20 @@ class RealTimeClock(Clock):
     def start(self) -> None:
         self._reset_totals()
         self._next = -1
+
+    def until_quiet_s(self) -> float:
+        """Seconds until the quiet part of the period: from 35 % of it to 5 % before the spin starts.
+
+        The loop wakes ``spin_s`` before a deadline and holds the interpreter until its tick's work
+        is done (0.07 ms on average on the simulated plant at 1 kHz, measured); between the two it
+        sleeps. 0 before the grid is anchored, or when the period has no quiet part.
+        """
+        period = self.period_s
+        start, end = 0.35 * period, period - self.spin_s - 0.05 * period
+        if self._next <= 1 or end <= start:
+            return 0.0
+        phase = (self._now() - self._t0) % period
+        return 0.0 if start <= phase <= end else (start - phase) % period
 
     def wait(self) -> TickTiming:
         index = self._next

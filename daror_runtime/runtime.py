@@ -28,6 +28,7 @@ hardware.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import json
@@ -61,7 +62,7 @@ from hal.capabilities import SimulatedWorld
 from hal.errors import HalError
 from hal.interface import Command, DriveState, Hal, Sample
 from hal.isb import IsbLimits
-from hal.robot import RobotDescription
+from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -73,6 +74,8 @@ __all__ = ["RequestRefusedError", "Runtime", "TorqueOff"]
 REALTIME_SWITCH_INTERVAL_S = 1e-4
 #: How often the service thread collects finished work and announces faults while the loop runs (s).
 SERVICE_PERIOD_S = 0.02
+#: Sleeps the service thread takes at most to reach the quiet part of a period (Clock.until_quiet_s).
+QUIET_TRIES = 3
 #: Service periods between two collections of the garbage collector's young generations (1 s).
 YOUNG_COLLECTION_EVERY = 50
 
@@ -128,6 +131,7 @@ class Runtime:
         self._service_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._thread_error: BaseException | None = None
+        self._publishers: list[Callable[[], None]] = []
         self._switch_interval_s = sys.getswitchinterval()
         self._gc_was_enabled = True
 
@@ -183,6 +187,40 @@ class Runtime:
     def model_in_use(self) -> SelectedModel | None:
         """The model validated for this pilot and handed to compensation, None before one is."""
         return self._core.signals.model
+
+    @property
+    def torque_reference_nm(self) -> FloatArray | None:
+        """The spring torques (Nm) compensation asked for in the last tick: support x the model's torque (with the
+        entry's handover); None outside compensation. A new array every tick: safe to read from any thread."""
+        core = self._core
+        if core.supervisor.state.mode != "compensation":
+            return None
+        return core.modes.compensation.last_reference_nm
+
+    def add_publisher(self, publish: Callable[[], None]) -> None:
+        """Call ``publish()`` from the service thread every service period (20 ms) while the loop runs in the background.
+
+        For displays (the web console): it runs outside the tick, in a thread that already wakes
+        (no other thread to schedule beside the loop), and must return in microseconds without
+        blocking. If it raises, it is removed, the error is logged and announced (never swallowed).
+        """
+        self._publishers.append(publish)
+
+    def remove_publisher(self, publish: Callable[[], None]) -> None:
+        """Stop calling ``publish`` (no error if it is not registered)."""
+        with contextlib.suppress(ValueError):
+            self._publishers.remove(publish)
+
+    def _publish(self) -> None:
+        for publish in tuple(self._publishers):
+            try:
+                publish()
+            except Exception as exc:  # a display's error: stop that display, say why, the loop goes on
+                self.remove_publisher(publish)
+                log.exception("publisher removed", publisher=repr(publish))
+                self._core.announcements.announce(
+                    AnnouncementKind.SESSION, f"a display stopped receiving data: {exc}", self._core.t_s()
+                )
 
     def drain_announcements(self) -> list[Announcement]:
         """What happened since the last call (transitions, faults, finished work), oldest first."""
@@ -391,8 +429,19 @@ class Runtime:
 
         def service() -> None:
             n = 0
+            until_quiet = self._core.clock.until_quiet_s
             while not self._stop.wait(SERVICE_PERIOD_S):
+                # between two ticks, in the part of the period where the loop sleeps: this thread's
+                # work then never makes the loop wait for the interpreter (a sleep re-checked: it may
+                # overshoot the window)
+                for _ in range(QUIET_TRIES):
+                    delay = until_quiet()
+                    if delay <= 0.0:
+                        break
+                    time.sleep(delay)
                 self._service(0)
+                if self._publishers:
+                    self._publish()
                 n += 1
                 if n % YOUNG_COLLECTION_EVERY == 0:
                     gc.collect(1)  # the young generations only: well under a millisecond

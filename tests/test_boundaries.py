@@ -403,6 +403,7 @@ CONSOLE_MAY_IMPORT = {
     "daror_runtime.fsm.signals",  # the checklists' names
     "daror_runtime.fsm.guards",  # the guards' descriptions (the guide)
     "daror_runtime.fsm.spec",  # the states' names and modes (the grammar)
+    "daror_runtime.fsm.diagram",  # the spec's diagram, laid out for the web console
     "daror_runtime.models.registry",  # the model kinds' names
     "daror_runtime.identification.settings",  # the sweep's waypoint settings
     "daror_runtime.identification.waypoints",  # the sweep's waypoints
@@ -441,7 +442,8 @@ def test_the_session_never_imports_the_console_or_the_runtime() -> None:
 FACADE = {
     # what the session is
     "session_id", "session_dir", "settings", "spec", "description", "rate_hz", "lock_step", "world",
-    "state_name", "last_sample", "model_in_use", "drain_announcements", "on_transition",
+    "state_name", "last_sample", "torque_reference_nm", "model_in_use", "drain_announcements", "on_transition",
+    "add_publisher", "remove_publisher",  # displays fed from the service thread (the web console)
     # lifecycle and driving the loop
     "open", "shutdown", "close", "run_ticks", "run_until", "pass_time", "background", "busy",
     "jobs_pending", "at_rest", "wait", "start_background", "stop_background",

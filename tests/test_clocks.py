@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from daror_runtime.clocks import LockStepClock, RealTimeClock
 from daror_runtime.errors import ConfigurationError
@@ -148,3 +150,30 @@ def test_a_real_time_clock_never_started_starts_at_its_first_wait() -> None:
     assert [t.index for t in timings] == [0, 1, 2]
     assert not any(t.overrun for t in timings)
     assert clock.stats.missed_deadlines == 0
+
+
+@given(phase_fraction=st.floats(0.0, 0.999), ticks=st.integers(2, 50))
+def test_until_quiet_lands_in_the_part_of_the_period_where_the_loop_sleeps(phase_fraction: float, ticks: int) -> None:
+    """Other threads of the loop's process wait for the quiet part (after the tick's work, before the spin)."""
+    fake = FakeTime(cost_s=1e-7)
+    clock = RealTimeClock(0.001, spin_s=3e-4, now=fake.now, sleep=fake.sleep)
+    clock.start()
+    assert clock.until_quiet_s() == 0.0  # no grid yet: nothing to avoid
+    for _ in range(ticks):
+        timing = clock.wait()
+    deadline = fake.t - timing.lateness_s  # the spin ends within a clock reading after the deadline
+    fake.t = deadline + phase_fraction * 0.001
+    delay = clock.until_quiet_s()
+    assert 0.0 <= delay < 0.001
+    arrived = ((fake.t + delay - deadline) % 0.001) / 0.001
+    assert 0.35 - 1e-3 <= arrived <= 0.65 + 1e-3  # after 0.35 ms of tick work, before the spin at 0.7 ms
+    if 0.351 <= phase_fraction <= 0.649:
+        assert delay == 0.0
+
+
+def test_lock_step_is_always_quiet() -> None:
+    clock = LockStepClock(0.001)
+    clock.start()
+    clock.wait()
+    clock.wait()
+    assert clock.until_quiet_s() == 0.0

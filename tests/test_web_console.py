@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -31,9 +33,11 @@ from typing import Any
 import pytest
 
 from daror_runtime.clocks import LockStepClock, RealTimeClock
+from daror_runtime.console.web.page import rows_json
+from daror_runtime.console.web.ring import RowRing
 from daror_runtime.console.web.serve import WebServer, is_loopback, start_web
-from daror_runtime.console.web.stream import AnnouncementHub, LiveStream
 from daror_runtime.console.world import SimWorld
+from daror_runtime.errors import UsageError
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.settings import SessionSettings
 from hal.config import hal_config
@@ -160,7 +164,7 @@ def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: 
         assert "refused" in refused["answer"]
         assert not _post(server.url, "quit")["ok"]  # the session ends at the terminal only
         assert runtime.state_name == "safety_check"
-        _, lines = server.hub.since(0)
+        lines = [text for _, text in server.hub.since(0)]
         assert any("(web) > support 7" in line for line in lines)
         assert any("(web) > confirm installation" in line for line in lines)
         said = [a.text for a in terminal()]  # the terminal drains the same announcements
@@ -172,22 +176,104 @@ def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: 
         runtime.close()
 
 
-def test_the_live_ring_is_bounded_and_a_late_reader_catches_up(tmp_path: Path) -> None:
-    runtime = _runtime(tmp_path / "session", realtime=False)
-    stream = LiveStream(runtime, AnnouncementHub(runtime), sample_hz=50.0, window_s=1.0)  # 50 rows kept
+def test_the_live_ring_is_bounded_and_a_late_reader_catches_up() -> None:
+    """The shared ring: rows in order, the oldest dropped past the window, a reader in another mapping."""
+    ring, fd = RowRing.create(capacity=50, n_joints=4)
+    reader = RowRing.attach(os.dup(fd), capacity=50, n_joints=4)  # as the server's process maps it
+    os.close(fd)
     try:
-        for _ in range(120):
-            runtime.run_ticks(1)
-            stream.sample_once()
-        cursor, rows = stream.since(0, limit=30)
-        assert len(rows) == 30
-        assert cursor == 120 - 50 + 30
-        cursor, rows = stream.since(cursor, limit=30)
-        assert len(rows) == 20
+        for k in range(120):
+            reference = None if k < 100 else [float(k)] * 4
+            ring.push(k * 1e-3, [0.1 * k, 0.0, 0.0, 0.5], [1.0, 2.0, 3.0, float(k)], reference)
+        assert reader.written == 120
+        cursor, rows = reader.since(0, limit=30)  # 8 rows of margin behind the writer: the last 42 kept
+        assert cursor == 120 - 42 + 30
+        assert rows[:, 0].tolist() == [k * 1e-3 for k in range(78, 108)]
+        cursor, rows = reader.since(cursor, limit=30)
+        assert len(rows) == 12
         assert cursor == 120
-        assert stream.since(cursor) == (120, [])
-        row = json.loads(rows[-1])
-        assert len(row) == 13  # t, 4 angles, 4 measured torques, 4 commands
+        again, rows_none = reader.since(cursor, limit=30)
+        assert again == 120
+        assert len(rows_none) == 0
+        row = json.loads(rows_json(rows[-1:], 4)[0])
+        assert len(row) == 13  # t, 4 angles (deg), 4 measured torques, 4 references (Nm)
+        assert row[1] == pytest.approx(math.degrees(11.9), abs=1e-3)
+        assert row[8] == 119.0
+        assert row[9:] == [119.0] * 4
+        _, early = reader.since(70, limit=1)  # outside compensation the reference is null, not NaN
+        assert json.loads(rows_json(early, 4)[0])[9:] == [None] * 4
+    finally:
+        reader.close()
+        ring.close()
+
+
+def test_a_busy_port_is_one_line_and_starts_nothing(tmp_path: Path) -> None:
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    taken = socket.create_server(("127.0.0.1", 0))
+    port = taken.getsockname()[1]
+    try:
+        with pytest.raises(UsageError, match=f"--port {port}: the web console cannot listen there"):
+            start_web(runtime, SimWorld(runtime.world), port=port)
+        assert not (tmp_path / "session" / "web-server.log").exists()  # no server process was started
+    finally:
+        taken.close()
+        runtime.shutdown("test done")
+        runtime.close()
+
+
+def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tmp_path: Path) -> None:
+    """Rows and status reach the server while the loop runs; a server that dies is reported, the robot goes on."""
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    server = start_web(runtime, SimWorld(runtime.world), port=0)
+    runtime.start_background(realtime=False)
+    try:
+        deadline = time.monotonic() + 20.0
+        first = _get(server.url + "/api/status")[1]["t_s"]
+        while time.monotonic() < deadline and _get(server.url + "/api/status")[1]["t_s"] == first:
+            time.sleep(0.1)
+        assert _get(server.url + "/api/status")[1]["t_s"] != first  # the status is published (5 Hz)
+        assert server.ring.written > 0  # rows are published (50 Hz)
+        state = runtime.state_name
+        server.process.kill()  # the server dies (not a browser leaving: the page's only way to the robot)
+        started = time.monotonic()
+        reason = server.serve_until_interrupted()
+        assert time.monotonic() - started < 5.0
+        assert "web server exited" in reason
+        assert "web-server.log" in reason
+        assert runtime.state_name == state  # nothing changed on the robot
+        assert runtime.snapshot().faults == []
+    finally:
+        server.stop()
+        runtime.shutdown("test done")
+        runtime.close()
+
+
+def test_a_publisher_that_fails_is_removed_logged_and_announced(tmp_path: Path) -> None:
+    """Runtime.add_publisher: called from the service thread (about 50 Hz); an error stops that display only."""
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    calls: list[float] = []
+
+    def display() -> None:
+        calls.append(time.monotonic())
+        if len(calls) == 20:
+            raise ValueError("the display's own bug")
+
+    runtime.add_publisher(display)
+    runtime.start_background(realtime=False)
+    try:
+        deadline = time.monotonic() + 10.0
+        said: list[str] = []
+        while time.monotonic() < deadline and not any("display stopped" in text for text in said):
+            said += [a.text for a in runtime.drain_announcements()]
+            time.sleep(0.05)
+        assert any("a display stopped receiving data: the display's own bug" in text for text in said)
+        count = len(calls)
+        time.sleep(0.3)
+        assert len(calls) == count == 20  # removed: never called again
+        assert 20.0 <= (count - 1) / (calls[-1] - calls[0]) <= 60.0  # every service period (20 ms)
+        ticks = runtime.snapshot().loop.ticks
+        time.sleep(0.2)
+        assert runtime.snapshot().loop.ticks > ticks  # the loop went on
     finally:
         runtime.shutdown("test done")
         runtime.close()
@@ -383,6 +469,7 @@ def test_a_session_from_startup_to_compensation_by_clicking(
     time.sleep(2.0)
     rate = (page.js("return window.daror.rowsReceived") - before) / (time.monotonic() - t0)
     assert rate >= 20.0, rate
+    assert page.js("return window.daror.referenceRows") > 0  # the model's torque is plotted in compensation
     page.shot("web_console_compensation")
     assert "compensation" in page.text("log")
     # a second browser window sees the same state and log

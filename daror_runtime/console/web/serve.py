@@ -1,27 +1,45 @@
-"""Serving the web console next to a session: uvicorn on its own thread, the stream on another.
+"""Serving the web console beside a session: the server in its own process, a thin bridge in the runtime's.
 
-``daror console --web`` (``daror_runtime/cli.py``) opens the runtime, starts its loop in real time,
-then :func:`start_web`; the text console may run at the terminal meanwhile, on the same runtime and
-the same log (:meth:`WebServer.terminal_announcements`). Closing a browser changes nothing on the
-robot; stopping the server neither (the session ends at the terminal: quit or Ctrl-C).
+``daror console --web`` (``daror_runtime/cli.py``) opens the runtime, then :func:`start_web`, then
+starts the loop; the text console may run at the terminal meanwhile, on the same runtime and the
+same log (:attr:`WebServer.hub`). The HTTP and websocket work (uvicorn, FastAPI, JSON) runs in a
+process of its own (:mod:`daror_runtime.console.web.server`), so it never holds the interpreter
+the control loop needs; the runtime's process keeps only :class:`~daror_runtime.console.web.bridge.WebBridge`
+(docs/console.md, "What the page costs the loop"). Closing a browser changes nothing on the robot;
+neither does the server stopping (the session ends at the terminal: quit or Ctrl-C).
 """
 
 from __future__ import annotations
 
 import ipaddress
+import os
+import pickle
 import secrets
-import threading
+import socket
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 
 from daror_runtime.console.web import require_web_extra
-from daror_runtime.console.web.stream import AnnouncementHub, LiveStream, raise_priority
+from daror_runtime.console.web.bridge import MAX_MESSAGE_BYTES, AnnouncementHub, WebBridge
+from daror_runtime.console.web.ring import RowRing
 from daror_runtime.console.world import SimWorld
-from daror_runtime.errors import UsageError
+from daror_runtime.errors import DarorError, UsageError
+from daror_runtime.fsm.diagram import layout
 from daror_runtime.runtime import Runtime
+from hal.robot import N_JOINTS
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
+#: Live rows per second the bridge writes (>= 20 Hz to the browser): one per service period.
+SAMPLE_HZ = 50.0
+#: Seconds of live rows the ring keeps (the plots show the last 20 s).
+WINDOW_S = 30.0
+#: Seconds the server process gets to import and serve.
+START_TIMEOUT_S = 30.0
+#: The server process's output, in the session's folder.
+SERVER_LOG = "web-server.log"
 
 
 def is_loopback(host: str) -> bool:
@@ -36,17 +54,18 @@ def is_loopback(host: str) -> bool:
 
 @dataclass
 class WebServer:
-    """A running web console: its address, its token (None on the loopback) and how to stop it."""
+    """A running web console: its address, its token (None on the loopback), and how to stop it."""
 
     url: str
     token: str | None
-    stream: LiveStream
-    _server: object
-    _thread: threading.Thread
+    bridge: WebBridge
+    process: subprocess.Popen[bytes]
+    ring: RowRing
 
     @property
     def hub(self) -> AnnouncementHub:
-        return self.stream.hub
+        """The shared log (the terminal's console drains :meth:`AnnouncementHub.terminal_reader`)."""
+        return self.bridge.hub
 
     @property
     def address(self) -> str:
@@ -54,15 +73,34 @@ class WebServer:
         return f"{self.url}/?token={self.token}" if self.token else f"{self.url}/"
 
     def stop(self) -> None:
-        """Stop serving (the session and its loop go on)."""
-        self._server.should_exit = True  # type: ignore[attr-defined]
-        self._thread.join(timeout=5.0)
-        self.stream.stop()
+        """Stop serving (the session and its loop go on): the bridge closes, the server process exits."""
+        self.bridge.close()
+        try:
+            self.process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait(timeout=5.0)
+        self.ring.close()
 
-    def serve_until_interrupted(self) -> None:
-        """Block until Ctrl-C (KeyboardInterrupt propagates: the caller ends the session)."""
-        while self._thread.is_alive():
+    def serve_until_interrupted(self) -> str:
+        """Block until Ctrl-C (KeyboardInterrupt propagates) or the server is lost; then why it was lost."""
+        while self.process.poll() is None and self.bridge.lost is None:
             time.sleep(0.2)
+        return f"{self.bridge.lost or 'the web server exited'} (see {SERVER_LOG})"
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+        return socket.create_server((host, port), family=family, backlog=128)
+    except (OSError, OverflowError) as exc:
+        why = getattr(exc, "strerror", None) or str(exc)
+        raise UsageError(f"--host {host} --port {port}: the web console cannot listen there ({why})") from None
+
+
+def fsm_page(runtime: Runtime) -> dict[str, object]:
+    """What the page draws the state machine from: the spec's diagram, laid out."""
+    return layout(runtime.spec)
 
 
 def start_web(
@@ -74,65 +112,79 @@ def start_web(
 ) -> WebServer:
     """Serve the web console of ``runtime`` on ``host:port`` (port 0: any free port) until :meth:`WebServer.stop`.
 
-    Beyond the loopback a token is required (``token`` or a new random one).
+    Beyond the loopback a token is required (``token`` or a new random one). Call it before the
+    loop starts: starting a process beside a running loop costs it a stall.
 
     Raises:
         WebExtraMissingError: FastAPI, uvicorn or websockets are not installed.
         UsageError: the address cannot be bound.
+        DarorError: the server process did not start (its log names why).
     """
     require_web_extra()
-    import uvicorn
-
-    from daror_runtime.console.web.app import WebConsole, create_app
-
     if not is_loopback(host) and token is None:
         token = secrets.token_urlsafe(18)
-    stream = LiveStream(runtime, AnnouncementHub(runtime))
-    web = WebConsole(runtime, world, stream, token=token)
-    config = uvicorn.Config(
-        create_app(web), host=host, port=port, log_level="warning", access_log=False, lifespan="off", ws="websockets"
-    )
-    server = uvicorn.Server(config)
-    server.install_signal_handlers = lambda: None  # type: ignore[method-assign]  # Ctrl-C is the session's
-
-    def run() -> None:
-        raise_priority()
-        server.run()
-
-    thread = threading.Thread(target=run, name="daror-web", daemon=True)
-    stream.start()
-    thread.start()
-    deadline = time.monotonic() + 10.0
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            stream.stop()
-            raise UsageError(f"--host {host} --port {port}: the web console could not listen there")
-        time.sleep(0.02)
-    bound = port
-    for s in getattr(server, "servers", []):
-        for sock in s.sockets:
-            bound = sock.getsockname()[1]
+    listen = _listen(host, port)
+    bound = listen.getsockname()[1]
+    n_joints = N_JOINTS
+    ring, ring_fd = RowRing.create(int(SAMPLE_HZ * WINDOW_S), n_joints)
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    for end in (ours, theirs):
+        end.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 2 * MAX_MESSAGE_BYTES)
+        end.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2 * MAX_MESSAGE_BYTES)
+    runtime.session_dir.mkdir(parents=True, exist_ok=True)
+    log_path = runtime.session_dir / SERVER_LOG
+    with open(log_path, "ab") as output:
+        fds = (theirs.fileno(), ring_fd, listen.fileno())
+        process = subprocess.Popen(
+            [sys.executable, "-m", "daror_runtime.console.web.server", *map(str, fds)],
+            pass_fds=fds, stdin=subprocess.DEVNULL, stdout=output, stderr=subprocess.STDOUT,
+            start_new_session=True,  # Ctrl-C at the terminal is the session's, not the server's
+        )  # fmt: skip
+    theirs.close()
+    listen.close()
+    os.close(ring_fd)
+    hello = {
+        "token": token,
+        "fsm": fsm_page(runtime),
+        "has_world": world is not None,
+        "capacity": ring.capacity,
+        "n_joints": n_joints,
+        "status": runtime.snapshot(),
+        "notes": world.notes(runtime.settings) if world is not None else [],
+    }
+    try:
+        ours.send(pickle.dumps(("hello", hello), protocol=5))
+        _await_ready(ours, process, log_path)
+    except BaseException:
+        process.kill()
+        process.wait(timeout=5.0)
+        ours.close()
+        ring.close()
+        raise
+    bridge = WebBridge(runtime, world, ours, ring, AnnouncementHub(runtime))
+    bridge.start()
     shown = f"[{host}]" if ":" in host else host
-    served = WebServer(f"http://{shown}:{bound}", token, stream, server, thread)
-    _warm_up(served)
-    return served
+    return WebServer(f"http://{shown}:{bound}", token, bridge, process, ring)
 
 
-def _warm_up(served: WebServer) -> None:
-    """Ask every route once, a socket included, before the loop runs beside the server.
+def _await_ready(link: socket.socket, process: subprocess.Popen[bytes], log_path: object) -> None:
+    link.settimeout(START_TIMEOUT_S)
+    try:
+        data = link.recv(MAX_MESSAGE_BYTES)
+    except TimeoutError:
+        data = None
+    finally:
+        link.settimeout(None)
+    if data and pickle.loads(data)[0] == "ready":
+        return
+    why = "did not answer in time" if data is None else f"exited with code {process.poll()}"
+    raise DarorError(f"the web console's server {why}: {_last_line(log_path)}")
 
-    The first request of each kind imports and builds what serves it (the websocket protocol,
-    the thread pool, the file responses): loading compiled modules holds the interpreter for
-    milliseconds, which would be a stall of a loop already running.
-    """
-    import urllib.request
 
-    from websockets.sync.client import connect
-
-    query = f"?token={served.token}" if served.token else ""
-    local = served.url.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
-    for route in ("/", "/api/fsm", "/api/status", "/static/app.js"):
-        with urllib.request.urlopen(f"{local}{route}{query}", timeout=10.0) as answer:
-            answer.read()
-    with connect(local.replace("http", "ws", 1) + "/ws" + query, open_timeout=10.0) as socket:
-        socket.recv(timeout=10.0)
+def _last_line(path: object) -> str:
+    try:
+        with open(str(path), encoding="utf-8", errors="replace") as text:
+            lines = [line.strip() for line in text if line.strip()]
+    except OSError:
+        return "no log"
+    return lines[-1] if lines else "no output"

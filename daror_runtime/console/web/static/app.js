@@ -2,11 +2,15 @@
 "use strict";
 const $ = (id) => document.getElementById(id);
 const WINDOW_S = 20;
-const daror = (window.daror = { rowsReceived: 0, messages: 0, answers: 0, status: null, lastAnswer: null });
+const daror = (window.daror = { rowsReceived: 0, referenceRows: 0, messages: 0, answers: 0, status: null, lastAnswer: null });
+const JOINTS = [0, 1, 2, 3];
 const charts = {
-  q: new StripChart($("plot-q"), 4, WINDOW_S),
-  tau: new StripChart($("plot-tau"), 4, WINDOW_S),
-  cmd: new StripChart($("plot-cmd"), 4, WINDOW_S),
+  q: new LiveChart($("plot-q"), { series: JOINTS.map((j) => ({ label: "q" + (j + 1), color: JOINT_COLORS[j] })), windowS: WINDOW_S, height: 190 }),
+  tau: new LiveChart($("plot-tau"), {
+    series: [...JOINTS.map((j) => ({ label: "measured " + (j + 1), color: JOINT_COLORS[j] })),
+      ...JOINTS.map((j) => ({ label: "model " + (j + 1), color: JOINT_COLORS[j], dash: [6, 4] }))],
+    windowS: WINDOW_S, height: 240,
+  }),
 };
 const CHECKLIST = { settings: "settings", pilot_installation: "installation", safety_experience: "safety_experience", rom_limits: "a_priori_model" };
 const EVENT_LINE = { advance: "advance", revert: "revert", reset: "reset", acknowledge: "ack" };
@@ -27,18 +31,11 @@ async function send(line) {
 }
 daror.send = send;
 
+let fsmDrawn = false;
 function drawFsm(current) {
   if (!fsm) return;
-  let html = "";
-  for (const sup of fsm.superstates) {
-    html += `<div class="superstate"><div class="title">${esc(sup.name)}</div>`;
-    for (const s of sup.states) {
-      html += `<div class="fsm-state${s.name === current ? " current" : ""}" id="fsm-${esc(s.name)}" title="${esc(s.description)}">${s.number}. ${esc(s.name)}</div>`;
-    }
-    html += "</div>";
-  }
-  html += `<div class="superstate"><div class="title">fault</div><div class="fsm-state fail${fsm.fail.name === current ? " current" : ""}" id="fsm-${esc(fsm.fail.name)}" title="${esc(fsm.fail.description)}">${esc(fsm.fail.name)}</div></div>`;
-  $("fsm").innerHTML = html;
+  if (!fsmDrawn) { FsmDiagram.draw($("fsm"), fsm); fsmDrawn = true; }
+  FsmDiagram.highlight($("fsm"), current);
 }
 
 function render(st) {
@@ -111,10 +108,10 @@ function connect() {
   ws.onmessage = (msg) => {
     const m = JSON.parse(msg.data);
     daror.messages++;
-    for (const row of m.rows) {
+    for (const row of m.rows) { // t, q (deg) x4, measured spring torques x4, model x support x4 (null: not compensating)
       charts.q.push(row[0], row.slice(1, 5));
-      charts.tau.push(row[0], row.slice(5, 9));
-      charts.cmd.push(row[0], row.slice(9, 13));
+      charts.tau.push(row[0], row.slice(5, 13));
+      if (row[9] !== null) daror.referenceRows++;
     }
     daror.rowsReceived += m.rows.length;
     addLog(m.log);
@@ -126,7 +123,7 @@ const DRAW_EVERY_MS = 100; // 10 frames/s: the plots move smoothly enough, the l
 let lastDraw = 0;
 function frame() {
   const now = performance.now();
-  if (now - lastDraw >= DRAW_EVERY_MS) { lastDraw = now; charts.q.draw(); charts.tau.draw(); charts.cmd.draw(); }
+  if (now - lastDraw >= DRAW_EVERY_MS) { lastDraw = now; charts.q.draw(); charts.tau.draw(); }
   if (now - lastTime > 1000) {
     $("rate").textContent = ((daror.rowsReceived - lastCount) * 1000 / (now - lastTime)).toFixed(0) + " rows/s";
     lastCount = daror.rowsReceived; lastTime = now;
