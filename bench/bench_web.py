@@ -2,8 +2,8 @@
 
 The loop at 1 kHz on its thread (SCHED_FIFO when granted), on the simulated plant, in its first
 state, for the same time without and with the web console: the server (its own process), the
-bridge in the runtime's process (a row into the shared ring every 20 ms and the status every
-200 ms, from the service thread), two browsers' worth of websocket clients reading the live
+bridge in the runtime's process (a row into the shared ring every 20 ms and the status on a
+change or every 400 ms, from the service thread), two browsers' worth of websocket clients reading the live
 stream (20 messages/s each) and a button press (a console line, ``status``) every 2 s.
 Every tick's lateness is kept (a clock that records what the real-time clock returns); the figures
 are the mean, the 99th and 99.9th percentiles and the worst, and the ratios with/without

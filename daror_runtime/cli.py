@@ -397,6 +397,21 @@ def _residual_base_takes_dummy_arm(base: str) -> None:
         )
 
 
+def _raw_paths(raw: list[Path] | None) -> tuple[Path | None, Path | None] | None:
+    """``--raw TRAIN [VALIDATE]`` as (training, validation) raw logs.
+
+    Raises:
+        UsageError: more than two files.
+    """
+    if raw is None:
+        return None
+    if len(raw) > 2:
+        raise UsageError(
+            f"--raw: {len(raw)} files; expected the training run's raw log and, optionally, the validation run's"
+        )
+    return raw[0], raw[1] if len(raw) == 2 else None
+
+
 def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     from rich.table import Table
 
@@ -423,6 +438,7 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
             families,
             dummy_arm=args.dummy_arm,
             learned=args.learned,
+            raw_paths=_raw_paths(args.raw),
         )
     before, after = run.closure.before, run.closure.after
     table = Table(title=f"Validation errors, {args.base.upper()} before and after ({len(run.inputs.validate)} points)")
@@ -439,6 +455,13 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
         gain = run.closure.rmse_gain_nm(i)
         held = "" if gain >= 0 else ": did not hold on the validation data"
         console.print(f"found: {found.sentence} (validation RMSE {-gain:+.4f} Nm{held})")
+    if run.travel is not None:
+        chosen = "the hysteresis" if run.travel.hysteresis else "the direction offset"
+        path = "the raw logs" if run.travel.from_raw_log else "the points in order (no raw log)"
+        console.print(
+            f"direction error: {chosen} (BIC {run.travel.bic_hysteresis:.0f} with the travel constants, "
+            f"{run.travel.bic_direction:.0f} with the sign; the path from {path})"
+        )
     for c in run.diagnosis.structured_correlates[:5]:
         console.print(f"unexplained: joint {c.joint} residual depends on {c.signal} (R^2 {c.r2:.2f})")
     for note in run.diagnosis.notes:
@@ -1169,8 +1192,16 @@ def build_parser() -> argparse.ArgumentParser:
     residual.add_argument("--base", default="plf+", help=f"base model kind: {', '.join(bases)} (default plf+)")
     residual.add_argument(
         "--effects",
-        help="comma-separated families to test (default all): direction_offset, joint_stiffness, gravity_tilt, "
-        "encoder_offset, torque_gain; none: the base model alone",
+        help="comma-separated families to test (default all): direction_offset, hysteresis, joint_stiffness, "
+        "gravity_tilt, encoder_offset, torque_gain; none: the base model alone",
+    )
+    residual.add_argument(
+        "--raw",
+        type=Path,
+        nargs="+",
+        metavar="FILE",
+        help="the raw logs of the training (and validation) runs, the hysteresis's path (default: NAME.raw.* beside "
+        "each dataset when there is one, else the points in order)",
     )
     dummy_arm_bases = " or ".join(k.kind for k in every_kind if k.residual_base and k.takes("dummy_arm"))
     residual.add_argument(

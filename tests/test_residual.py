@@ -140,7 +140,7 @@ def test_dataset_b_names_joint_2_direction_error_first(dataset_b: tuple[Stationa
     train, validate = dataset_b
     diagnosis = diagnose(train, load_description())
     first = diagnosis.found[0]
-    assert first.effect.site == ("direction_offset", 2)
+    assert (first.effect.family, first.effect.joint) == ("direction_offset", 2)
     assert first.parameters["offset_nm"] == pytest.approx(0.75, abs=0.02)
     result = closure(diagnosis, validate)
     assert result.after.rmse_nm < 0.1 * result.before.rmse_nm

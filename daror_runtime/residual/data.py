@@ -16,6 +16,7 @@ from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
 from daror_runtime.data.tables import read_table, shown_names
 from daror_runtime.errors import DataError
+from daror_runtime.residual.hysteresis import PointHistory, find_raw_log
 from hal.robot import N_JOINTS
 
 #: Fewer validation points than this give RMSE figures that mean little (and nRMSE peaks that
@@ -27,10 +28,16 @@ _JOINT_COLUMN = re.compile(r"^(q|dq|tau|dir|theta|tau_cmd)(\d+)$")
 
 @dataclass(frozen=True)
 class ResidualInputs:
-    """Training and validation data of one analysis, checked to belong together."""
+    """Training and validation data of one analysis, checked to belong together.
+
+    ``*_history``: the path the joints took to each point (the hysteresis family's signal): the
+    raw log of the run when there is one, else the points in their order.
+    """
 
     train: StationaryDataset
     validate: StationaryDataset
+    train_history: PointHistory | None = None
+    validate_history: PointHistory | None = None
 
     @property
     def has_direction(self) -> bool:
@@ -86,12 +93,38 @@ def check_pair(train: StationaryDataset, validate: StationaryDataset) -> Residua
     return ResidualInputs(train, validate)
 
 
-def load_pair(
-    train_path: Path | str, validate_path: Path | str, reduction: ReductionSettings | None = None
-) -> ResidualInputs:
-    """Load and check the training and validation files of an analysis.
+def load_history(points: StationaryDataset, raw_path: Path | str | None) -> PointHistory:
+    """The path to each point: from ``raw_path`` (a raw log of the same run), else from the points in order.
 
     Raises:
-        DataError: see :func:`load_residual_file` and :func:`check_pair`.
+        DataError: ``raw_path`` is not a raw log, or not this run's (a point outside its time).
     """
-    return check_pair(load_residual_file(train_path, reduction), load_residual_file(validate_path, reduction))
+    if raw_path is None:
+        return PointHistory.from_points(points)
+    raw = dataset_from_table(read_table(raw_path))
+    if not isinstance(raw, RawLog):
+        raise DataError(f"{raw_path}: a stationary dataset; expected the raw log (t, q, dq, tau at the loop's rate)")
+    return PointHistory.from_raw(raw, points)
+
+
+def load_pair(
+    train_path: Path | str,
+    validate_path: Path | str,
+    reduction: ReductionSettings | None = None,
+    raw_paths: tuple[Path | str | None, Path | str | None] | None = None,
+) -> ResidualInputs:
+    """Load and check the training and validation files of an analysis, with the joints' paths.
+
+    ``raw_paths``: the raw logs of the training and validation runs (None for either: the
+    ``NAME.raw.*`` file beside its dataset when there is one, else the points in order).
+
+    Raises:
+        DataError: see :func:`load_residual_file`, :func:`check_pair` and :func:`load_history`.
+    """
+    pair = check_pair(load_residual_file(train_path, reduction), load_residual_file(validate_path, reduction))
+    given = raw_paths or (None, None)
+    train_raw = given[0] if given[0] is not None else find_raw_log(train_path)
+    validate_raw = given[1] if given[1] is not None else find_raw_log(validate_path)
+    return ResidualInputs(
+        pair.train, pair.validate, load_history(pair.train, train_raw), load_history(pair.validate, validate_raw)
+    )

@@ -40,7 +40,7 @@ from daror_runtime.residual.structure import (
     fit_structure,
     standard_errors,
 )
-from hal.robot import N_JOINTS, RobotDescription
+from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -69,6 +69,9 @@ class Diagnosis:
     settings: DiagnosisSettings
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
+    #: The hysteresis travel constants (rad, per joint) the direction signal was computed with;
+    #: None: the direction signal is the sign of the last motion.
+    travel_rad: FloatArray | None = None
 
     @property
     def unexplained(self) -> bool:
@@ -124,7 +127,9 @@ def _lowest_order(
     return best_fit, best_effect
 
 
-def physical_parameters(fit: StructureFit, effect: Effect, data: StationaryDataset) -> dict[str, Any]:
+def physical_parameters(
+    fit: StructureFit, effect: Effect, data: StationaryDataset, travel_rad: FloatArray | None = None
+) -> dict[str, Any]:
     """Physical parameters of ``effect`` in ``fit`` (with standard errors where identifiable)."""
     linear, nonlinear = fit.effect_values(effect)
     context = PhysicalContext(
@@ -133,6 +138,7 @@ def physical_parameters(fit: StructureFit, effect: Effect, data: StationaryDatas
         q_max_rad=np.max(data.q_rad, axis=0),
         spring_nm_per_rad=fit.structure.description.sea.spring_stiffness_nm_per_rad,
         standard_errors=standard_errors(fit, data),
+        travel_rad=travel_rad,
     )
     return family(effect.family).physical(effect, linear, nonlinear, context)
 
@@ -143,11 +149,16 @@ def diagnose(
     base_kind: str = "plf+",
     settings: DiagnosisSettings | None = None,
     dummy_arm: bool = False,
+    travel_rad: FloatArray | None = None,
 ) -> Diagnosis:
     """Find the effects the training data support on top of ``base_kind``.
 
     Families that need a signal the data lack (``direction_offset`` without ``dir``) are skipped
     with a note; callers that were asked for them explicitly refuse before calling.
+
+    ``travel_rad``: the data's direction signal is the hysteresis state for these travel
+    constants (:mod:`.travel`), so ``hysteresis`` is tested in the direction offset's place;
+    None: the sign of the last motion, and ``hysteresis`` is left to :mod:`.travel`.
 
     Raises:
         UsageError: an unknown base kind or family.
@@ -164,7 +175,10 @@ def diagnose(
     base_fit = current
     candidates = []
     for effect in candidate_effects(settings.families):
-        if family(effect.family).needs_direction and train.direction is None:
+        if family(effect.family).needs_history if travel_rad is None else effect.family == "direction_offset":
+            continue  # the direction signal is the sign, or the hysteresis state: one of the two families
+        needs_signal = family(effect.family).needs_direction or family(effect.family).needs_history
+        if needs_signal and train.direction is None:
             note = f"{effect.family}: not tested, the data have no dir1..dir4 columns"
             if note not in notes:
                 notes.append(note)
@@ -187,7 +201,7 @@ def diagnose(
         if best.fit is None:
             raise ConfigurationError(f"candidate {best.effect.label} was found without a fit")
         current, effect = _lowest_order(best.fit, best.effect, train, settings)
-        parameters = physical_parameters(current, effect, train)
+        parameters = physical_parameters(current, effect, train, travel_rad)
         sentence = family(effect.family).sentence(effect, parameters)
         found.append(FoundEffect(effect, parameters, sentence, best, current))
         log.info("residual.effect_found", effect=effect.label, detail=sentence, delta_bic=best.delta_bic)
@@ -196,7 +210,7 @@ def diagnose(
     # Re-derive the parameters of every effect from the final model, where they are estimated jointly.
     final_found = []
     for f in found:
-        parameters = physical_parameters(current, f.effect, train)
+        parameters = physical_parameters(current, f.effect, train, travel_rad)
         sentence = family(f.effect.family).sentence(f.effect, parameters)
         final_found.append(FoundEffect(f.effect, parameters, sentence, f.evidence, f.fit))
     correlates = residual_structure(current.residual_nm, train, settings)
@@ -210,6 +224,7 @@ def diagnose(
         settings=settings,
         notes=notes,
         duration_s=time.perf_counter() - start,
+        travel_rad=travel_rad,
     )
 
 

@@ -9,6 +9,9 @@ each joint's last motion and ``tau_base(q)`` the base model (PLF+ by default)::
 
 * ``direction_offset`` (linear, per joint): ``d_j dir_j``, the direction-dependent torque error
   of Sec. 2.2.2 (static friction across the spring, or an encoder that shifts with the rotor).
+* ``hysteresis`` (linear given its travel constants, per joint): ``d_j s_j``, the same error as
+  a play operator over the travel since the last reversal (:mod:`.hysteresis`); its travel
+  constants are fitted by :mod:`.travel`, with the raw log when there is one.
 * ``joint_stiffness`` (linear, per joint): ``P_j`` a polynomial in the joint angle, stiffness the
   model does not hold (a cable harness, a seal, a soft end stop; PLF+ has it on the elbow only).
 * ``gravity_tilt`` (nonlinear, whole robot): the base is mounted rotated by ``alpha`` about the
@@ -56,8 +59,15 @@ class Effect:
 
     @property
     def site(self) -> tuple[str, int | None]:
-        """Family and joint: two effects at one site are alternatives, never both in a model."""
-        return (self.family, self.joint)
+        """Family and joint: two effects at one site are alternatives, never both in a model.
+
+        The direction offset and the hysteresis share a site: both are the direction signal's column.
+        """
+        return (
+            ("direction", self.joint)
+            if self.family in ("direction_offset", "hysteresis")
+            else (self.family, self.joint)
+        )
 
 
 @dataclass
@@ -85,6 +95,8 @@ class EffectFamily(ABC):
     summary: ClassVar[str]
     per_joint: ClassVar[bool] = True
     needs_direction: ClassVar[bool] = False
+    #: The family's column is the joints' path (the hysteresis state), not a function of the point.
+    needs_history: ClassVar[bool] = False
     #: Parameters optimised by scipy.optimize (0 for linear families).
     n_nonlinear: ClassVar[int] = 0
 
@@ -126,6 +138,7 @@ class PhysicalContext:
     q_max_rad: FloatArray
     spring_nm_per_rad: float
     standard_errors: Mapping[str, float]
+    travel_rad: FloatArray | None = None  # the hysteresis travel constants, when fitted
 
 
 def _joint_index(effect: Effect) -> int:
@@ -155,6 +168,47 @@ class DirectionOffset(EffectFamily):
         return (
             f"joint {effect.joint} direction offset {abs(parameters['offset_nm']):.3g} Nm "
             f"(the reading is {parameters['offset_nm']:+.3g} Nm x the sign of the last motion)"
+        )
+
+
+class Hysteresis(EffectFamily):
+    """The direction error as a hysteresis: ``d_j s_j``, the play operator's state over the joint's travel.
+
+    It takes the direction offset's column (the two are alternatives at one joint): the analysis
+    replaces each point's sign of the last motion by the state ``s_j`` for the travel constants it
+    fitted (:mod:`daror_runtime.residual.travel`), from the raw log when there is one.
+    """
+
+    name = "hysteresis"
+    summary = (
+        "direction error as a hysteresis over the travel since the last reversal (Sec. 2.2.2): amplitude Nm, travel rad"
+    )
+    needs_history = True
+
+    def n_linear(self, effect: Effect, stiffness_order: int) -> int:
+        return 1
+
+    def linear_names(self, effect: Effect, stiffness_order: int) -> list[str]:
+        return [f"hysteresis{effect.joint}_nm"]
+
+    def physical(
+        self, effect: Effect, linear: FloatArray, nonlinear: FloatArray, context: PhysicalContext
+    ) -> dict[str, Any]:
+        j = _joint_index(effect)
+        if context.travel_rad is None:
+            raise ConfigurationError("a hysteresis effect's physical parameters need the fitted travel constants")
+        name = self.linear_names(effect, 0)[0]
+        return {
+            "amplitude_nm": float(linear[0]),
+            "amplitude_std_error_nm": context.standard_errors.get(name),
+            "travel_rad": float(context.travel_rad[j]),
+        }
+
+    def sentence(self, effect: Effect, parameters: Mapping[str, Any]) -> str:
+        return (
+            f"joint {effect.joint} hysteresis {abs(parameters['amplitude_nm']):.3g} Nm over "
+            f"{parameters['travel_rad'] * 1e3:.2g} mrad of travel (the reading is {parameters['amplitude_nm']:+.3g} Nm "
+            "x a state that turns over that travel after each reversal)"
         )
 
 
@@ -288,8 +342,12 @@ class TorqueGain(EffectFamily):
 
 
 FAMILIES: dict[str, EffectFamily] = {
-    f.name: f for f in (DirectionOffset(), JointStiffness(), GravityTilt(), EncoderOffset(), TorqueGain())
+    f.name: f for f in (DirectionOffset(), Hysteresis(), JointStiffness(), GravityTilt(), EncoderOffset(), TorqueGain())
 }
+
+#: Families whose column is each point's direction signal (the sign of the last motion, or the
+#: hysteresis state): alternatives at one joint, never both in a model.
+DIRECTION_FAMILIES = ("direction_offset", "hysteresis")
 
 
 def family(name: str) -> EffectFamily:

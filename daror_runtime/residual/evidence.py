@@ -303,8 +303,14 @@ def residual_signals(data: StationaryDataset) -> dict[str, FloatArray]:
         data.t_s if data.t_s is not None else np.arange(len(data), dtype=float)
     )
     if data.direction is not None:
-        signals.update({f"dir{j + 1}": data.direction[:, j] for j in range(N_JOINTS)})
+        # the sign of the last motion (-1, 0, +1), or the hysteresis state in [-1, 1] (.travel)
+        sign = bool(np.all(np.isin(data.direction, (-1.0, 0.0, 1.0))))
+        signals.update({f"{'dir' if sign else 's'}{j + 1}": data.direction[:, j] for j in range(N_JOINTS)})
     return signals
+
+
+def _is_direction_signal(name: str) -> bool:
+    return name.startswith("dir") or (name.startswith("s") and name[1:].isdigit())
 
 
 def _basis(values: FloatArray, categorical: bool) -> FloatArray:
@@ -324,15 +330,16 @@ def residual_structure(
     ``structured`` marks a signal that explains at least ``unexplained_min_r2`` of a joint's
     residual variance with a p-value below ``unexplained_alpha`` over the number of tests
     (an F test for the signals, the normal limit of the lag-1 autocorrelation for the previous
-    point). A direction signal is only tested against its own joint.
+    point). A direction signal (the sign ``dir_j``, or the hysteresis state ``s_j``) is only
+    tested against its own joint.
     """
     signals = residual_signals(data)
     tests: list[tuple[int, str, FloatArray, bool]] = []
     for j in range(N_JOINTS):
         for name, values in signals.items():
-            if name.startswith("dir") and name != f"dir{j + 1}":
+            if _is_direction_signal(name) and not name.endswith(str(j + 1)):
                 continue
-            tests.append((j, name, values, name.startswith("dir")))
+            tests.append((j, name, values, name.startswith("dir")))  # a sign has levels; a state is continuous
     n = residual_nm.shape[0]
     out: list[Correlate] = []
     for j, name, values, categorical in tests:

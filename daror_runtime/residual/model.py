@@ -44,6 +44,13 @@ class AugmentedParameters(BaseModel):
     gravity_tilt_rad: list[float] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
     torque_gain: PerJoint = Field(default_factory=lambda: [1.0] * N_JOINTS, min_length=4, max_length=4)
     direction_offset_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
+    hysteresis_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
+    hysteresis_travel_rad: PerJoint | None = Field(
+        default=None,
+        min_length=4,
+        max_length=4,
+        description="the play operator's travel per joint; None: no hysteresis",
+    )
     joint_polynomials: list[list[float]] = Field(
         default_factory=lambda: [[] for _ in range(N_JOINTS)], min_length=4, max_length=4
     )
@@ -64,7 +71,10 @@ class AugmentedModel(CompensationModel):
         self._base = LinearTorqueEvaluator(kinematics, parameters.theta, parameters.elbow_polynomial)
         self._offset = np.asarray(parameters.angle_offset_rad, dtype=float)
         self._gain = np.asarray(parameters.torque_gain, dtype=float)
-        self._direction = np.asarray(parameters.direction_offset_nm, dtype=float)
+        # the direction signal's coefficient: the sign's (direction offset) or the state's (hysteresis)
+        self._direction = np.asarray(parameters.direction_offset_nm, dtype=float) + np.asarray(
+            parameters.hysteresis_nm, dtype=float
+        )
         self._polynomials = [np.asarray(p, dtype=float) for p in parameters.joint_polynomials]
 
     @property
@@ -88,6 +98,8 @@ class AugmentedModel(CompensationModel):
         return out * self._gain[None, :]
 
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
+        """What the sensors read at ``q``: the torque plus the direction term (``direction``: the sign of
+        the last motion, or the hysteresis state for :attr:`AugmentedParameters.hysteresis_travel_rad`)."""
         out = self.torque_batch(q)
         if direction is not None:
             out = out + self._gain[None, :] * self._direction[None, :] * np.asarray(direction, dtype=float)
@@ -111,8 +123,8 @@ class AugmentedModel(CompensationModel):
         return cls(description, spec, name)
 
 
-def augmented_model(fit: StructureFit, name: str | None = None) -> AugmentedModel:
-    """The model of a fitted structure (what the runtime runs)."""
+def augmented_model(fit: StructureFit, name: str | None = None, travel_rad: FloatArray | None = None) -> AugmentedModel:
+    """The model of a fitted structure (what the runtime runs); ``travel_rad``: the hysteresis's travel constants."""
     structure = fit.structure
     base = structure.base
     if base.is_fitted:
@@ -123,11 +135,14 @@ def augmented_model(fit: StructureFit, name: str | None = None) -> AugmentedMode
         theta, mu = base.fixed_theta, base.fixed_mu  # type: ignore[assignment]
     transform = structure.transform(fit.phi)
     direction = np.zeros(N_JOINTS)
+    hysteresis = np.zeros(N_JOINTS)
     polynomials: list[list[float]] = [[] for _ in range(N_JOINTS)]
     for effect in structure.effects:
         linear, _ = fit.effect_values(effect)
         if effect.family == "direction_offset":
             direction[effect.joint - 1] = linear[0]  # type: ignore[operator]
+        elif effect.family == "hysteresis":
+            hysteresis[effect.joint - 1] = linear[0]  # type: ignore[operator]
         elif effect.family == "joint_stiffness":
             polynomials[effect.joint - 1] = [float(v) for v in linear]  # type: ignore[operator]
     spec = AugmentedParameters(
@@ -138,6 +153,8 @@ def augmented_model(fit: StructureFit, name: str | None = None) -> AugmentedMode
         gravity_tilt_rad=[float(v) for v in transform.tilt_rad],
         torque_gain=[float(v) for v in transform.gain],
         direction_offset_nm=[float(v) for v in direction],
+        hysteresis_nm=[float(v) for v in hysteresis],
+        hysteresis_travel_rad=None if travel_rad is None or not np.any(hysteresis) else [float(v) for v in travel_rad],
         joint_polynomials=polynomials,
         effects=[e.label for e in structure.effects],
     )

@@ -14,6 +14,7 @@ from daror_runtime.residual.learned import LearnedRemainder, learn_remainder, re
 from daror_runtime.residual.model import AugmentedModel, augmented_model
 from daror_runtime.residual.report import write_report
 from daror_runtime.residual.structure import base_model
+from daror_runtime.residual.travel import TravelChoice, choose_direction_signal, with_signal
 from hal.robot import RobotDescription
 
 
@@ -25,6 +26,7 @@ class ResidualRun:
     model: AugmentedModel
     files: dict[str, Path]
     learned: LearnedRemainder | None = None
+    travel: TravelChoice | None = None  # the direction offset against the hysteresis, when tested
 
 
 #: ``--effects none``: test no family (the base model alone, e.g. before ``--learned``).
@@ -63,8 +65,12 @@ def run_residual(
     dummy_arm: bool = False,
     settings: DiagnosisSettings | None = None,
     learned: bool = False,
+    raw_paths: tuple[Path | str | None, Path | str | None] | None = None,
 ) -> ResidualRun:
     """The whole analysis; every check runs before anything is fitted or written.
+
+    ``raw_paths``: the raw logs of the training and validation runs (the hysteresis family's
+    signal); None for either: the ``NAME.raw.*`` file beside its dataset, else the points in order.
 
     ``learned``: after the named effects, learn what remains with a PENN and an NNN
     (:mod:`.learned`) and report what it is.
@@ -79,7 +85,7 @@ def run_residual(
     base_model(base_kind, description, dummy_arm)  # refuses an unknown base before reading data
     if learned:
         require_neural_extra()
-    inputs = load_pair(train_path, validate_path)
+    inputs = load_pair(train_path, validate_path, raw_paths=raw_paths)
     settings = settings or DiagnosisSettings()
     if families is not None:
         if not inputs.has_direction:
@@ -91,8 +97,16 @@ def run_residual(
                 )
         settings = replace(settings, families=families)
     diagnosis = diagnose(inputs.train, description, base_kind, settings, dummy_arm)
-    result = closure(diagnosis, inputs.validate)
-    model = augmented_model(diagnosis.final_fit)
-    remainder = learn_remainder(model, inputs.train, inputs.validate, description) if learned else None
-    files = write_report(out_dir, diagnosis, result, model, inputs.train, inputs.validate, train_path, remainder)
-    return ResidualRun(inputs, diagnosis, result, model, files, remainder)
+    train, validate, choice = inputs.train, inputs.validate, None
+    histories = (inputs.train_history, inputs.validate_history)
+    if "hysteresis" in settings.families and histories[0] is not None and histories[1] is not None:
+        choice = choose_direction_signal(diagnosis, train, histories[0], description, settings, dummy_arm)
+        if choice is not None and choice.hysteresis:
+            diagnosis = choice.diagnosis
+            train = with_signal(train, histories[0], choice.travel_rad)
+            validate = with_signal(validate, histories[1], choice.travel_rad)
+    result = closure(diagnosis, validate)
+    model = augmented_model(diagnosis.final_fit, travel_rad=diagnosis.travel_rad)
+    remainder = learn_remainder(model, train, validate, description) if learned else None
+    files = write_report(out_dir, diagnosis, result, model, train, validate, train_path, remainder, choice)
+    return ResidualRun(inputs, diagnosis, result, model, files, remainder, choice)

@@ -38,6 +38,7 @@ from daror_runtime.models.metrics import ErrorMetrics
 from daror_runtime.residual.diagnosis import Closure, Diagnosis
 from daror_runtime.residual.learned import MIN_CONSERVATIVE_SHARE, MIN_LEARNED_GAIN, LearnedRemainder
 from daror_runtime.residual.model import AugmentedModel
+from daror_runtime.residual.travel import TravelChoice
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
 from hal.robot import N_JOINTS
 
@@ -81,6 +82,18 @@ def summary_document(diagnosis: Diagnosis, result: Closure, learned: LearnedRema
     if learned is not None:
         document["learned"] = learned.to_dict()
     return document
+
+
+def direction_signal_document(travel: TravelChoice) -> dict[str, Any]:
+    """What weighing the direction offset against the hysteresis measured (``diagnosis.json``)."""
+    return {
+        "chosen": "hysteresis" if travel.hysteresis else "direction_offset",
+        "path": "raw log" if travel.from_raw_log else "stationary points in order",
+        "travel_rad": [float(v) for v in travel.travel_rad],
+        "bic_direction_offset": travel.bic_direction,
+        "bic_hysteresis": travel.bic_hysteresis,
+        "profile": [{"travel_rad": r, "training_rmse_nm": rmse} for r, rmse in travel.profile],
+    }
 
 
 def diagnosis_document(
@@ -361,8 +374,11 @@ def write_report(
     validate: StationaryDataset,
     train_path: Path | str | None = None,
     learned: LearnedRemainder | None = None,
+    travel: TravelChoice | None = None,
 ) -> dict[str, Path]:
     """Write every file of the report into ``out_dir``; returns their paths by name.
+
+    ``travel``: the direction offset weighed against the hysteresis (:mod:`.travel`), when it was.
 
     The files are written into a temporary folder beside ``out_dir`` and moved in only when all
     of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was. An earlier
@@ -373,7 +389,7 @@ def write_report(
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     names = (LEARNED_MODEL_FILE, *REPORT_FILES) if learned is not None and learned.model is not None else REPORT_FILES
     try:
-        _write_files(staging, diagnosis, result, model, train, validate, train_path, learned)
+        _write_files(staging, diagnosis, result, model, train, validate, train_path, learned, travel)
         out.mkdir(exist_ok=True)
         if LEARNED_MODEL_FILE not in names:
             (out / LEARNED_MODEL_FILE).unlink(missing_ok=True)
@@ -393,6 +409,7 @@ def _write_files(
     validate: StationaryDataset,
     train_path: Path | str | None,
     learned: LearnedRemainder | None,
+    travel: TravelChoice | None = None,
 ) -> None:
     paths = {
         "signals_plot": out / "residual_signals.png",
@@ -410,7 +427,10 @@ def _write_files(
     if learned is not None and learned.model is not None:
         learned_document = model_document(learned.model, summary)
         write_text_atomic(out / LEARNED_MODEL_FILE, json.dumps(learned_document, indent=2, allow_nan=False) + "\n")
-    write_text_atomic(paths["diagnosis"], _json(diagnosis_document(diagnosis, result, train, validate, learned)))
+    evidence = diagnosis_document(diagnosis, result, train, validate, learned)
+    if travel is not None:
+        evidence["direction_signal"] = direction_signal_document(travel)
+    write_text_atomic(paths["diagnosis"], _json(evidence))
     plots = [paths["before_after_plot"].name, paths["signals_plot"].name]
     write_text_atomic(paths["report"], report_markdown(diagnosis, result, train, validate, plots, learned))
     # The summary last: its presence says the whole report is there.

@@ -50,7 +50,7 @@ from daror_runtime.residual.columns import (
     up_vector,
     up_vector_derivatives,
 )
-from daror_runtime.residual.effects import Effect, Transform, family, tilt_rotation
+from daror_runtime.residual.effects import DIRECTION_FAMILIES, Effect, Transform, family, tilt_rotation
 from daror_runtime.residual.reduced import Factor, FactorCache, factorize
 from hal.robot import N_JOINTS, FloatArray, Geometry, Kinematics, RobotDescription
 
@@ -256,7 +256,7 @@ class Structure:
 
     def own_layout(self, up: FloatArray) -> Layout:
         """The columns this structure needs, with the gravity regressor for one up direction."""
-        direction = tuple(sorted(e.joint - 1 for e in self.effects if e.family == "direction_offset"))  # type: ignore[operator]
+        direction = tuple(sorted(e.joint - 1 for e in self.effects if e.family in DIRECTION_FAMILIES))  # type: ignore[operator]
         stiffness = tuple(
             sorted(
                 (e.joint - 1, family(e.family).n_linear(e, self.stiffness_order))  # type: ignore[operator]
@@ -287,7 +287,7 @@ class Structure:
             fixed[layout.poly(0) : layout.poly(self.n_poly)] = np.asarray(self.base.fixed_mu, dtype=float)
         for effect, where in self._linear_slices.items():
             joint = effect.joint - 1  # type: ignore[operator]
-            if effect.family == "direction_offset":
+            if effect.family in DIRECTION_FAMILIES:
                 design[layout.direction(joint), where.start] = 1.0
             else:
                 for k in range(where.stop - where.start):
@@ -383,7 +383,9 @@ class Workspace:
         self.layout = Layout(
             FREE_TILT_BASIS if "gravity_tilt" in self.families else ((0.0, 1.0, 0.0),),
             structure.n_poly,
-            tuple(range(N_JOINTS)) if "direction_offset" in self.families and data.direction is not None else (),
+            tuple(range(N_JOINTS))
+            if any(f in self.families for f in DIRECTION_FAMILIES) and data.direction is not None
+            else (),
             tuple((j, stiffness_order + 1) for j in range(N_JOINTS)) if "joint_stiffness" in self.families else (),
         )
         self.cache = FactorCache()

@@ -4,11 +4,11 @@ Routes (all behind the token when the server listens beyond the loopback):
 
 * ``GET /``: the page (``static/index.html``; every asset is in the package: the lab PC is offline);
 * ``GET /api/fsm``: the diagram of ``fsm_spec.yaml``, laid out (:func:`daror_runtime.fsm.diagram.layout`);
-* ``GET /api/status``: the session's status as the runtime last published it (5 Hz);
+* ``GET /api/status``: the session's status as the runtime last published it (on a change, else 2.5 Hz);
 * ``POST /api/command`` ``{"line": "advance"}``: one console line, forwarded to the runtime's process,
   checked and answered exactly as typed at the text console; the request it posts is applied at a
   tick boundary, a refusal comes back with its reason;
-* ``WS /ws``: live rows (>= 20 Hz, in batches of 50 ms), the status (5 Hz) and new log lines.
+* ``WS /ws``: live rows (>= 20 Hz, in batches of 50 ms), the status (when it changed) and new log lines.
 
 Nothing here runs in the runtime's process (:mod:`daror_runtime.console.web.page`): a socket reads
 the shared ring of rows from its own cursor, and a socket that is closed or slow only misses rows.
@@ -28,7 +28,7 @@ from fastapi.staticfiles import StaticFiles
 
 from daror_runtime.console.web.page import PageState
 
-#: Seconds between two messages on a socket (20 Hz); the status goes with the first after it changed (5 Hz).
+#: Seconds between two messages on a socket (20 Hz); the status goes with the first after it changed.
 PUSH_PERIOD_S = 0.05
 STATIC = resources.files("daror_runtime.console.web") / "static"
 TOKEN_COOKIE = "daror_token"

@@ -7,10 +7,11 @@ needs. What stays in the runtime's process is small, and none of it runs in the 
 * :meth:`WebBridge.publish`, called by the runtime's service thread every 20 ms
   (:meth:`Runtime.add_publisher`): the last sample (and compensation's torque reference) into the
   shared ring of live rows (:class:`~daror_runtime.console.web.ring.RowRing`: array copies, no
-  system call), and every 200 ms the status (:meth:`Runtime.snapshot`, pickled) and the new lines
-  of the shared log, sent without waiting (a full socket: sent 200 ms later). The service thread
-  runs in the part of the loop's period where the loop sleeps; the status is built in one
-  period and sent in the next, so each step fits there;
+  system call); the status (:meth:`Runtime.snapshot`, pickled) and the new lines of the shared
+  log at once when the state changed or something was logged, else every 400 ms, sent without
+  waiting (a full socket: sent next time). The service thread runs in the part of the loop's
+  period where the loop sleeps; the status is built in one period and sent in the next, so each
+  step fits there;
 * a thread blocked on the socket that runs the console lines the pages send, one at a time,
   exactly as typed at the text console (:class:`~daror_runtime.console.commands.ConsoleSession`),
   and sends back the answer with a fresh status.
@@ -47,8 +48,11 @@ log = structlog.get_logger(__name__)
 
 #: Lines of the shared log kept.
 LOG_LINES = 500
-#: Service periods (20 ms) between two statuses sent to the server (5 Hz).
-STATUS_EVERY = 10
+#: Service periods (20 ms) between two statuses sent to the server when nothing happens (2.5 Hz);
+#: a transition or a new log line (a fault, an e-stop, an answer) sends one at once.
+STATUS_EVERY = 20
+#: Statuses that fail to be read in a row (one a service period, 20 ms) before the publisher gives up.
+STATUS_FAILURES = 50
 #: Log lines per status message at most (the rest go with the next).
 LOG_LINES_PER_MESSAGE = 100
 #: Characters of one log line kept.
@@ -89,6 +93,12 @@ class AnnouncementHub:
             for line in text.splitlines() or [""]:
                 self._log.append((next(self._counter), line[:LINE_CHARS]))
 
+    @property
+    def newest(self) -> int:
+        """The number of the newest line (0: none yet)."""
+        with self._lock:
+            return self._log[-1][0] if self._log else 0
+
     def since(self, cursor: int, limit: int = LOG_LINES) -> list[tuple[int, str]]:
         """The numbered lines after ``cursor`` (0: everything kept), the oldest ``limit`` of them."""
         with self._lock:
@@ -127,7 +137,9 @@ class WebBridge:
         self._link = link
         self._ring = ring
         self._last_seq = -1
-        self._periods = 0
+        self._periods = 0  # service periods since the last status
+        self._state = ""  # the state the last status was in
+        self._failures = 0  # statuses that failed to be read in a row
         self._log_sent = 0  # the last log line the server has
         self._staged: tuple[RuntimeStatus, list[tuple[int, str]]] | None = None  # built, to send next period
         self._closed = threading.Event()
@@ -157,8 +169,7 @@ class WebBridge:
     # --- the service thread (every 20 ms, outside the tick) -----------------------------------
 
     def publish(self) -> None:
-        """The last sample into the ring; every :data:`STATUS_EVERY` calls the status and new log lines."""
-        self._periods += 1
+        """The last sample into the ring; the status when something happened, or every :data:`STATUS_EVERY` calls."""
         runtime = self.runtime
         sample = runtime.last_sample
         if sample is not None and sample.seq != self._last_seq:
@@ -168,14 +179,27 @@ class WebBridge:
             return
         # the status in two steps, each in its own service period: each fits the loop's quiet part
         # of a period (Clock.until_quiet_s), where it never makes the loop wait for the interpreter
-        step = self._periods % STATUS_EVERY
-        if step == 0:
-            self.hub.pump()
-            self._staged = (self.runtime.snapshot(), self.hub.since(self._log_sent, LOG_LINES_PER_MESSAGE))
-        elif step == 1 and self._staged is not None:
+        if self._staged is not None:
             status, lines = self._staged
             self._staged = None
             self.send_status(status, lines)
+            return
+        self._periods += 1
+        self.hub.pump()  # an empty feed: one failed pop
+        state = runtime.state_name
+        if state != self._state or self.hub.newest > self._log_sent or self._periods >= STATUS_EVERY:
+            try:
+                status = runtime.snapshot()
+            except Exception:  # read while the loop moves on: try again next period, give up after a second
+                self._failures += 1
+                if self._failures >= STATUS_FAILURES:
+                    raise  # the runtime removes this publisher and announces why
+                log.exception("web console status failed", failures=self._failures)
+                return
+            self._failures = 0
+            self._state = state
+            self._periods = 0
+            self._staged = (status, self.hub.since(self._log_sent, LOG_LINES_PER_MESSAGE))
 
     def send_status(self, status: RuntimeStatus, lines: list[tuple[int, str]]) -> None:
         """Send ``status`` and the log ``lines`` the server lacks, without waiting (full: they go next time)."""
@@ -254,7 +278,12 @@ class WebBridge:
             except Exception as exc:  # an unexpected error in a page's line: answered and logged, never lost
                 log.exception("web console line failed", line=line)
                 ok, text = False, f"  failed: {exc}"
-            answer: tuple[Any, ...] = ("answer", request_id, ok, text, self.runtime.snapshot(), self._notes())
+            try:
+                status: RuntimeStatus | None = self.runtime.snapshot()
+            except Exception:  # a status that cannot be read now: the answer goes without it (the next has one)
+                log.exception("web console status failed", line=line)
+                status = None
+            answer: tuple[Any, ...] = ("answer", request_id, ok, text, status, self._notes())
             try:
                 link.send(pickle.dumps(answer, protocol=5))
             except OSError as exc:

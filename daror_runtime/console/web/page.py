@@ -15,7 +15,9 @@ import json
 import math
 import pickle
 import socket
+import sys
 import threading
+import traceback
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -82,7 +84,12 @@ class PageState:
     # --- from the runtime -------------------------------------------------------------------
 
     def read_forever(self) -> None:
-        """Receive the runtime's messages until its end closes (then :attr:`on_runtime_gone`)."""
+        """Receive the runtime's messages until its end closes (then :attr:`on_runtime_gone`).
+
+        A message that cannot be handled is written to the server's log (stderr: ``web-server.log``)
+        and skipped: the reader never dies while the runtime is there, and an answer always reaches
+        the page that waits for it (without a status if its status could not be built).
+        """
         while True:
             try:
                 data = self._link.recv(MAX_MESSAGE_BYTES)
@@ -94,15 +101,25 @@ class PageState:
                     event.set()
                 self.on_runtime_gone()
                 return
-            kind, *body = pickle.loads(data)
-            if kind == "status":
-                status, notes, lines = body
-                self._set_status(status, notes)
-                self._add_lines(lines)
-            elif kind == "answer":
-                request_id, ok, text, status, notes = body
-                document = self._set_status(status, notes)
-                waiting = self._waiting.get(request_id)
+            try:
+                self._handle(pickle.loads(data))
+            except Exception:
+                traceback.print_exc(file=sys.stderr)
+
+    def _handle(self, message: tuple[Any, ...]) -> None:
+        kind, *body = message
+        if kind == "status":
+            status, notes, lines = body
+            self._add_lines(lines)
+            self._set_status(status, notes)
+        elif kind == "answer":
+            request_id, ok, text, status, notes = body
+            waiting = self._waiting.get(request_id)
+            document: dict[str, Any] | None = None
+            try:
+                if status is not None:
+                    document = self._set_status(status, notes)
+            finally:  # the page gets its answer even when the status could not be built
                 if waiting is not None:
                     waiting[1].append({"ok": ok, "answer": text, "status": document})
                     waiting[0].set()
