@@ -4,6 +4,11 @@
   dataset B (exo + Dummy Arm, direction error on every joint), the hardest shipped case: four
   effects are found, so the diagnosis runs five rounds of every candidate.
 * The whole ``daror residual`` job on the same files (diagnosis, closure, report, plots): no target.
+* Issue 16: the diagnosis with the hysteresis family on a full protocol's closed-loop data
+  (``daror identify`` training and validation runs of ``exo_dummy_arm``, 752 s and 145 s of robot
+  time, their raw logs beside them): the diagnosis with the sign, the travel constants' fit and the
+  second diagnosis (target below 10 s), and the whole ``daror residual`` command, process start to
+  exit.
 * The augmented model's torque for one q (it runs inside the 1 kHz tick): target below 20 us,
   the budget of PLF+.
 * The data-efficiency study (Fig. 5.4) on dataset B, 100 draws per size: no target.
@@ -84,6 +89,73 @@ def bench_residual_job(quick: bool) -> BenchFigure:
     return BenchFigure(
         "daror residual job (with report and plots)", median, p90, "s", repeats, None, None, "CSV in, report out"
     )
+
+
+def _protocol_runs(folder: Path) -> tuple[Path, Path]:
+    """``daror identify`` training and validation runs of exo_dummy_arm in ``folder`` (with their raw logs)."""
+    paths = []
+    for run in ("training", "validation"):
+        out = folder / f"B_{run}.csv"
+        result = command_in_child(
+            ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--trajectory", run, "--out", str(out)], folder
+        )
+        if result.code != 0:
+            raise RuntimeError(f"daror identify failed: {result.stderr.strip()[-300:]}")
+        paths.append(out)
+    return paths[0], paths[1]
+
+
+def bench_residual_hysteresis(quick: bool) -> list[BenchFigure]:
+    from daror_runtime.residual.data import load_pair
+    from daror_runtime.residual.evidence import DiagnosisSettings
+    from daror_runtime.residual.travel import choose_direction_signal
+
+    description = load_description()
+    repeats = 2 if quick else 5
+    with tempfile.TemporaryDirectory() as folder:
+        train_path, validate_path = _protocol_runs(Path(folder))
+        inputs = load_pair(train_path, validate_path)
+        history = inputs.train_history
+        if history is None or not history.from_raw_log:
+            raise RuntimeError(f"{train_path}: its raw log was not found beside it")
+
+        def diagnosis() -> object:
+            first = diagnose(inputs.train, description)
+            return choose_direction_signal(first, inputs.train, history, description, DiagnosisSettings())
+
+        median, p90 = time_calls(diagnosis, repeats=repeats, scale=1.0)
+        walls = [
+            command_in_child(
+                ["residual", "--train", str(train_path), "--validate", str(validate_path), "--out", f"{folder}/out{k}"],
+                Path(folder),
+            )
+            for k in range(repeats)
+        ]
+    if any(w.code != 0 for w in walls):
+        raise RuntimeError(f"daror residual failed: {walls[0].stderr.strip()[-300:]}")
+    wall = sorted(w.wall_s for w in walls)
+    return [
+        BenchFigure(
+            f"residual diagnosis with the hysteresis, full protocol ({len(inputs.train)} + {len(inputs.validate)} points)",
+            median,
+            p90,
+            "s",
+            repeats,
+            10.0,
+            None,
+            "exo_dummy_arm closed-loop runs; the sign's diagnosis, the travel fit on the raw log (752,282 ticks), the second diagnosis",
+        ),
+        BenchFigure(
+            "daror residual on the same runs, process start to exit",
+            wall[len(wall) // 2],
+            wall[-1],
+            "s",
+            repeats,
+            None,
+            None,
+            "loads both raw logs, writes the report and plots",
+        ),
+    ]
 
 
 def bench_augmented_torque_one_q(quick: bool) -> BenchFigure:
@@ -199,6 +271,7 @@ def bench_residual_command_big(quick: bool) -> list[BenchFigure]:
 BENCHMARKS = [
     bench_residual_diagnosis,
     bench_residual_job,
+    bench_residual_hysteresis,
     bench_augmented_torque_one_q,
     bench_data_efficiency_study,
     bench_residual_command_big,

@@ -265,3 +265,17 @@ def test_fit_augmented_diagnoses_the_training_data_alone(files: tuple[Path, Path
     assert contents.parameters["direction_offset_nm"][1] == pytest.approx(0.6, abs=0.01)
     assert contents.fit["training"]["rmse"] < 0.03
     assert model.torque(np.zeros(4)).shape == (4,)
+
+
+def test_raw_names_at_most_two_logs_and_only_raw_logs(
+    files: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--raw TRAIN [VALIDATE]``: a third file, a stationary dataset, or another run's log: one line, exit 2."""
+    args = ["--train", str(files[0]), "--validate", str(files[1])]
+    _refused([*args, "--raw", str(files[0]), str(files[1]), str(files[1])], tmp_path / "a", capsys, "--raw: 3 files")
+    _refused([*args, "--raw", str(files[1])], tmp_path / "b", capsys, str(files[1]), "expected the raw log")
+    t = np.arange(0.0, 1.0, 0.001)
+    q = np.zeros((len(t), 4))
+    other = tmp_path / "other.raw.npz"
+    write_dataset(other, RawLog(t, q, np.zeros_like(q), np.zeros_like(q)))  # one second: not this run's
+    _refused([*args, "--raw", str(other)], tmp_path / "c", capsys, str(other), "outside this raw log")
