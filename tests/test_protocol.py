@@ -123,7 +123,7 @@ def test_full_protocol_meets_the_acceptance_figures(tmp_path: Path, description:
     # Issue 5 on the same closed-loop data: the residual analysis names joint 2's direction
     # error first (the scenario's largest, Sec. 2.2.2) and closes most of PLF+'s error.
     diagnosis = diagnose(train, description)
-    assert diagnosis.found[0].effect.site == ("direction_offset", 2)
+    assert (diagnosis.found[0].effect.family, diagnosis.found[0].effect.joint) == ("direction_offset", 2)
     assert 0.5 < diagnosis.found[0].parameters["offset_nm"] <= 0.75  # the hysteresis reverses it partly
     after = closure(diagnosis, validation)
     assert after.before.rmse_nm == pytest.approx(rmse["plf+"], rel=1e-9)

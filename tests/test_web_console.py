@@ -75,6 +75,14 @@ def _post(url: str, line: str) -> dict[str, Any]:
         return json.loads(answer.read())
 
 
+def _end(runtime: Runtime, server: WebServer | None = None) -> None:
+    """Stop serving (if a server runs), then end the session with torque off."""
+    if server is not None:
+        server.stop()
+    runtime.shutdown("test done")
+    runtime.close()
+
+
 # --- without a browser ------------------------------------------------------------------------------
 
 
@@ -139,9 +147,7 @@ def test_beyond_the_loopback_a_token_is_required(tmp_path: Path) -> None:
         assert status["state"] == "startup"
         assert _get(local + "/api/fsm", {"X-Daror-Token": server.token})[0] == 200
     finally:
-        server.stop()
-        runtime.shutdown("test done")
-        runtime.close()
+        _end(runtime, server)
 
 
 def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: Path) -> None:
@@ -171,9 +177,7 @@ def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: 
         assert any("safety_check" in text for text in said)
         assert any("safety_check" in line for line in lines)
     finally:
-        server.stop()
-        runtime.shutdown("test done")
-        runtime.close()
+        _end(runtime, server)
 
 
 def test_the_live_ring_is_bounded_and_a_late_reader_catches_up() -> None:
@@ -217,8 +221,7 @@ def test_a_busy_port_is_one_line_and_starts_nothing(tmp_path: Path) -> None:
         assert not (tmp_path / "session" / "web-server.log").exists()  # no server process was started
     finally:
         taken.close()
-        runtime.shutdown("test done")
-        runtime.close()
+        _end(runtime)
 
 
 def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tmp_path: Path) -> None:
@@ -243,9 +246,7 @@ def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tm
         assert runtime.state_name == state  # nothing changed on the robot
         assert runtime.snapshot().faults == []
     finally:
-        server.stop()
-        runtime.shutdown("test done")
-        runtime.close()
+        _end(runtime, server)
 
 
 def test_a_publisher_that_fails_is_removed_logged_and_announced(tmp_path: Path) -> None:
