@@ -1433,8 +1433,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"daror {command}: error: {exc}\n")
         return 2
     except DarorError as exc:
-        log.error("failed", command=command, reason=str(exc))
+        # the user's line first: the log is written by its own thread, which may come before or after
         sys.stderr.write(f"daror {command}: failed: {exc}\n")
+        sys.stderr.flush()
+        log.error("failed", command=command, reason=str(exc))
         return 1
     except KeyboardInterrupt:
         sys.stderr.write(f"daror {command}: interrupted\n")
