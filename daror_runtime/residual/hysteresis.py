@@ -15,8 +15,8 @@ pre-sliding stiffness). As ``r_j -> 0`` it is the sign of the last motion, the
 
 The state depends on the path, not on the pose, so it is computed from the joint's history: the
 raw log of a run (every tick's measured angle) when there is one, else the sequence of the
-stationary points (:func:`states_from_points`: moves between stops, without what happened
-during them). In the tick, :class:`HysteresisTracker` carries the same state from one sample to
+stationary points (moves between stops, without what happened during them): a
+:class:`PointHistory` holds either for a dataset. In the tick, :class:`HysteresisTracker` carries the same state from one sample to
 the next in O(1).
 
 Everything here is a pure function of its arguments except :class:`HysteresisTracker`, whose
@@ -110,15 +110,6 @@ def play_states(q_rad: FloatArray, travel_rad: FloatArray | float, initial: Floa
     if q.shape[0] == 0:
         return np.zeros((0, joints))
     return _play(q, 1.0 / travel, np.clip(start, -1.0, 1.0))
-
-
-def states_from_points(q_points_rad: FloatArray, travel_rad: FloatArray | float) -> FloatArray:
-    """The state at each stationary point from the points alone, in their order (no raw log).
-
-    The moves between two stops are taken as straight: a reversal inside a move (an overshoot
-    settling) is not seen, so short travel constants look like a direction offset.
-    """
-    return play_states(q_points_rad, travel_rad)
 
 
 class HysteresisTracker:

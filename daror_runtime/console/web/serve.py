@@ -98,11 +98,6 @@ def _listen(host: str, port: int) -> socket.socket:
         raise UsageError(f"--host {host} --port {port}: the web console cannot listen there ({why})") from None
 
 
-def fsm_page(runtime: Runtime) -> dict[str, object]:
-    """What the page draws the state machine from: the spec's diagram, laid out."""
-    return layout(runtime.spec)
-
-
 def start_web(
     runtime: Runtime,
     world: SimWorld | None,
@@ -145,7 +140,7 @@ def start_web(
     os.close(ring_fd)
     hello = {
         "token": token,
-        "fsm": fsm_page(runtime),
+        "fsm": layout(runtime.spec),  # the diagram the page draws
         "has_world": world is not None,
         "capacity": ring.capacity,
         "n_joints": n_joints,
