@@ -6,6 +6,9 @@ asserted in tests.
 
 * MinimalImpedance: the SEA torque loop with its observer (one compiled kernel call).
 * Compensation: the same plus a PLF+ model's torque (fitted as bench/bench_models.py does).
+* Compensation with a tracked hysteresis (issue 16): an augmented model of the same fit whose
+  torque reading carries a hysteresis, on a loop that regulates the drive's reading, so the
+  tracker (:mod:`daror_runtime.control.reading_error`) runs every tick.
 * MotorPositionPD: the identification's position controller on a validation trajectory (with its
   approach) and an A Priori feed-forward: reference, model and PD in one compiled call.
 """
@@ -25,10 +28,13 @@ from daror_runtime.control import (
     SeaTorqueController,
 )
 from daror_runtime.control.motor_position import MotorPositionPD
+from daror_runtime.control.sea_torque_design import SeaTorqueDesign
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.identification.trajectory_planning import build_trajectory
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.models.linear import APModel, fit_plf_plus
+from daror_runtime.residual.diagnosis import diagnose
+from daror_runtime.residual.model import AugmentedModel, augmented_model
 from hal.interface import DriveState, Sample
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
@@ -105,6 +111,31 @@ def bench_compensation_update(quick: bool) -> BenchFigure:
     )
 
 
+def bench_compensation_hysteresis_update(quick: bool) -> BenchFigure:
+    description = load_description()
+    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
+    diagnosis = diagnose(StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description)
+    signed = augmented_model(diagnosis.final_fit)
+    model = AugmentedModel(
+        description,
+        signed.spec.model_copy(
+            update={
+                "direction_offset_nm": [0.0] * 4,
+                "hysteresis_nm": signed.spec.direction_offset_nm,
+                "hysteresis_travel_rad": [5e-3] * 4,
+            }
+        ),
+    )
+    design = SeaTorqueDesign(torque_from_encoders=False)
+    return _figure(
+        "Compensation(augmented, hysteresis tracked).update, 4 joints",
+        lambda: Compensation(SeaTorqueController(description.sea, design), model, support_level=0.8, ramp_per_s=None),
+        quick,
+        12.0,
+        "augmented torque + the reading's hysteresis tracker + torque loop",
+    )
+
+
 def bench_motor_position_update(quick: bool) -> BenchFigure:
     description = load_description()
     bounds = LinkBounds.from_description(description)
@@ -120,4 +151,9 @@ def bench_motor_position_update(quick: bool) -> BenchFigure:
     )
 
 
-BENCHMARKS = [bench_minimal_impedance_update, bench_compensation_update, bench_motor_position_update]
+BENCHMARKS = [
+    bench_minimal_impedance_update,
+    bench_compensation_update,
+    bench_compensation_hysteresis_update,
+    bench_motor_position_update,
+]

@@ -279,3 +279,21 @@ def test_raw_names_at_most_two_logs_and_only_raw_logs(
     other = tmp_path / "other.raw.npz"
     write_dataset(other, RawLog(t, q, np.zeros_like(q), np.zeros_like(q)))  # one second: not this run's
     _refused([*args, "--raw", str(other)], tmp_path / "c", capsys, str(other), "outside this raw log")
+
+
+def test_a_raw_log_given_as_training_data_is_the_hysteresis_path(tmp_path: Path) -> None:
+    """``--train`` a raw log: its own samples are the joints' path when the direction error is weighed."""
+    scenario = load_scenario("residual_direction_offset")
+    stops = scenario_stops(scenario, "training", n_waypoints=12, sub_steps=2)
+    settings = QuasiStaticSettings(dwell_s=0.3)  # short stops: few points, a fast analysis
+    raw = quasi_static_log(scenario, stops, stream(scenario.seed, STREAM_RAW_LOG), settings)
+    train = tmp_path / "train_log.npz"  # no NAME.raw.* beside it: the file itself is the raw log
+    write_dataset(train, RawLog(raw.t_s, raw.q_rad, raw.dq_rad_s, raw.tau_nm))
+    validate = tmp_path / "validate.csv"
+    write_dataset(validate, as_dataset(generate_stationary(scenario, "validation")))
+    out = tmp_path / "out"
+    assert main(["residual", "--train", str(train), "--validate", str(validate), "--out", str(out)]) == 0
+    evidence = json.loads((out / "diagnosis.json").read_text())
+    assert evidence["train"]["source"] == str(train)
+    assert evidence["direction_signal"]["path"] == "raw log"
+    assert ("direction_offset", 2) in [(f["effect"], f["joint"]) for f in evidence["found"]]

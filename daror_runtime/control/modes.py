@@ -5,6 +5,8 @@
   follows the pilot with the least resistance the passive torque loop allows.
 * :class:`Compensation`: SEA torque control to ``support x model.torque(q)`` (Sec. 2.2.3): gravity
   and stiffness compensation with a support level in [0, 1] the operator sets between ticks.
+  When the model knows the torque reading's hysteresis (issue 16), the reading's error, tracked
+  tick by tick, is added to the reference, so the springs carry what the model says.
 
 Both SEA torque modes enter bumplessly: the torque the springs carry at entry is handed over
 (:mod:`daror_runtime.control.handover`), never dropped or stepped.
@@ -26,7 +28,7 @@ from daror_runtime.control.base import ControlError, ControlSettingError
 from daror_runtime.control.handover import DEFAULT_TOLERANCE_NM, MAX_RAMP_DT_S, Handover, handover_reference
 from daror_runtime.control.sea_torque import SeaTorqueController
 from daror_runtime.errors import ShapeError
-from daror_runtime.models.base import CompensationModel
+from daror_runtime.models.base import CompensationModel, ReadingErrorTracker
 from hal.interface import Command, Sample
 from hal.robot import FloatArray
 
@@ -90,7 +92,17 @@ class MinimalImpedance:
 
 
 class Compensation:
-    """Gravity and stiffness compensation: torque reference ``support x model.torque(q)``.
+    """Gravity and stiffness compensation: torque reference ``support x model.torque(q) + e(path)``.
+
+    ``e`` is the torque reading's error the model knows (its
+    :meth:`~daror_runtime.models.base.CompensationModel.reading_error_tracker`: the SEA's
+    hysteresis, 0 for most models), added only where the torque loop regulates a signal that
+    carries it (:attr:`SeaTorqueController.regulates_reading_error`; the default loop regulates
+    ``k (theta - q)``, which in the simulator does not). The loop then drives the *reading* to the
+    reference, so the springs carry ``support x model.torque(q)``: ``e`` is not scaled by the
+    support level (at support 0 the springs carry nothing, not minus the error). It is
+    continuous in the path (it turns over a joint's travel constant after a reversal, never
+    steps) and bounded by the model's amplitudes (D110).
 
     Args:
         torque: the SEA torque controller.
@@ -132,6 +144,7 @@ class Compensation:
         self._target = _checked_level(support_level)
         self._level = self._target
         self._support = np.zeros(torque.n_joints)
+        self._reading_error: ReadingErrorTracker | None = None
         self.last_reference_nm: FloatArray = np.zeros(torque.n_joints)
 
     @property
@@ -170,10 +183,17 @@ class Compensation:
         target = self._level * np.asarray(model.torque(sample.q_rad), dtype=float)
         if target.shape != (self.torque.n_joints,) or not np.all(np.isfinite(target)):
             raise ControlError(f"compensation model {model.name!r} returned {target.tolist()} at the entry pose")
+        # The reading's error starts at 0 (its state unknown, half way): the target at entry is the model's.
+        self._reading_error = model.reading_error_tracker() if self.torque.regulates_reading_error else None
+        if self._reading_error is not None:
+            self._reading_error.reset(sample.q_rad)
         self.handover.start(sample, self.torque.spring_torque_nm(sample), target)
 
     def update(self, sample: Sample, dt_s: float) -> Command:
         """Motor torques (Nm) delivering ``support x model torque`` (plus the entry's handover) at the springs.
+
+        The model's reading error (if it has one) moves with the sample's angles and is added to
+        the reference.
 
         Raises:
             ShapeError: the model returns a torque of the wrong shape.
@@ -196,6 +216,8 @@ class Compensation:
             tau_ref = model_torque * self._level  # an (n,) float array; the kernel checks shape and finiteness
         except TypeError:
             raise ShapeError(f"compensation model {model.name!r} returned {model_torque!r}, not an array") from None
+        if self._reading_error is not None:
+            tau_ref = tau_ref + self._reading_error.update(sample.q_rad, dt_s)
         if self.handover.active:
             if np.shape(tau_ref) != self._support.shape:
                 raise ShapeError(f"compensation model {model.name!r} returned a torque of shape {np.shape(tau_ref)}")

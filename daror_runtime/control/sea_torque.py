@@ -245,6 +245,16 @@ class SeaTorqueController:
         self._work[_W_U] = tau0
         self._work[_W_PREV] = tau0  # the reference slews from the torque the springs carry now
 
+    @property
+    def regulates_reading_error(self) -> bool:
+        """True when the torque this loop regulates carries the torque reading's hysteresis.
+
+        The drive's reading carries it (the residual analysis measured it there); ``k (theta - q)``
+        from the encoders only when the design says the error is in the encoders themselves
+        (``reading_error_in_encoders``). A model's reading error is corrected exactly when this is True.
+        """
+        return not self.design.torque_from_encoders or self.design.reading_error_in_encoders
+
     def spring_torque_nm(self, sample: Sample) -> FloatArray:
         """The spring torque (n_joints,) in Nm this controller regulates, read from ``sample``.
 

@@ -89,6 +89,12 @@ class SeaTorqueDesign(BaseModel):
         True,
         description="regulate k (theta - q) from the sample's two encoders rather than the drive's torque reading",
     )
+    reading_error_in_encoders: bool = Field(
+        False,
+        description="the torque reading's hysteresis (Sec. 2.2.2) is in the encoders' deflection itself (an encoder "
+        "that moves with the rotor), so k (theta - q) carries it too; False: only the drive's reading carries it "
+        "(as in the simulator). A bench test on the robot decides (docs/control.md, section 10)",
+    )
     motor_damping_nms_per_rad: Annotated[float, Field(ge=0)] = Field(
         0.0, description="K_v: extra damping on the motor-side velocity (from theta); 0 disables it"
     )

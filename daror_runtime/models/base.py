@@ -38,6 +38,17 @@ class TickKernel:
     parameters: np.ndarray
 
 
+class ReadingErrorTracker(Protocol):
+    """The torque reading's path-dependent error, carried from tick to tick (:mod:`daror_runtime.control.reading_error`)."""
+
+    def reset(self, q_rad: FloatArray) -> None:
+        """Start at the pose ``q_rad`` (rad), the state unknown."""
+
+    def update(self, q_rad: FloatArray, dt_s: float) -> FloatArray:
+        """The reading's error (Nm, per joint) after moving to ``q_rad`` (rad) in ``dt_s`` (s); never blocks."""
+        ...
+
+
 class Feedforward(Protocol):
     """What a controller's feed-forward offers: a torque (Nm) at ``q`` (rad), and maybe a compiled one.
 
@@ -80,6 +91,15 @@ class CompensationModel(ABC):
 
         Controllers ask this instead of checking the model's class; a model without a kernel runs
         through :meth:`torque`.
+        """
+        return None
+
+    def reading_error_tracker(self) -> ReadingErrorTracker | None:
+        """A new tracker of what the torque sensors read beyond the springs' torque, or None (the default: nothing).
+
+        A model that knows a path-dependent reading error (the SEA's hysteresis, issue 16) returns
+        one; :class:`~daror_runtime.control.modes.Compensation` runs it in the tick and adds its
+        error to the torque reference, so the springs carry what the model says.
         """
         return None
 

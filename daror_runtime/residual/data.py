@@ -54,8 +54,14 @@ def _extra_joints(columns: list[str]) -> list[str]:
     return extra
 
 
-def load_residual_file(path: Path | str, reduction: ReductionSettings | None = None) -> StationaryDataset:
-    """Stationary points of ``path`` (a raw log is reduced first), refusing another robot's data.
+def read_residual_file(
+    path: Path | str, reduction: ReductionSettings | None = None
+) -> tuple[StationaryDataset, RawLog | None]:
+    """Stationary points of ``path`` and, when the file is a raw log, that raw log (read once).
+
+    A raw log is reduced to its stationary points (``reduction``; the points keep their ``t``),
+    and is returned beside them: its samples are the joints' path to each point. A stationary
+    dataset comes back with None.
 
     Raises:
         DataError: the file does not match the dataset contract, holds joints beyond 1-4, or a
@@ -69,7 +75,18 @@ def load_residual_file(path: Path | str, reduction: ReductionSettings | None = N
             f"expected DAROR-01 data with joints 1-{N_JOINTS}"
         )
     data = dataset_from_table(table)
-    return reduce_to_stationary(data, reduction) if isinstance(data, RawLog) else data
+    if isinstance(data, RawLog):
+        return reduce_to_stationary(data, reduction), data
+    return data, None
+
+
+def load_residual_file(path: Path | str, reduction: ReductionSettings | None = None) -> StationaryDataset:
+    """Stationary points of ``path`` (a raw log is reduced first), refusing another robot's data.
+
+    Raises:
+        DataError: see :func:`read_residual_file`.
+    """
+    return read_residual_file(path, reduction)[0]
 
 
 def check_pair(train: StationaryDataset, validate: StationaryDataset) -> ResidualInputs:
@@ -107,6 +124,20 @@ def load_history(points: StationaryDataset, raw_path: Path | str | None) -> Poin
     return PointHistory.from_raw(raw, points)
 
 
+def _history(
+    points: StationaryDataset, data_path: Path | str, own_raw: RawLog | None, given: Path | str | None
+) -> PointHistory:
+    """The path to ``points``: the raw log named by ``given``, else the data file's own (a raw log given
+    as data), else the ``NAME.raw.*`` beside it, else the points in order.
+
+    Raises:
+        DataError: see :func:`load_history`.
+    """
+    if given is None and own_raw is not None:
+        return PointHistory.from_raw(own_raw, points)
+    return load_history(points, given if given is not None else find_raw_log(data_path))
+
+
 def load_pair(
     train_path: Path | str,
     validate_path: Path | str,
@@ -115,16 +146,20 @@ def load_pair(
 ) -> ResidualInputs:
     """Load and check the training and validation files of an analysis, with the joints' paths.
 
-    ``raw_paths``: the raw logs of the training and validation runs (None for either: the
-    ``NAME.raw.*`` file beside its dataset when there is one, else the points in order).
+    ``raw_paths``: the raw logs of the training and validation runs. None for either: a data
+    file that is itself a raw log is its own path; else the ``NAME.raw.*`` file beside its
+    dataset when there is one; else the points in order. An explicit raw log always wins.
 
     Raises:
-        DataError: see :func:`load_residual_file`, :func:`check_pair` and :func:`load_history`.
+        DataError: see :func:`read_residual_file`, :func:`check_pair` and :func:`load_history`.
     """
-    pair = check_pair(load_residual_file(train_path, reduction), load_residual_file(validate_path, reduction))
+    train, train_raw = read_residual_file(train_path, reduction)
+    validate, validate_raw = read_residual_file(validate_path, reduction)
+    pair = check_pair(train, validate)
     given = raw_paths or (None, None)
-    train_raw = given[0] if given[0] is not None else find_raw_log(train_path)
-    validate_raw = given[1] if given[1] is not None else find_raw_log(validate_path)
     return ResidualInputs(
-        pair.train, pair.validate, load_history(pair.train, train_raw), load_history(pair.validate, validate_raw)
+        pair.train,
+        pair.validate,
+        _history(pair.train, train_path, train_raw, given[0]),
+        _history(pair.validate, validate_path, validate_raw, given[1]),
     )

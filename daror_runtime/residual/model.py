@@ -7,19 +7,23 @@ model file, loaded by the registry, selected in the console and run in the loop 
 
 The direction-dependent term ``d * dir`` is part of what the sensors *read* (Sec. 2.2.2), not a
 torque the robot needs: :meth:`AugmentedModel.predict` includes it, so errors on measured data
-are fair, while :meth:`AugmentedModel.torque` (the loop) leaves it out, so compensation never
-pushes when a joint changes direction (docs/decisions.md, D41).
+are fair, while :meth:`AugmentedModel.torque` leaves it out. The sign of the last motion
+(``direction_offset``) never reaches the loop, so compensation never steps when a joint changes
+direction (docs/decisions.md, D41). The hysteresis (``hysteresis_nm`` over
+``hysteresis_travel_rad``) does: it is continuous in the path, and
+:meth:`AugmentedModel.reading_error_tracker` gives the loop its state (D110).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from daror_runtime.control.reading_error import HysteresisTracker
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import ModelFileError
 from daror_runtime.models.base import CompensationModel, FitReport, FitResult
@@ -29,7 +33,8 @@ from daror_runtime.models.regressor import N_GRAVITY_PARAMETERS, LinearTorqueEva
 from daror_runtime.residual.structure import StructureFit, base_kinds, tilted_kinematics
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
-PerJoint = list[float]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+PerJoint = list[FiniteFloat]
 
 
 class AugmentedParameters(BaseModel):
@@ -38,20 +43,20 @@ class AugmentedParameters(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     base_kind: str
-    theta: list[float] = Field(min_length=N_GRAVITY_PARAMETERS, max_length=N_GRAVITY_PARAMETERS)
-    elbow_polynomial: list[float] = Field(default_factory=list, max_length=12)
+    theta: list[FiniteFloat] = Field(min_length=N_GRAVITY_PARAMETERS, max_length=N_GRAVITY_PARAMETERS)
+    elbow_polynomial: list[FiniteFloat] = Field(default_factory=list, max_length=12)
     angle_offset_rad: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
-    gravity_tilt_rad: list[float] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
+    gravity_tilt_rad: list[FiniteFloat] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
     torque_gain: PerJoint = Field(default_factory=lambda: [1.0] * N_JOINTS, min_length=4, max_length=4)
     direction_offset_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
     hysteresis_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
-    hysteresis_travel_rad: PerJoint | None = Field(
+    hysteresis_travel_rad: list[Annotated[float, Field(gt=0.0, allow_inf_nan=False)]] | None = Field(
         default=None,
         min_length=4,
         max_length=4,
         description="the play operator's travel per joint; None: no hysteresis",
     )
-    joint_polynomials: list[list[float]] = Field(
+    joint_polynomials: list[list[FiniteFloat]] = Field(
         default_factory=lambda: [[] for _ in range(N_JOINTS)], min_length=4, max_length=4
     )
     effects: list[str] = Field(default_factory=list, description="what was added, for people")
@@ -96,6 +101,17 @@ class AugmentedModel(CompensationModel):
             if poly.size:
                 out[:, j] += np.polynomial.polynomial.polyval(q_model[:, j], poly)
         return out * self._gain[None, :]
+
+    def reading_error_tracker(self) -> HysteresisTracker | None:
+        """The hysteresis's tracker (amplitudes ``gain * hysteresis_nm``), or None for a model without one.
+
+        The direction offset (a sign) is not tracked: it steps at every reversal (D41).
+        """
+        travel = self.spec.hysteresis_travel_rad
+        amplitude = self._gain * np.asarray(self.spec.hysteresis_nm, dtype=float)
+        if travel is None or not np.any(amplitude):
+            return None
+        return HysteresisTracker(np.asarray(travel, dtype=float), amplitude)
 
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
         """What the sensors read at ``q``: the torque plus the direction term (``direction``: the sign of

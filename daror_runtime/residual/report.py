@@ -9,6 +9,9 @@
 * ``residual_signals.png``: the training residual of the base model (and of the augmented
   model) against each candidate's signal, per joint;
 * ``before_after.png``: validation torque, base and augmented model per joint (like Fig. 5.2);
+* ``hysteresis.png``, only when the model carries a hysteresis (:mod:`.hysteresis`): per joint
+  that carries it, each point's residual without the hysteresis term against its play-operator
+  state, with the fitted line. A run without one removes an earlier run's;
 * ``model.json``: the augmented model, an ordinary model file;
 * with ``--learned`` (:mod:`.learned`): a ``learned`` block in the summary, the diagnosis and the
   report, and ``model_learned.json`` (the augmented model plus a PENN residual, kind
@@ -26,13 +29,14 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.errors import DataError
 from daror_runtime.models.files import model_document, training_summary
 from daror_runtime.models.metrics import ErrorMetrics
 from daror_runtime.residual.diagnosis import Closure, Diagnosis
@@ -40,7 +44,7 @@ from daror_runtime.residual.learned import MIN_CONSERVATIVE_SHARE, MIN_LEARNED_G
 from daror_runtime.residual.model import AugmentedModel
 from daror_runtime.residual.travel import TravelChoice
 from daror_runtime.util.atomic import atomic_path, write_text_atomic
-from hal.robot import N_JOINTS
+from hal.robot import N_JOINTS, FloatArray
 
 SUMMARY_KEYS = (
     "base_model",
@@ -195,8 +199,13 @@ def report_markdown(
     validate: StationaryDataset,
     plots: list[str],
     learned: LearnedRemainder | None = None,
+    hysteresis_plot: str | None = None,
 ) -> str:
-    """The readable report (Markdown)."""
+    """The readable report (Markdown).
+
+    ``plots``: the figures' file names, shown under "Plots"; ``hysteresis_plot``: the hysteresis
+    figure's file name when it was written (named under "Effects found" and shown with the plots).
+    """
     base = diagnosis.base_kind.upper()
     lines = [
         f"# Residual analysis: {base} + effects",
@@ -230,6 +239,13 @@ def report_markdown(
                 "but it is not a stable property of the robot: with unexplained structure present (below), it "
                 "most likely stands in for that structure."
             )
+    if hysteresis_plot is not None:
+        lines += [
+            "",
+            f"The hysteresis against the data: [{hysteresis_plot}]({hysteresis_plot}) plots, per joint that "
+            "carries it, each point's residual without the hysteresis term (Nm; training and validation points) "
+            "against its play-operator state s_j, with the fitted line gain_j d_j s_j.",
+        ]
     lines += ["", "## Candidates of the last round", ""]
     if diagnosis.rounds:
         lines += [
@@ -266,7 +282,7 @@ def report_markdown(
     if diagnosis.notes:
         lines += ["", "## Notes", "", *[f"- {n}" for n in diagnosis.notes]]
     lines += ["", "## Plots", ""]
-    lines += [f"![{p}]({p})" for p in plots]
+    lines += [f"![{p}]({p})" for p in (*plots, *([hysteresis_plot] if hysteresis_plot else []))]
     return "\n".join(lines) + "\n"
 
 
@@ -360,9 +376,118 @@ def plot_before_after(diagnosis: Diagnosis, model: AugmentedModel, validate: Sta
     plt.close(figure)
 
 
+@dataclass(frozen=True)
+class HysteresisCurve:
+    """What ``hysteresis.png`` draws for one joint of one dataset.
+
+    ``states`` and ``residual_nm`` are per point of the dataset, in its order; the line is the
+    model's hysteresis term ``gain * amplitude_nm * s`` over ``line_states`` (s from -1 to 1).
+    """
+
+    joint: int  # 1-based
+    amplitude_nm: float  # d_j, Nm
+    travel_rad: float  # r_j, rad
+    gain: float  # the joint's torque gain, which scales the term as it scales the torque
+    states: FloatArray  # (points,) the play operator's state s_j of each point, in [-1, 1]
+    residual_nm: FloatArray  # (points,) tau_j minus the model without its direction term, Nm
+    line_states: FloatArray  # (n,) s from -1 to 1
+    line_nm: FloatArray  # (n,) gain * amplitude_nm * line_states, Nm
+
+
+def carries_hysteresis(model: AugmentedModel) -> bool:
+    """True when ``model`` holds a hysteresis: travel constants and a nonzero amplitude on some joint."""
+    return model.spec.hysteresis_travel_rad is not None and any(d != 0.0 for d in model.spec.hysteresis_nm)
+
+
+def hysteresis_curve_data(model: AugmentedModel, dataset: StationaryDataset) -> list[HysteresisCurve]:
+    """Per joint that carries the model's hysteresis: each point's state and residual, and the fitted line.
+
+    ``dataset.direction`` must hold the hysteresis states for the model's travel constants (as
+    :func:`daror_runtime.residual.travel.with_signal` makes it); the residual is
+    ``tau_j - model.predict(q, None)[:, j]`` (Nm): what the sensors read beyond the modelled
+    torque, the hysteresis term included. An empty list for a model without a hysteresis.
+
+    Raises:
+        DataError: the model carries a hysteresis but ``dataset`` has no direction signal, or one
+            of another shape, or states outside [-1, 1].
+    """
+    if not carries_hysteresis(model):
+        return []
+    if dataset.direction is None:
+        raise DataError(f"{dataset.source}: no direction signal; expected the hysteresis states s1..s4 of each point")
+    states = np.asarray(dataset.direction, dtype=float)
+    if states.shape != dataset.q_rad.shape:
+        raise DataError(
+            f"{dataset.source}: direction signal of shape {states.shape}; expected the hysteresis states, "
+            f"one per joint and point {dataset.q_rad.shape}"
+        )
+    if not np.all(np.abs(states) <= 1.0 + 1e-9):  # a window's mean of states may round past 1
+        raise DataError(f"{dataset.source}: direction signal outside [-1, 1]; expected hysteresis states")
+    residual = dataset.tau_nm - model.predict(dataset.q_rad, None)
+    travel = model.spec.hysteresis_travel_rad or []
+    line_states = np.linspace(-1.0, 1.0, 101)
+    curves = []
+    for j, amplitude in enumerate(model.spec.hysteresis_nm):
+        if amplitude == 0.0:
+            continue
+        gain = float(model.spec.torque_gain[j])
+        curves.append(
+            HysteresisCurve(
+                joint=j + 1,
+                amplitude_nm=float(amplitude),
+                travel_rad=float(travel[j]),
+                gain=gain,
+                states=states[:, j].copy(),
+                residual_nm=residual[:, j].copy(),
+                line_states=line_states,
+                line_nm=gain * float(amplitude) * line_states,
+            )
+        )
+    return curves
+
+
+def plot_hysteresis(model: AugmentedModel, train: StationaryDataset, validate: StationaryDataset, path: Path) -> None:
+    """Per joint with a hysteresis: the residual without its term against the state, and the fitted line.
+
+    Raises:
+        DataError: see :func:`hysteresis_curve_data`.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train_shown, train_note = _plotted(len(train))
+    validate_shown, validate_note = _plotted(len(validate))
+    curves = hysteresis_curve_data(model, train.subset(train_shown))
+    checks = hysteresis_curve_data(model, validate.subset(validate_shown))
+    figure, axes = plt.subplots(1, len(curves), figsize=(4.6 * len(curves), 3.8), squeeze=False)
+    for ax, curve, check in zip(axes[0], curves, checks, strict=True):
+        ax.scatter(curve.states, curve.residual_nm, s=4, color="0.55", label=f"training{train_note}")
+        ax.scatter(
+            check.states, check.residual_nm, s=14, marker="x", color="tab:orange", label=f"validation{validate_note}"
+        )
+        ax.plot(curve.line_states, curve.line_nm, "-", color="tab:blue", linewidth=1.5, label="fitted gain d s")
+        ax.axhline(0.0, color="k", linewidth=0.6)
+        ax.set_xlim(-1.05, 1.05)
+        ax.set_xlabel(f"hysteresis state s{curve.joint}")
+        ax.set_title(f"joint {curve.joint}: {curve.amplitude_nm:+.3g} Nm over {curve.travel_rad * 1e3:.3g} mrad")
+    axes[0, 0].set_ylabel("residual without the hysteresis (Nm)")
+    axes[0, 0].legend(loc="upper left", fontsize=7, markerscale=2)
+    figure.suptitle("The hysteresis fitted against the data")
+    figure.tight_layout()
+    _save_figure(figure, path)
+    plt.close(figure)
+
+
 REPORT_FILES = ("residual_signals.png", "before_after.png", "model.json", "diagnosis.json", "report.md", "summary.json")
 #: Written with ``--learned`` when the remainder was conservative and the PENN validated.
 LEARNED_MODEL_FILE = "model_learned.json"
+#: Written when the model carries a hysteresis (:func:`carries_hysteresis`).
+HYSTERESIS_PLOT_FILE = "hysteresis.png"
+#: Files a run writes only sometimes, besides :data:`REPORT_FILES`: a run that does not write one
+#: removes an earlier run's, so the folder never holds a file its summary does not describe.
+OPTIONAL_FILES = (LEARNED_MODEL_FILE, HYSTERESIS_PLOT_FILE)
 
 
 def write_report(
@@ -382,17 +507,24 @@ def write_report(
 
     The files are written into a temporary folder beside ``out_dir`` and moved in only when all
     of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was. An earlier
-    run's :data:`LEARNED_MODEL_FILE` is removed when this run writes none.
+    run's :data:`OPTIONAL_FILES` (the learned model, the hysteresis plot) are removed when this
+    run writes none. The returned dict is keyed by file name; it holds an optional file only
+    when it was written.
+
+    Raises:
+        DataError: the model carries a hysteresis but the datasets hold no hysteresis states
+            (see :func:`hysteresis_curve_data`).
     """
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    names = (LEARNED_MODEL_FILE, *REPORT_FILES) if learned is not None and learned.model is not None else REPORT_FILES
     try:
-        _write_files(staging, diagnosis, result, model, train, validate, train_path, learned, travel)
+        optional = _write_files(staging, diagnosis, result, model, train, validate, train_path, learned, travel)
+        names = (*optional, *REPORT_FILES)
         out.mkdir(exist_ok=True)
-        if LEARNED_MODEL_FILE not in names:
-            (out / LEARNED_MODEL_FILE).unlink(missing_ok=True)
+        for name in OPTIONAL_FILES:
+            if name not in optional:
+                (out / name).unlink(missing_ok=True)
         for name in names:
             os.replace(staging / name, out / name)
     finally:
@@ -410,7 +542,9 @@ def _write_files(
     train_path: Path | str | None,
     learned: LearnedRemainder | None,
     travel: TravelChoice | None = None,
-) -> None:
+) -> tuple[str, ...]:
+    """Write the report's files into ``out``; the names of the :data:`OPTIONAL_FILES` written."""
+    optional: list[str] = []
     paths = {
         "signals_plot": out / "residual_signals.png",
         "before_after_plot": out / "before_after.png",
@@ -421,20 +555,28 @@ def _write_files(
     }
     plot_residual_signals(diagnosis, train, paths["signals_plot"])
     plot_before_after(diagnosis, model, validate, paths["before_after_plot"])
+    if carries_hysteresis(model):
+        plot_hysteresis(model, train, validate, out / HYSTERESIS_PLOT_FILE)
+        optional.append(HYSTERESIS_PLOT_FILE)
     summary = training_summary(train, train_path)
     document = model_document(model, summary)
     write_text_atomic(paths["model"], json.dumps(document, indent=2, allow_nan=False) + "\n")
     if learned is not None and learned.model is not None:
         learned_document = model_document(learned.model, summary)
         write_text_atomic(out / LEARNED_MODEL_FILE, json.dumps(learned_document, indent=2, allow_nan=False) + "\n")
+        optional.append(LEARNED_MODEL_FILE)
     evidence = diagnosis_document(diagnosis, result, train, validate, learned)
     if travel is not None:
         evidence["direction_signal"] = direction_signal_document(travel)
     write_text_atomic(paths["diagnosis"], _json(evidence))
     plots = [paths["before_after_plot"].name, paths["signals_plot"].name]
-    write_text_atomic(paths["report"], report_markdown(diagnosis, result, train, validate, plots, learned))
+    hysteresis_plot = HYSTERESIS_PLOT_FILE if HYSTERESIS_PLOT_FILE in optional else None
+    write_text_atomic(
+        paths["report"], report_markdown(diagnosis, result, train, validate, plots, learned, hysteresis_plot)
+    )
     # The summary last: its presence says the whole report is there.
     write_text_atomic(paths["summary"], _json(summary_document(diagnosis, result, learned)))
+    return tuple(optional)
 
 
 def _json(document: dict[str, Any]) -> str:
