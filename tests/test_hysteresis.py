@@ -130,3 +130,23 @@ def test_a_travel_constant_must_be_positive_and_finite(travel: float) -> None:
         play_states(np.zeros((3, 4)), travel)
     with pytest.raises(UsageError, match="travel constant"):
         HysteresisTracker(np.full(4, travel), np.ones(4))
+
+
+def test_the_tracker_takes_frozen_and_listed_angles_skips_a_non_finite_one_and_refuses_a_wrong_shape() -> None:
+    from daror_runtime.errors import ShapeError
+
+    tracker = HysteresisTracker(np.full(4, 0.005), np.array([0.25, 0.75, 0.35, 0.15]))
+    tracker.reset(np.zeros(4))
+    frozen = np.full(4, 0.1)
+    frozen.flags.writeable = False  # a HAL's sample arrays may be read-only
+    for _ in range(500):
+        error = tracker.update(frozen, 1e-3)
+    assert error == pytest.approx([0.25, 0.75, 0.35, 0.15])  # 100 mrad up: saturated
+    before = tracker.state.copy()
+    assert tracker.update([0.0, float("nan"), 0.0, 0.0], 1e-3) == pytest.approx(0.25 * before * [1, 3, 1.4, 0.6])
+    assert np.array_equal(tracker.state, before)  # the NaN moved no joint
+    tracker.update([0.0, 0.1, 0.1, 0.1], 1e-3)  # a list is converted: joint 1 starts down
+    assert tracker.state[0] < 1.0
+    assert np.all(tracker.state[1:] == 1.0)
+    with pytest.raises(ShapeError, match="4 angles"):
+        tracker.update(np.zeros(3), 1e-3)

@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
-from daror_runtime.errors import UsageError
+from daror_runtime.errors import ShapeError, UsageError
 from hal.robot import FloatArray
 
 __all__ = ["PATH_FILTER_HZ", "HysteresisTracker", "checked_travel", "path_filter_gain"]
@@ -42,6 +43,43 @@ def path_filter_gain(dt_s: float, cutoff_hz: float = PATH_FILTER_HZ) -> float:
     if not math.isfinite(dt_s) or dt_s <= 0.0:
         return 0.0  # no time passed (or none that can be counted): the filter does not move
     return 1.0 - math.exp(-2.0 * math.pi * cutoff_hz * dt_s)
+
+
+#: The angles: any layout, read-only accepted (a sample's arrays may be frozen); writable ones match too.
+_ANGLES = numba.types.Array(numba.float64, 1, "A", readonly=True)
+_OWN = numba.float64[::1]
+_FROZEN = numba.types.Array(numba.float64, 1, "C", readonly=True)  # the amplitudes, never written
+
+
+@numba.njit(numba.int64(_ANGLES, numba.float64, _OWN, _FROZEN, _OWN, _OWN, _OWN), cache=True, nogil=True)
+def _track(
+    q_rad: np.ndarray,
+    gain: float,
+    inverse_travel: np.ndarray,
+    amplitude_nm: np.ndarray,
+    filtered: np.ndarray,
+    state: np.ndarray,
+    error_nm: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """One tick of every joint: filter the angle, move the state, write the error; a non-finite angle moves nothing.
+
+    Returns 0, or -1 (nothing done) when ``q_rad`` is not one angle per joint.
+    """
+    n = state.shape[0]
+    if q_rad.shape[0] != n:
+        return -1
+    for j in range(n):
+        if not math.isfinite(q_rad[j]):
+            for k in range(n):
+                error_nm[k] = amplitude_nm[k] * state[k]
+            return 0
+    for j in range(n):
+        step = gain * (q_rad[j] - filtered[j])
+        filtered[j] += step
+        s = state[j] + step * inverse_travel[j]
+        state[j] = 1.0 if s > 1.0 else (-1.0 if s < -1.0 else s)
+        error_nm[j] = amplitude_nm[j] * state[j]
+    return 0
 
 
 def checked_travel(travel_rad: FloatArray | float, joints: int) -> FloatArray:
@@ -80,9 +118,10 @@ class HysteresisTracker:
         joints = amplitude.shape[0]
         self.state = np.zeros(joints)
         self._filtered = np.zeros(joints)
-        self._step = np.zeros(joints)
         self._error = np.zeros(joints)
         self._started = False
+        self._dt_s = math.nan
+        self._gain = 0.0
 
     def reset(self, q_rad: FloatArray, state: FloatArray | None = None) -> None:
         """Start from the pose ``q_rad`` (rad) with ``state`` (None: 0, unknown)."""
@@ -94,18 +133,30 @@ class HysteresisTracker:
         """Move the state with the (filtered) travel since the last call; the reading's error now (Nm, per joint).
 
         ``dt_s``: time since the last call (s). A sample that is not finite moves nothing (the
-        torque loop refuses it). The returned array is the tracker's own: valid until the next call.
+        torque loop refuses it). One compiled call, nothing allocated. The returned array is the
+        tracker's own: valid until the next call.
+
+        Raises:
+            ShapeError: ``q_rad`` is not one angle per joint.
         """
         if not self._started:
             self.reset(q_rad)
-        gain = path_filter_gain(dt_s)
-        step = self._step
-        np.subtract(q_rad, self._filtered, out=step)
-        step *= gain
-        if np.isfinite(step).all():
-            self._filtered += step
-            step *= self._inverse_travel
-            self.state += step
-            np.clip(self.state, -1.0, 1.0, out=self.state)
-        np.multiply(self.amplitude_nm, self.state, out=self._error)
+        if dt_s != self._dt_s:  # the gain's exp once per period, not per tick
+            self._dt_s = dt_s
+            self._gain = path_filter_gain(dt_s)
+        try:
+            status = _track(
+                q_rad, self._gain, self._inverse_travel, self.amplitude_nm, self._filtered, self.state, self._error
+            )
+        except TypeError:  # not a float64 vector: convert (or refuse), then the same kernel
+            q = np.asarray(q_rad, dtype=float)
+            status = (
+                -1
+                if q.ndim != 1
+                else _track(
+                    q, self._gain, self._inverse_travel, self.amplitude_nm, self._filtered, self.state, self._error
+                )
+            )
+        if status:
+            raise ShapeError(f"the hysteresis tracker takes {self.state.shape[0]} angles, got shape {np.shape(q_rad)}")
         return self._error
