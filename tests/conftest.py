@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,13 @@ from hal.sim.static_dataset import StationarySet, generate_stationary
 # Quiet by default: the runtime's audit events go nowhere unless a test asks for them
 # (structlog.testing.capture_logs, or configure_logging with a JSON file).
 configure_logging("critical")
+
+# A shell runs a background job (`make test &`) with SIGINT ignored, and a command started with it
+# ignored never turns Ctrl-C into KeyboardInterrupt: the tests that press Ctrl-C on a `daror`
+# command would then time out. A handler here (not "ignored") is reset to the default in every
+# command the tests start, whoever started the suite.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 settings.register_profile("ci", max_examples=200, deadline=None)
 settings.register_profile("dev", max_examples=50, deadline=None)
