@@ -351,9 +351,11 @@ def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
 
     if args.json is not None:
         _output_file(args.json, args.data, *args.models)
+    from daror_runtime.residual.data import prediction_signal
+
     models = _load_models(args.models)
     data = load_stationary(args.data)
-    evaluations = evaluate_models(models, data)
+    evaluations = evaluate_models(models, data, [prediction_signal(m, data, args.data) for m in models])
     console.print(evaluation_table(evaluations, f"Errors on {args.data} ({len(data)} points), Eq. 4.31-4.32"))
     if args.json is not None:
         _write_json(args.json, evaluation_document(evaluations))

@@ -16,8 +16,11 @@ import daror_runtime.residual.data as residual_data
 from daror_runtime.data.load import write_dataset
 from daror_runtime.data.schema import RawLog
 from daror_runtime.errors import DataError
-from daror_runtime.residual.data import load_pair, read_residual_file
+from daror_runtime.models.penn_residual import PennResidualModel
+from daror_runtime.residual.data import load_pair, prediction_signal, read_residual_file
 from daror_runtime.residual.hysteresis import PointHistory
+from daror_runtime.residual.model import AugmentedModel
+from hal.robot import load_description
 from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import STREAM_RAW_LOG, generate_stationary, scenario_stops, stream
@@ -137,3 +140,34 @@ def test_each_file_is_read_once(files: dict[str, Path], monkeypatch: pytest.Monk
     assert pair.train_history is not None
     assert pair.train_history.from_raw_log
     assert sorted(read) == sorted([str(files["train_raw"]), str(files["validate_raw"])])
+
+
+def _with_hysteresis(travel_rad: list[float] | None) -> AugmentedModel:
+    parameters: dict[str, object] = {"base_kind": "plf+", "theta": [0.0] * 12, "hysteresis_nm": [0.0, 0.5, 0.0, 0.0]}
+    if travel_rad is not None:
+        parameters["hysteresis_travel_rad"] = travel_rad
+    return AugmentedModel.from_parameters(load_description(), parameters)
+
+
+def test_a_model_is_judged_with_the_signal_its_reading_needs(files: dict[str, Path], tmp_path: Path) -> None:
+    """A sign model predicts with ``dir``; a hysteresis model with its state along the run's raw log
+    beside the file (else the points in order); a PENN residual on it with its base's."""
+    points, raw = read_residual_file(files["train_raw"])
+    assert raw is not None
+    stationary = tmp_path / "run.csv"
+    write_dataset(stationary, points)
+    sign_model = _with_hysteresis(None)
+    assert sign_model.path_travel_rad() is None
+    assert prediction_signal(sign_model, points, stationary) is points.direction
+    model = _with_hysteresis([0.005] * 4)
+    in_order = prediction_signal(model, points, stationary)  # no raw log beside it yet
+    assert in_order == pytest.approx(PointHistory.from_points(points).states(0.005))
+    write_dataset(tmp_path / "run.raw.npz", raw)
+    along_the_log = prediction_signal(model, points, stationary)
+    assert along_the_log == pytest.approx(PointHistory.from_raw(raw, points).states(0.005))
+    assert not np.allclose(along_the_log, in_order)  # the log sees the settling the points do not
+    assert np.all(np.abs(along_the_log) <= 1.0)
+    learned = object.__new__(PennResidualModel)  # the delegation alone: no network needed
+    learned.base = model
+    assert learned.path_travel_rad() == pytest.approx([0.005] * 4)
+    assert learned.reading_error_tracker() is not None

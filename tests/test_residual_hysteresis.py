@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign
+from daror_runtime.data.load import load_stationary
 from daror_runtime.models.files import load_model
 from daror_runtime.residual.data import load_pair
 from daror_runtime.residual.diagnosis import closure, diagnose
@@ -34,6 +35,7 @@ from daror_runtime.residual.evidence import DiagnosisSettings
 from daror_runtime.residual.hysteresis import PointHistory
 from daror_runtime.residual.model import AugmentedModel
 from daror_runtime.residual.travel import choose_direction_signal
+from daror_runtime.session.training import validation_errors
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
@@ -125,9 +127,17 @@ def test_the_closed_loop_runs_hysteresis_is_named_and_closed(
     # Against the stricter floor, exo_dummy_arm's 5 mrad travel pays for the encoders' noise at
     # every turning point (docs/residual.md): this bound says what is reached.
     assert summary["rmse_after"] <= floor_ratio * floor
+    # The session's validation gate and `daror evaluate` judge the model as the analysis did: with
+    # its state along the validation run's raw log, not with the sign.
+    fitted, _ = load_model(tmp_path / "residual" / "model.json")
+    gate = validation_errors(fitted, load_stationary(validate), validate)
+    assert gate.rmse_nm == pytest.approx(summary["rmse_after"], rel=1e-9)
+    table = tmp_path / "evaluate.json"
+    _daror("evaluate", str(tmp_path / "residual" / "model.json"), "--data", str(validate), "--json", str(table))
+    evaluated = json.loads(table.read_text(encoding="utf-8"))["models"][0]["rmse"]
+    assert evaluated == pytest.approx(summary["rmse_after"], rel=1e-9)
     # The fitted model in the loop (regulating the drive's reading, which carries the error): the
     # tracked hysteresis takes the reading's error off the pilot's arm.
-    fitted, _ = load_model(tmp_path / "residual" / "model.json")
     assert isinstance(fitted, AugmentedModel)
     untracked = AugmentedModel(fitted.description, fitted.spec.model_copy(update={"hysteresis_nm": [0.0] * 4}))
     plant = load_scenario(scenario)

@@ -103,6 +103,15 @@ class CompensationModel(ABC):
         """
         return None
 
+    def path_travel_rad(self) -> FloatArray | None:
+        """The travel constants (rad, per joint) of a reading error that depends on each joint's path, or None.
+
+        None (the default): :meth:`predict`'s ``direction`` is the sign of each joint's last motion
+        (a dataset's ``dir``). Otherwise it is the hysteresis state of each point, which the
+        joints' path gives (the residual analysis computes it from a run's raw log).
+        """
+        return None
+
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
         """What the torque sensors would read at N configurations (N, 4).
 

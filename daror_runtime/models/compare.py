@@ -17,6 +17,7 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.cvf import THESIS_STEPS_RAD, CvfResult, cvf_test, default_start
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
+from hal.robot import FloatArray
 
 #: Table III of the thesis: (RMSE A Nm, nRMSE A, RMSE B Nm, nRMSE B).
 THESIS_TABLE_III: dict[str, tuple[float, float, float, float]] = {
@@ -42,10 +43,21 @@ class Evaluation:
     metrics: ErrorMetrics
 
 
-def evaluate_models(models: Sequence[CompensationModel], data: StationaryDataset) -> list[Evaluation]:
-    """Errors of every model on ``data`` (Eq. 4.31-4.32)."""
+def evaluate_models(
+    models: Sequence[CompensationModel],
+    data: StationaryDataset,
+    signals: Sequence[FloatArray | None] | None = None,
+) -> list[Evaluation]:
+    """Errors of every model on ``data`` (Eq. 4.31-4.32).
+
+    ``signals``: the ``direction`` each model predicts with (None: the dataset's ``dir`` for all;
+    a model whose reading carries a hysteresis needs its state, see
+    ``daror_runtime.residual.data.prediction_signal``).
+    """
+    directions = list(signals) if signals is not None else [data.direction] * len(models)
     return [
-        Evaluation(m.name, m.kind, error_metrics(data.tau_nm, m.predict(data.q_rad, data.direction))) for m in models
+        Evaluation(m.name, m.kind, error_metrics(data.tau_nm, m.predict(data.q_rad, d)))
+        for m, d in zip(models, directions, strict=True)
     ]
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from daror_runtime.errors import ModelFileError
-from daror_runtime.models.base import CompensationModel, TickKernel
+from daror_runtime.models.base import CompensationModel, ReadingErrorTracker, TickKernel
 from daror_runtime.models.neural import NeuralModel, PennModel, _checked_scratch_size, network_torque_into
 from daror_runtime.models.regressor import linear_torque
 from hal.errors import ShapeError
@@ -141,6 +141,14 @@ class PennResidualModel(CompensationModel):
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
         """What the sensors would read (Nm, (N, 4)): the base's prediction (its sensor effects) plus the network."""
         return self.base.predict(q, direction) + self.residual.torque_batch(q)
+
+    def path_travel_rad(self) -> FloatArray | None:
+        """The base's (its sensor effects are the base's)."""
+        return self.base.path_travel_rad()
+
+    def reading_error_tracker(self) -> ReadingErrorTracker | None:
+        """The base's: the network learns torque, not what the sensors read."""
+        return self.base.reading_error_tracker()
 
     def potential_batch(self, q: FloatArray) -> FloatArray:
         """The learned part's potential ``V_nn`` (J, up to a constant; (N,)) at N configurations."""

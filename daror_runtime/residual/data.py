@@ -16,8 +16,9 @@ from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
 from daror_runtime.data.tables import read_table, shown_names
 from daror_runtime.errors import DataError
+from daror_runtime.models.base import CompensationModel
 from daror_runtime.residual.hysteresis import PointHistory, find_raw_log
-from hal.robot import N_JOINTS
+from hal.robot import N_JOINTS, FloatArray
 
 #: Fewer validation points than this give RMSE figures that mean little (and nRMSE peaks that
 #: one point decides); the thesis validates on 166.
@@ -136,6 +137,26 @@ def _history(
     if given is None and own_raw is not None:
         return PointHistory.from_raw(own_raw, points)
     return load_history(points, given if given is not None else find_raw_log(data_path))
+
+
+def prediction_signal(
+    model: CompensationModel, data: StationaryDataset, data_path: Path | str | None = None
+) -> FloatArray | None:
+    """The ``direction`` :meth:`CompensationModel.predict` needs on ``data`` to predict what the sensors read.
+
+    The dataset's ``dir`` (the sign of each joint's last motion), unless the model's reading error
+    depends on the joints' path (:meth:`CompensationModel.path_travel_rad`, the hysteresis): then
+    its state at each point, along the raw log written beside ``data_path`` (``NAME.raw.*``), else
+    along the points in their order, as ``daror residual`` computes it.
+
+    Raises:
+        DataError: the raw log beside ``data_path`` is not a raw log, or not this run's.
+    """
+    travel = model.path_travel_rad()
+    if travel is None:
+        return data.direction
+    raw = find_raw_log(data_path) if data_path is not None else None
+    return load_history(data, raw).states(travel)
 
 
 def load_pair(

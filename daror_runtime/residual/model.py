@@ -107,11 +107,17 @@ class AugmentedModel(CompensationModel):
 
         The direction offset (a sign) is not tracked: it steps at every reversal (D41).
         """
-        travel = self.spec.hysteresis_travel_rad
-        amplitude = self._gain * np.asarray(self.spec.hysteresis_nm, dtype=float)
-        if travel is None or not np.any(amplitude):
+        travel = self.path_travel_rad()
+        if travel is None:
             return None
-        return HysteresisTracker(np.asarray(travel, dtype=float), amplitude)
+        return HysteresisTracker(travel, self._gain * np.asarray(self.spec.hysteresis_nm, dtype=float))
+
+    def path_travel_rad(self) -> FloatArray | None:
+        """The hysteresis's travel constants (rad) when the model carries one: :meth:`predict` then takes its state."""
+        travel = self.spec.hysteresis_travel_rad
+        if travel is None or not np.any(self.spec.hysteresis_nm):
+            return None
+        return np.asarray(travel, dtype=float)
 
     def predict(self, q: FloatArray, direction: FloatArray | None = None) -> FloatArray:
         """What the sensors read at ``q``: the torque plus the direction term (``direction``: the sign of

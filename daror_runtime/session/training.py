@@ -36,9 +36,18 @@ class TrainedModel:
     validation: ErrorMetrics
 
 
-def validation_errors(model: CompensationModel, data: StationaryDataset) -> ErrorMetrics:
-    """The model's errors (Eq. 4.31-4.32) on a validation dataset."""
-    return error_metrics(data.tau_nm, model.predict(data.q_rad, data.direction))
+def validation_errors(model: CompensationModel, data: StationaryDataset, data_path: Path | None = None) -> ErrorMetrics:
+    """The model's errors (Eq. 4.31-4.32) on a validation dataset (read from ``data_path``).
+
+    A model whose reading carries a hysteresis is judged with its state along the run's path (the
+    raw log beside ``data_path``), not with the sign of the last motion.
+
+    Raises:
+        DataError: the raw log beside ``data_path`` belongs to another run.
+    """
+    from daror_runtime.residual.data import prediction_signal
+
+    return error_metrics(data.tau_nm, model.predict(data.q_rad, prediction_signal(model, data, data_path)))
 
 
 def train_model(
@@ -65,7 +74,7 @@ def train_model(
         raise UsageError(f"model kind {kind} cannot be trained in a session")
     training = load_stationary(training_path)
     result = fit_model(kind, training, description, installation_options(kind, dummy_arm))
-    metrics = validation_errors(result.model, load_stationary(validation_path))
+    metrics = validation_errors(result.model, load_stationary(validation_path), validation_path)
     path = next_free_path(directory, f"model_{kind.replace('+', '_plus')}", ".json")
     save_model(path, result.model, training_summary(training, training_path), result.report)
     selected = SelectedModel(result.model.name, kind, path, metrics.rmse_nm, max_rmse_nm)
@@ -118,7 +127,7 @@ def read_model_candidate(path: Path, validation_path: Path, description: RobotDe
 
 def validate_candidate(candidate: ModelCandidate, max_rmse_nm: float) -> TrainedModel:
     """The candidate's errors on its validation data, and whether that validates it (a job: outside the tick)."""
-    metrics = validation_errors(candidate.model, candidate.validation)
+    metrics = validation_errors(candidate.model, candidate.validation, candidate.validation_path)
     selected = SelectedModel(candidate.model.name, candidate.kind, candidate.path, metrics.rmse_nm, max_rmse_nm)
     log.info(
         "model validated",
