@@ -27,7 +27,6 @@ import numpy as np
 import pytest
 
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign
-from daror_runtime.data.load import load_stationary
 from daror_runtime.models.files import load_model
 from daror_runtime.residual.data import load_pair
 from daror_runtime.residual.diagnosis import closure, diagnose
@@ -35,7 +34,7 @@ from daror_runtime.residual.evidence import DiagnosisSettings
 from daror_runtime.residual.hysteresis import PointHistory
 from daror_runtime.residual.model import AugmentedModel
 from daror_runtime.residual.travel import choose_direction_signal
-from daror_runtime.session.training import validation_errors
+from daror_runtime.session.training import read_model_candidate, validate_candidate
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
@@ -130,8 +129,9 @@ def test_the_closed_loop_runs_hysteresis_is_named_and_closed(
     # The session's validation gate and `daror evaluate` judge the model as the analysis did: with
     # its state along the validation run's raw log, not with the sign.
     fitted, _ = load_model(tmp_path / "residual" / "model.json")
-    gate = validation_errors(fitted, load_stationary(validate), validate)
-    assert gate.rmse_nm == pytest.approx(summary["rmse_after"], rel=1e-9)
+    candidate = read_model_candidate(tmp_path / "residual" / "model.json", validate, load_description())
+    gate = validate_candidate(candidate, max_rmse_nm=0.5)
+    assert gate.validation.rmse_nm == pytest.approx(summary["rmse_after"], rel=1e-9)
     table = tmp_path / "evaluate.json"
     _daror("evaluate", str(tmp_path / "residual" / "model.json"), "--data", str(validate), "--json", str(table))
     evaluated = json.loads(table.read_text(encoding="utf-8"))["models"][0]["rmse"]

@@ -24,7 +24,7 @@ from daror_runtime.models.files import file_sha256, load_model, save_model, trai
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
 from daror_runtime.models.registry import fit_model, installation_options, kind_entry
 from daror_runtime.session.identification import next_free_path
-from hal.robot import RobotDescription
+from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -36,18 +36,13 @@ class TrainedModel:
     validation: ErrorMetrics
 
 
-def validation_errors(model: CompensationModel, data: StationaryDataset, data_path: Path | None = None) -> ErrorMetrics:
-    """The model's errors (Eq. 4.31-4.32) on a validation dataset (read from ``data_path``).
+def validation_errors(model: CompensationModel, data: StationaryDataset, signal: FloatArray | None) -> ErrorMetrics:
+    """The model's errors (Eq. 4.31-4.32) on a validation dataset, predicting with ``signal``.
 
-    A model whose reading carries a hysteresis is judged with its state along the run's path (the
-    raw log beside ``data_path``), not with the sign of the last motion.
-
-    Raises:
-        DataError: the raw log beside ``data_path`` belongs to another run.
+    ``signal``: what :func:`daror_runtime.residual.data.prediction_signal` gives for the model and
+    the file: the sign of the last motion, or a hysteresis model's state along the run's path.
     """
-    from daror_runtime.residual.data import prediction_signal
-
-    return error_metrics(data.tau_nm, model.predict(data.q_rad, prediction_signal(model, data, data_path)))
+    return error_metrics(data.tau_nm, model.predict(data.q_rad, signal))
 
 
 def train_model(
@@ -74,7 +69,10 @@ def train_model(
         raise UsageError(f"model kind {kind} cannot be trained in a session")
     training = load_stationary(training_path)
     result = fit_model(kind, training, description, installation_options(kind, dummy_arm))
-    metrics = validation_errors(result.model, load_stationary(validation_path), validation_path)
+    from daror_runtime.residual.data import prediction_signal  # the analysis's path reader, when asked for
+
+    validation = load_stationary(validation_path)
+    metrics = validation_errors(result.model, validation, prediction_signal(result.model, validation, validation_path))
     path = next_free_path(directory, f"model_{kind.replace('+', '_plus')}", ".json")
     save_model(path, result.model, training_summary(training, training_path), result.report)
     selected = SelectedModel(result.model.name, kind, path, metrics.rmse_nm, max_rmse_nm)
@@ -103,6 +101,7 @@ class ModelCandidate:
     path: Path
     validation: StationaryDataset
     validation_path: Path
+    signal: FloatArray | None  # what the model predicts the validation readings with (prediction_signal)
 
 
 def read_model_candidate(path: Path, validation_path: Path, description: RobotDescription) -> ModelCandidate:
@@ -112,6 +111,7 @@ def read_model_candidate(path: Path, validation_path: Path, description: RobotDe
         ModelFileError: the model file is missing, unreadable, corrupted, or fitted for another geometry.
         DataError: the validation file is missing or malformed.
         NotHeldOutError: the validation file is the one the model was trained on.
+        DataError: the raw log beside the validation file (a hysteresis model's path) is not this run's.
     """
     model, document = load_model(path)
     if document.robot.geometry != description.geometry:
@@ -122,12 +122,15 @@ def read_model_candidate(path: Path, validation_path: Path, description: RobotDe
         raise NotHeldOutError(
             f"{validation_path}: this is the data {path} was trained on; validate it on held-out data of this pilot"
         )
-    return ModelCandidate(model, document.kind, Path(path), validation, Path(validation_path))
+    from daror_runtime.residual.data import prediction_signal  # the analysis's path reader, when asked for
+
+    signal = prediction_signal(model, validation, validation_path)  # a raw log, read here with the other files
+    return ModelCandidate(model, document.kind, Path(path), validation, Path(validation_path), signal)
 
 
 def validate_candidate(candidate: ModelCandidate, max_rmse_nm: float) -> TrainedModel:
     """The candidate's errors on its validation data, and whether that validates it (a job: outside the tick)."""
-    metrics = validation_errors(candidate.model, candidate.validation, candidate.validation_path)
+    metrics = validation_errors(candidate.model, candidate.validation, candidate.signal)
     selected = SelectedModel(candidate.model.name, candidate.kind, candidate.path, metrics.rmse_nm, max_rmse_nm)
     log.info(
         "model validated",
