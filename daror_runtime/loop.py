@@ -464,7 +464,7 @@ class ControlLoop:
         if work_s / ran > self._work_worst_s:
             self._work_worst_s = work_s / ran
         self._last_t_s = last_seq * begun.period_s
-        command = _new_tuple(CheckedCommand, (torque.copy(), True))
+        command = _new_tuple(CheckedCommand, (torque.copy(), True, ()))
         self.last_command = command
         try:
             backend.end(ran, int(outcome[1]))

@@ -121,10 +121,14 @@ class Command(NamedTuple):
 
     ``motor_torque_nm`` is the torque the motor should deliver at the gearbox output (before the
     spring); ``enable`` False means torque off (drives disabled), whatever the torque says.
+    ``joints_off`` names joints (1-4) whose drive is disabled while the others follow an enabled
+    command: a fault that concerns one joint (its drive, its sensors) takes that joint's torque off
+    and leaves the others holding the arm (docs/safety.md, fault reactions).
     """
 
     motor_torque_nm: FloatArray
     enable: bool
+    joints_off: tuple[int, ...] = ()
 
     @staticmethod
     def torque_off() -> Command:
@@ -204,6 +208,10 @@ class Hal(ABC):
       of a disabled command the next sample shows no drive ENABLED and the drives apply no torque
       (whatever the command's torque: switching off always works). Consecutive enabled commands
       bring every healthy drive to ENABLED within :data:`ENABLE_WITHIN_S`.
+    * **one joint off**: after a write of an enabled command whose ``joints_off`` names a joint,
+      the next sample shows that joint's drive not ENABLED and it applies no torque, while the
+      other drives stay enabled and follow the command; enabled commands without it bring the
+      drive back within :data:`ENABLE_WITHIN_S`.
     * **drive limits**: an enabled torque beyond the drive's peak (``description.sea.max_motor_torque_nm``)
       is saturated by the drive at the peak, not refused. An enabled command with a non-finite
       torque raises :class:`~hal.errors.HalError`, one not of shape (4,) raises

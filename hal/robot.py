@@ -14,7 +14,7 @@ from __future__ import annotations
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -145,6 +145,36 @@ class ElbowStiffnessPrior(_Strict):
     mu1_nm_per_rad: Number = 1.14
 
 
+#: The longest delay a safe stop 1 relay may be set to (s): a controlled stop longer than this is no
+#: longer an emergency stop (IEC 60204-1 leaves the value to the risk assessment; docs/safety.md).
+MAX_RELAY_DELAY_S = 30.0
+
+
+class EstopWiring(_Strict):
+    """How the two e-stop buttons act on the drives (docs/safety.md, "E-stop wiring").
+
+    * ``sto``: both buttons cut the drives' power stages (safe torque off) at once, whatever the
+      software does: a category 0 stop in hardware; the runtime only reads which was pressed.
+    * ``ss1``: safe stop 1. A press tells the runtime at once (the drives' input bits) and starts a
+      safety relay that cuts the power stages ``relay_delay_s`` later, whatever the runtime does,
+      unless the button is released before; the runtime has that long for a controlled stop
+      (category 1).
+    """
+
+    wiring: Literal["sto", "ss1"] = "sto"
+    relay_delay_s: Annotated[Number, Field(gt=0.0, le=MAX_RELAY_DELAY_S)] | None = Field(
+        None, description="ss1 only: the relay cuts the drives' power this long after a press, s"
+    )
+
+    @model_validator(mode="after")
+    def _delay_with_ss1_only(self) -> EstopWiring:
+        if self.wiring == "ss1" and self.relay_delay_s is None:
+            raise ValueError("an ss1 wiring needs relay_delay_s: how long after a press the relay cuts the power")
+        if self.wiring == "sto" and self.relay_delay_s is not None:
+            raise ValueError("relay_delay_s belongs to an ss1 wiring; with sto the buttons cut the power at once")
+        return self
+
+
 class RobotDescription(_Strict):
     """Everything the software knows about the robot before it has measured anything."""
 
@@ -157,6 +187,7 @@ class RobotDescription(_Strict):
     limits: DeviceLimits = DeviceLimits()
     dummy_arm: DummyArm = DummyArm()
     ap_elbow_stiffness: ElbowStiffnessPrior = ElbowStiffnessPrior()
+    estop: EstopWiring = EstopWiring()
 
     @property
     def lower_limits_rad(self) -> FloatArray:

@@ -488,6 +488,48 @@ class HalContract:
         finally:
             hal.close()
 
+    @pytest.mark.parametrize("off", [(2,), (1, 4)], ids=["joint-2", "joints-1-4"])
+    def test_joints_off_disables_those_drives_and_leaves_the_others_on(
+        self, backend: BackendUnderTest, off: tuple[int, ...]
+    ) -> None:
+        """``joints_off``: those drives are not ENABLED in the next sample and apply no torque; the others follow
+        the command; commands without it enable them again within ``ENABLE_WITHIN_S``."""
+        hal = opened(backend)
+        try:
+            enable(hal, np.full(N_JOINTS, 1.0))
+            command = Command(np.full(N_JOINTS, 1.0), True, off)
+            hal.read()
+            hal.write(command)
+            sample = hal.read()
+            kept = [j for j in range(1, N_JOINTS + 1) if j not in off]
+            assert all(sample.drives[j - 1] != DriveState.ENABLED for j in off), sample.drives
+            if backend.applied_torque_nm is not None:
+                np.testing.assert_array_equal(backend.applied_torque_nm(hal)[[j - 1 for j in off]], 0.0)
+            for _ in range(5):  # the others carry on (the drives may act a few ticks after a command)
+                sample = tick(hal, command)
+            sample = hal.read()
+            assert all(sample.drives[j - 1] == DriveState.ENABLED for j in kept), sample.drives
+            assert all(sample.drives[j - 1] != DriveState.ENABLED for j in off), sample.drives
+            if backend.applied_torque_nm is not None:
+                applied = backend.applied_torque_nm(hal)
+                np.testing.assert_array_equal(applied[[j - 1 for j in off]], 0.0)
+                np.testing.assert_allclose(applied[[j - 1 for j in kept]], 1.0)
+            assert enable(hal, np.full(N_JOINTS, 1.0)).drives == (DriveState.ENABLED,) * N_JOINTS
+        finally:
+            hal.close()
+
+    def test_a_joint_number_outside_1_to_4_is_refused_and_removes_torque(self, backend: BackendUnderTest) -> None:
+        """``joints_off`` naming no joint of the robot is a programming error: ``ShapeError``, torque removed first."""
+        hal = opened(backend)
+        try:
+            enable(hal, np.full(N_JOINTS, 1.0))
+            hal.read()
+            with pytest.raises(ShapeError):
+                hal.write(Command(np.full(N_JOINTS, 1.0), True, (5,)))
+            assert none_enabled(hal.read())
+        finally:
+            hal.close()
+
     # --- drive limits -------------------------------------------------------------------------------------
 
     def test_torque_beyond_the_peak_is_saturated(self, backend: BackendUnderTest) -> None:

@@ -137,8 +137,13 @@ class StandInDrives(Hal):
             if not np.all(np.isfinite(torque)):
                 self._remove_torque()
                 raise HalError(f"motor_torque_nm = {torque.tolist()} is not finite; torque removed")
+            if any(isinstance(j, bool) or j not in range(1, N_JOINTS + 1) for j in command.joints_off):
+                self._remove_torque()
+                raise ShapeError(f"joints_off: expected joint numbers 1-{N_JOINTS}, got {command.joints_off!r}")
             for j in range(N_JOINTS):
-                if not self._faults[j]:
+                if (j + 1) in command.joints_off:
+                    self._steps[j] = 0  # that drive disabled at once, the others go on
+                elif not self._faults[j]:
                     self._steps[j] = min(self._steps[j] + 1, ENABLE_STEPS)
             on = np.array(
                 [step >= ENABLE_STEPS and not code for step, code in zip(self._steps, self._faults, strict=True)]

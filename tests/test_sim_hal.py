@@ -381,22 +381,71 @@ def test_invalid_fault_injections_are_refused(kind: str, joint: int | None, valu
 # --- e-stop, the pilot, determinism ---------------------------------------------------------------
 
 
-def test_estop_inputs_are_reported_and_torque_is_left_to_the_runtime() -> None:
+def test_estop_inputs_are_reported_and_an_sto_wiring_cuts_the_power_at_once() -> None:
+    """The DAROR-01's buttons are wired to the drives' safe torque off (D80): a press is reported and cuts every
+    power stage in the same tick, whatever the command; the release gives the power back."""
     hal = opened(with_drive(SCENARIO, command_delay_ticks=0))
+    assert hal.description.estop.wiring == "sto"
     torque = holding(hal)
+    hal.write(Command(torque, True))
+    assert hal.read().drives == (DriveState.ENABLED,) * N_JOINTS
     hal.press_estop(1, True)
     hal.write(Command(torque, True))
     sample = hal.read()
     assert sample.estop == (False, True)
     assert sample.any_estop
-    assert sample.drives == (DriveState.ENABLED,) * N_JOINTS
+    assert hal.power_cut
+    assert DriveState.ENABLED not in sample.drives
+    np.testing.assert_array_equal(hal.applied_motor_torque_nm, 0.0)
     hal.press_estop(0, True)
     hal.press_estop(1, False)
     hal.write(Command(torque, True))
     assert hal.read().estop == (True, False)
+    assert hal.power_cut  # one button still pressed
+    hal.press_estop(0, False)
+    hal.write(Command(torque, True))
+    assert not hal.power_cut
+    assert hal.read().drives == (DriveState.ENABLED,) * N_JOINTS
+    np.testing.assert_allclose(hal.applied_motor_torque_nm, torque)
     for which in (2, -1, True):
         with pytest.raises(InputError):
             hal.press_estop(which, True)
+
+
+def test_an_ss1_relay_cuts_the_power_after_its_delay_unless_the_button_is_released() -> None:
+    """Safe stop 1: a press is reported at once, the drives keep their power for the relay's delay (the runtime's
+    controlled stop), then the relay cuts it whatever the commands; a release before the delay keeps the power."""
+    scenario = with_drive(SCENARIO, command_delay_ticks=0)
+    description = scenario.description().model_copy(
+        update={"estop": scenario.description().estop.model_validate({"wiring": "ss1", "relay_delay_s": 0.05})}
+    )
+    hal = SimHal(scenario, description=description)
+    hal.open()
+    torque = holding(hal)
+    hal.write(Command(torque, True))
+    hal.press_estop(0, True)
+    for _ in range(50):  # the ticks that start within 50 ms of the press: inside the delay
+        hal.write(Command(torque, True))
+        sample = hal.read()
+        assert sample.estop == (True, False)
+        assert sample.drives == (DriveState.ENABLED,) * N_JOINTS
+        np.testing.assert_allclose(hal.applied_motor_torque_nm, torque)
+    hal.write(Command(torque, True))  # the tick that starts 50 ms after the press
+    assert hal.power_cut
+    assert DriveState.ENABLED not in hal.read().drives
+    np.testing.assert_array_equal(hal.applied_motor_torque_nm, 0.0)
+    hal.press_estop(0, False)
+    hal.write(Command(torque, True))
+    assert hal.read().drives == (DriveState.ENABLED,) * N_JOINTS
+    # a press released before the delay: the relay never opens
+    hal.press_estop(1, True)
+    for _ in range(20):
+        hal.write(Command(torque, True))
+    hal.press_estop(1, False)
+    for _ in range(60):
+        hal.write(Command(torque, True))
+        assert not hal.power_cut
+    assert hal.read().drives == (DriveState.ENABLED,) * N_JOINTS
 
 
 def test_external_torque_moves_the_link() -> None:

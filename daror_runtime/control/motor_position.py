@@ -411,7 +411,7 @@ class MotorPositionPD:
                 sample.t_s - self._t0_s, table[0], table[1], self._cursor, sample.theta_rad, self._state,
                 self._gains, self._model_or_empty, self._scratch, out,
             )  # fmt: skip
-            return _new_tuple(CheckedCommand, (out, True))  # out: float64 (4,), so a CheckedCommand as it is
+            return _new_tuple(CheckedCommand, (out, True, ()))  # out: float64 (4,), so a CheckedCommand as it is
         q_ref, dq_ref = self.reference(sample.t_s - self._t0_s)
         if self._linear is not None:  # AP, PLF, PLF+: the model runs inside the compiled controller
             _motor_pd_linear_feedforward(
@@ -420,4 +420,4 @@ class MotorPositionPD:
         else:
             feedforward = self._zero if self.feedforward is None else self.feedforward.torque(q_ref)
             _motor_pd(q_ref, dq_ref, feedforward, sample.theta_rad, self._state, self._gains, out)
-        return _new_tuple(CheckedCommand, (out, True))
+        return _new_tuple(CheckedCommand, (out, True, ()))

@@ -330,7 +330,11 @@ class CanHal(Hal):
                 self._torque_off()
                 raise HalError(f"motor_torque_nm = {np.asarray(torque).tolist()} is not finite; torque removed")
         self._sample = None
-        master.send_cycle(enable, torque)
+        joints_off = command.joints_off if enable else ()
+        if joints_off and any(isinstance(j, bool) or j not in range(1, N_JOINTS + 1) for j in joints_off):
+            self._torque_off()
+            raise ShapeError(f"joints_off: expected joint numbers 1-{N_JOINTS}, got {joints_off!r}")
+        master.send_cycle(enable, torque, joints_off)
 
     def _torque_off(self) -> None:
         self._sample = None

@@ -622,11 +622,12 @@ class CanMaster:
 
     # --- the tick: write ---------------------------------------------------------------------------
 
-    def send_cycle(self, want_torque: bool, torque_nm: np.ndarray | None) -> None:
+    def send_cycle(self, want_torque: bool, torque_nm: np.ndarray | None, joints_off: tuple[int, ...] = ()) -> None:
         """One bus cycle: the power state machines, the RPDOs, due SDO transfers, the heartbeat, the SYNC.
 
-        ``torque_nm`` (4,) is sent only where ``want_torque`` and the drive is not lost; it is
-        saturated at the peak. Never waits.
+        ``torque_nm`` (4,) is sent only where ``want_torque``, the joint (1-4) is not in
+        ``joints_off`` (its drive is disabled: CiA 402 disable voltage) and the drive is not lost;
+        it is saturated at the peak. Never waits.
 
         Raises:
             HalError: the bus refused a frame (torque cannot be commanded: the caller reports it).
@@ -637,12 +638,13 @@ class CanMaster:
         for j, drive in enumerate(self.drives):
             seen = drive.lost is None and drive.recovery is None  # a lost drive's last statusword is stale
             healthy = seen and drive.emcy is None
-            outcome = drive.stepper.step(drive.power if seen else None, want_torque and healthy)
+            wanted = want_torque and (j + 1) not in joints_off
+            outcome = drive.stepper.step(drive.power if seen else None, wanted and healthy)
             if outcome.timed_out is not None:
                 self._latch(f"drive {drive.node_id}: {outcome.timed_out}")
             drive.controlword = outcome.controlword
             permille = 0
-            if want_torque and healthy and torque_nm is not None:
+            if wanted and healthy and torque_nm is not None:
                 permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille)))
             self._send(self._rpdo_cob[j], pack(outcome.controlword, permille))
         now = self._now()

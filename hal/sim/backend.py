@@ -137,6 +137,8 @@ class SimHal(Hal):
         self._zero_torque = np.zeros(N_JOINTS)
         self._external: FloatArray | ExternalTorque | None = None
         self._estop = (False, False)
+        self._estop_pressed_s: float | None = None  # robot time of the press that started the e-stop circuit
+        self._power_cut = False
         self._disabled_drives = (DriveState.DISABLED,) * N_JOINTS
         self._enabled_drives = (DriveState.ENABLED,) * N_JOINTS
         self._no_fault_codes = (0,) * N_JOINTS
@@ -241,6 +243,9 @@ class SimHal(Hal):
         if not self._is_open:
             raise HalNotOpenError("simulated HAL is not open; call open() first")
         enable = command.enable is True or bool(command.enable)
+        joints_off = command.joints_off if enable else ()
+        if joints_off != self._joints_off:  # rare: a fault reaction takes one joint off, or gives it back
+            self._switch_joints_off(joints_off)
         if enable:
             torque = command.motor_torque_nm
             # A CheckedCommand's torque is a float64 ndarray of shape (4,); any other torque is
@@ -253,6 +258,8 @@ class SimHal(Hal):
             torque = self._zero_torque  # torque off whatever the command carries
         if self._external is not None:
             self._external_inputs()
+        if self._estop_pressed_s is not None:  # only while a button is pressed
+            self._run_estop_circuit()
         row = self._row + 4  # this tick's readings go to the next four rows of the block
         if row == _BLOCK_ROWS:
             row = self._new_block()
@@ -272,7 +279,7 @@ class SimHal(Hal):
                     f"simulated plant diverged at t = {self._tick * self._dt:.6f} s "
                     f"(scenario {self.scenario.name!r}); torque removed"
                 )
-        if self._any_fault:
+        if self._any_fault or self._joints_off or self._power_cut:
             self._drives = self._drive_states(status == dynamics.TICK_ENABLED)
         else:
             self._drives = self._enabled_drives if status == dynamics.TICK_ENABLED else self._disabled_drives
@@ -343,6 +350,13 @@ class SimHal(Hal):
         estop = list(self._estop)
         estop[which] = bool(pressed)
         self._estop = (estop[0], estop[1])
+        if True in self._estop:
+            if self._estop_pressed_s is None:  # the circuit starts at the first press (the relay's timer)
+                self._estop_pressed_s = self._tick * self._dt
+        else:  # both released: the relay closes again, the power stages have power
+            self._estop_pressed_s = None
+            self._power_cut = False
+            self._drive_vector[dynamics.S_POWER_CUT] = 0.0
 
     def inject_fault(self, kind: FaultKind, joint: int | None = None, value: float | None = None) -> None:
         """Inject a fault, effective from the next sample built or the next tick.
@@ -437,6 +451,8 @@ class SimHal(Hal):
         self._drive_vector[dynamics.S_JUMP : dynamics.S_STARTED + 1] = 0.0  # jump offsets, sensor state
         self._drive_vector[dynamics.S_TICK] = 0.0
         self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] = 0.0
+        self._drive_vector[dynamics.S_JOINT_OFF : dynamics.S_JOINT_OFF + N_JOINTS] = 0.0
+        self._joints_off: tuple[int, ...] = ()
         self._flush_commands()
         self._drives = self._disabled_drives
         self._any_fault = False
@@ -445,6 +461,10 @@ class SimHal(Hal):
         self._stale_left = 0
         self._stale_sample: Sample | None = None
         self._bus_fault = False
+        if (
+            self._estop_pressed_s is not None
+        ):  # a button held through a reopen: the relay's timer restarts with the session
+            self._estop_pressed_s = 0.0
         self._refill_noise()
         self._new_block()
         dynamics.sense(self._plant.state, self._drive_vector, self._out, 0)
@@ -527,13 +547,56 @@ class SimHal(Hal):
             self._sample = None
 
     def _drive_states(self, enabled: bool) -> tuple[DriveState, ...]:
-        if not self._any_fault:
+        if not self._any_fault and not self._joints_off and not self._power_cut:
             return self._enabled_drives if enabled else self._disabled_drives
-        on = DriveState.ENABLED if enabled else DriveState.DISABLED
+        on = DriveState.ENABLED if enabled and not self._power_cut else DriveState.DISABLED
+        s = self._drive_vector
         return tuple(
-            DriveState.FAULT if f else on
-            for f in self._drive_vector[dynamics.S_FAULTED : dynamics.S_FAULTED + N_JOINTS] > 0
+            DriveState.FAULT
+            if s[dynamics.S_FAULTED + j] > 0
+            else DriveState.DISABLED
+            if s[dynamics.S_JOINT_OFF + j] > 0
+            else on
+            for j in range(N_JOINTS)
         )
+
+    @property
+    def power_cut(self) -> bool:
+        """True while the e-stop circuit has cut the drives' power stages (safe torque off).
+
+        With the robot's ``estop.wiring`` ``sto`` from the tick a button is pressed; with ``ss1`` once
+        the safety relay's ``relay_delay_s`` has run out with a button still pressed. Released
+        buttons give the power back (the drives then need an enabled command, as after any torque off).
+        """
+        return self._power_cut
+
+    def _run_estop_circuit(self) -> None:
+        """A button is pressed: cut the power now (sto) or when the relay's delay has run out (ss1)."""
+        wiring = self.description.estop
+        pressed_s = self._estop_pressed_s
+        cut = wiring.wiring == "sto" or (
+            pressed_s is not None and self._tick * self._dt >= pressed_s + float(wiring.relay_delay_s or 0.0)
+        )
+        if cut and not self._power_cut:
+            self._power_cut = True
+            self._drive_vector[dynamics.S_POWER_CUT] = 1.0
+
+    def _switch_joints_off(self, joints_off: tuple[int, ...]) -> None:
+        """Disable the drives of ``joints_off`` (1-4) from this tick on; enable the others again.
+
+        Raises:
+            ShapeError: a joint that is not 1-4 (torque is removed first, as for any refused command).
+        """
+        if any(isinstance(j, bool) or j not in (1, 2, 3, 4) for j in joints_off):
+            self._flush_commands()
+            self._drives = self._drive_states(False)
+            self._refused()
+            raise ShapeError(f"joints_off: expected joint numbers 1-{N_JOINTS}, got {joints_off!r}")
+        off = self._drive_vector[dynamics.S_JOINT_OFF : dynamics.S_JOINT_OFF + N_JOINTS]
+        off[:] = 0.0
+        for j in joints_off:
+            off[j - 1] = 1.0
+        self._joints_off = tuple(sorted(set(joints_off)))
 
     def _build_sample(self) -> Sample:
         row = self._row
@@ -587,6 +650,7 @@ class SimLockStepBatches:
             not hal._is_open
             or hal._bus_fault
             or hal._any_fault
+            or hal._joints_off
             or hal._stale_left
             or (hal._sample is not None and hal._sample.seq != hal._tick)  # the last tick of a stale spell
             or hal._nan_pending

@@ -681,7 +681,13 @@ S_PREVIOUS_TRUE_Q = S_SUBSTEPS + 1  # true link angles at the previous reading (
 # at the end so that no index above moves. Zero means absent: sense skips them then.
 S_ANGLE_OFFSET = S_PREVIOUS_TRUE_Q + N_JOINTS  # calibration error of each joint's zero, both encoders, rad, 4
 S_TORQUE_DRIFT = S_ANGLE_OFFSET + N_JOINTS  # drift of the measured torque, Nm per second of robot time, 4
-DRIVE_VECTOR_SIZE = S_TORQUE_DRIFT + N_JOINTS
+# 1.0 where the command disables this joint's drive (Command.joints_off): no torque from this tick
+# on, whatever the FIFO holds (a power stage switches off at once), while the others follow the command.
+S_JOINT_OFF = S_TORQUE_DRIFT + N_JOINTS
+# 1.0 while the e-stop circuit has cut every drive's power stage (safe torque off: at once with an sto
+# wiring, when the safety relay's delay has run out with ss1; set by the caller before the call).
+S_POWER_CUT = S_JOINT_OFF + N_JOINTS
+DRIVE_VECTOR_SIZE = S_POWER_CUT + 1
 
 #: What the tick kernel returns.
 TICK_ENABLED, TICK_DISABLED, TICK_BAD_COMMAND, TICK_DIVERGED, TICK_NO_NOISE = 0, 1, -1, -2, -3
@@ -780,7 +786,9 @@ def hal_tick(
     """One tick of the drives and the plant; readings of the new plant time into ``out[row:row + 4]``.
 
     Queues the command (an enabled one acts ``fifo length - 1`` ticks later; a disabled one
-    empties the FIFO and acts now), removes the torque of faulted drives, integrates one RK4
+    empties the FIFO and acts now), removes the torque of faulted drives and of drives the command
+    switched off (``S_JOINT_OFF``) or whose power the e-stop circuit cut (``S_POWER_CUT``; both set by
+    the caller before the call), integrates one RK4
     step (split into ``s[S_SUBSTEPS]`` RK4 substeps), counts the tick, reads the encoders
     (stamped with the new tick count). Returns TICK_ENABLED or TICK_DISABLED (what the
     power stages did), TICK_BAD_COMMAND (non-finite torque: FIFO emptied, no step) or
@@ -806,7 +814,7 @@ def hal_tick(
         active = slot
     on = s[S_FIFO_ENABLE + active] > 0.0
     for j in range(N_JOINTS):
-        applied = on and s[S_FAULTED + j] == 0.0
+        applied = on and s[S_FAULTED + j] == 0.0 and s[S_JOINT_OFF + j] == 0.0 and s[S_POWER_CUT] == 0.0
         s[S_INPUTS + j] = s[S_FIFO_TORQUE + N_JOINTS * active + j] if applied else 0.0
     substeps = max(int(s[S_SUBSTEPS]), 1)
     h = s[S_DT] / substeps
