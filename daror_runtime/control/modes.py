@@ -218,11 +218,6 @@ class Compensation:
             raise ShapeError(f"compensation model {model.name!r} returned {model_torque!r}, not an array") from None
         if self._reading_error is not None:
             tau_ref = tau_ref + self._reading_error.update(sample.q_rad, dt_s)
-        import os
-
-        _b = float(os.environ.get("DAMP", "0"))
-        if _b:
-            tau_ref = tau_ref - _b * np.asarray(sample.dq_rad_s)
         if self.handover.active:
             if np.shape(tau_ref) != self._support.shape:
                 raise ShapeError(f"compensation model {model.name!r} returned a torque of shape {np.shape(tau_ref)}")

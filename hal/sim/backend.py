@@ -461,9 +461,7 @@ class SimHal(Hal):
         self._stale_left = 0
         self._stale_sample: Sample | None = None
         self._bus_fault = False
-        if (
-            self._estop_pressed_s is not None
-        ):  # a button held through a reopen: the relay's timer restarts with the session
+        if self._estop_pressed_s is not None:  # a button held through a reopen: the relay restarts with it
             self._estop_pressed_s = 0.0
         self._refill_noise()
         self._new_block()
