@@ -172,6 +172,19 @@ def _read_only_zeros() -> FloatArray:
 TORQUE_OFF = CheckedCommand(_read_only_zeros(), False)
 
 
+class DriveReaction(NamedTuple):
+    """What every drive does by itself when it loses the master (a crashed runtime, a cut bus).
+
+    The runtime can act on every fault it sees; when the runtime itself goes silent only the drives
+    are left. ``ramp_s`` None: each drive disables at once (category 0: the arm drops); a number:
+    each drive ramps its torque from the last target to zero over ``ramp_s`` seconds, then disables
+    (category 1 done by the drive: the arm sinks over that time instead of dropping). Declared in
+    ``fsm_spec.yaml`` (``drive_reactions``), handed to the backend before :meth:`Hal.open`.
+    """
+
+    ramp_s: float | None
+
+
 class HalFaultError(HalError):
     """A backend fault latched outside the tick (bus error, lost heartbeat, thread crash)."""
 
@@ -276,6 +289,20 @@ class Hal(ABC):
         The default does nothing: a backend whose drive faults clear only with their cause.
         """
         return None
+
+    def set_drive_reaction(self, reaction: DriveReaction) -> None:
+        """Configure what the drives do by themselves when they lose the master; call before :meth:`open`.
+
+        A backend whose drives can be configured (CANopen: 0x6007, 0x605A, 0x6087, written at
+        start-up) does so at :meth:`open` wherever a drive supports it, and says per drive what it
+        got in :meth:`drive_reaction_report`. The default: nothing to configure (a simulated plant
+        is stepped by the runtime itself: when the runtime stops, so does its world).
+        """
+        return None
+
+    def drive_reaction_report(self) -> tuple[str, ...]:
+        """After :meth:`open`: one sentence per drive on what it does when it loses the master (empty: nothing applies)."""
+        return ()
 
     @abstractmethod
     def open(self) -> None:

@@ -309,10 +309,13 @@ def format_validation_error(
     lines = []
     for problem in err.errors():
         loc = tuple(problem["loc"])
+        message = problem["msg"]
+        if loc and loc[-1] == "[key]":  # pydantic's marker of a mapping key that is not allowed: name the key itself
+            loc = loc[:-1]
+            message = f"unknown key; {message[0].lower()}{message[1:]}"
         field = ".".join(str(p) for p in loc) or "(top level)"
         line = line_of(root, loc)
         where = f"line {line}, " if line is not None else ""
-        message = problem["msg"]
         if problem["type"] in _TYPE_ERRORS and "input" in problem:
             message = f"{message}; got {_describe(problem['input'])}"
         lines.append(f"{source}: {where}field {field}: {message}")

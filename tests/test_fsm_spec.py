@@ -29,6 +29,7 @@ from daror_runtime.fsm.spec import (
     load_fsm_spec,
     spec_json_schema_text,
 )
+from daror_runtime.safety.faults import FaultKind
 from hal.robot import load_description
 
 SHIPPED_TEXT = DEFAULT_SPEC_PATH.read_text(encoding="utf-8")
@@ -39,15 +40,15 @@ IDX = {state["name"]: i for i, state in enumerate(SHIPPED_DATA["states"])}
 
 # --- editing the shipped text ----------------------------------------------------------------
 
-Where = int | str | None  # a state's index, "fail", or None for the whole text
+Where = int | str | None  # a state's index, a top-level section ("fail", "fault_reactions"), or None for the whole text
 
 
 def _span(text: str, where: Where) -> tuple[int, int]:
     """Start and end offsets of a state's block (by index), of the fail section, or of the whole text."""
     if where is None:
         return 0, len(text)
-    if where == "fail":
-        start = text.index("\nfail:") + 1
+    if isinstance(where, str):  # a top-level section: fail, fault_reactions, drive_reactions
+        start = text.index(f"\n{where}:") + 1
     else:
         assert isinstance(where, int)
         starts = [m.start() + 1 for m in re.finditer(r"\n  - number:", text)]
@@ -148,8 +149,8 @@ def _unknown_guard(text: str) -> tuple[str, list[Expect]]:
 
 @case("unknown guard in FAIL's reset")
 def _unknown_fail_guard(text: str) -> tuple[str, list[Expect]]:
-    bad = edit(text, "fail", "fault_acknowledged]", "fault_acknowledged, reboot]")
-    return bad, [Expect(line(bad, "reboot"), "fail.guards.reset.2", "unknown guard 'reboot'")]
+    bad = edit(text, "fail", "arm_released]", "arm_released, reboot]")
+    return bad, [Expect(line(bad, "reboot"), "fail.guards.reset.3", "unknown guard 'reboot'")]
 
 
 @case("guard listed twice")
@@ -200,7 +201,8 @@ def _duplicate_number(text: str) -> tuple[str, list[Expect]]:
 
 @case("missing fail section")
 def _missing_fail(text: str) -> tuple[str, list[Expect]]:
-    bad = text[: text.index("\nfail:") + 1]
+    start, end = _span(text, "fail")
+    bad = text[:start] + text[end:]
     return bad, [Expect(first_key_line(bad), "fail", "Field required")]
 
 
@@ -320,7 +322,12 @@ def _test_state_made_failing(text: str) -> tuple[str, list[Expect]]:
 
 @case("FAIL reset without fault_acknowledged")
 def _fail_reset_no_ack(text: str) -> tuple[str, list[Expect]]:
-    bad = edit(text, "fail", "reset: [faults_cleared, fault_acknowledged]", "reset: [faults_cleared]")
+    bad = edit(
+        text,
+        "fail",
+        "reset: [faults_cleared, fault_acknowledged, arm_released]",
+        "reset: [faults_cleared, arm_released]",
+    )
     return bad, [
         Expect(
             line(bad, "reset:", "fail"),
@@ -333,8 +340,221 @@ def _fail_reset_no_ack(text: str) -> tuple[str, list[Expect]]:
 
 @case("FAIL reset with no guard")
 def _fail_reset_empty(text: str) -> tuple[str, list[Expect]]:
-    bad = edit(text, "fail", "reset: [faults_cleared, fault_acknowledged]", "reset: []")
-    return bad, [Expect(line(bad, "reset:", "fail"), "fail.guards.reset", "add faults_cleared, fault_acknowledged")]
+    bad = edit(text, "fail", "reset: [faults_cleared, fault_acknowledged, arm_released]", "reset: []")
+    return bad, [
+        Expect(line(bad, "reset:", "fail"), "fail.guards.reset", "add faults_cleared, fault_acknowledged"),
+        Expect(
+            line(bad, "reset:", "fail"), "fail.guards.reset", "add arm_released", "FAIL left only with the arm released"
+        ),
+    ]
+
+
+# --- the fault reactions -------------------------------------------------------------------------------
+
+
+def reaction_line(text: str, kind: str) -> int:
+    """The line of ``kind``'s entry in ``fault_reactions`` (a flow mapping on one line)."""
+    return line(text, f"  {kind}: {{", "fault_reactions")
+
+
+@case("a fault kind without a reaction")
+def _reaction_missing(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", "  overrun: {reaction: lower}\n", "")
+    return bad, [
+        Expect(
+            reaction_line(bad, "estop"),
+            "fault_reactions",
+            "no reaction for the fault kind(s) overrun",
+            "every fault has a reaction",
+        )
+    ]
+
+
+@case("a state override naming no state")
+def _reaction_unknown_state(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(
+        text,
+        "fault_reactions",
+        "velocity: {reaction: lower}",
+        "velocity: {reaction: lower, states: {compensaton: hold}}",
+    )
+    return bad, [
+        Expect(
+            reaction_line(bad, "velocity"),
+            "fault_reactions.velocity.states.compensaton",
+            "no state is called 'compensaton'",
+            "every fault has a reaction",
+        )
+    ]
+
+
+@case("a drive fault keeps its joint's torque")
+def _reaction_untrusted_joint(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'drive: {reaction: lower, faulted_joint: "off"}', "drive: {reaction: lower}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "drive"),
+            "fault_reactions.drive.faulted_joint",
+            "expected faulted_joint: off",
+            "untrusted joints get no torque",
+        )
+    ]
+
+
+@case("a sensor fault keeps its joint's torque")
+def _reaction_untrusted_sensor(text: str) -> tuple[str, list[Expect]]:
+    old = 'jump: {reaction: lower, faulted_joint: "off"}'
+    bad = edit(text, "fault_reactions", old, "jump: {reaction: hold, faulted_joint: with_the_arm}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "jump"),
+            "fault_reactions.jump.faulted_joint",
+            "a jump fault means its joint's drive, torque path or sensors cannot be trusted",
+            "untrusted joints get no torque",
+        )
+    ]
+
+
+@case("stale data lowers the arm")
+def _reaction_blind(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'stale: {reaction: "off"}', "stale: {reaction: lower}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "stale"),
+            "fault_reactions.stale.reaction",
+            "nothing can lower the arm without them; expected off",
+            "no reaction without fresh readings",
+        )
+    ]
+
+
+@case("stale data holds the arm in one state")
+def _reaction_blind_in_state(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(
+        text, "fault_reactions", 'stale: {reaction: "off"}', 'stale: {reaction: "off", states: {training: hold}}'
+    )
+    return bad, [
+        Expect(
+            reaction_line(bad, "stale"),
+            "fault_reactions.stale.states.training",
+            "(in state training): nothing can hold the arm",
+            "no reaction without fresh readings",
+        )
+    ]
+
+
+@case("an e-stop holds the arm")
+def _reaction_estop_hold(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'estop: {reaction: "off"}', "estop: {reaction: hold}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "estop"),
+            "fault_reactions.estop.reaction",
+            "expected off or lower (with within_s), not hold",
+            "e-stops stop in category 0 or 1",
+        )
+    ]
+
+
+@case("an e-stop lowers without a bound on a robot wired to safe torque off")
+def _reaction_estop_lower(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'estop: {reaction: "off"}', "estop: {reaction: lower}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "estop"),
+            "fault_reactions.estop.within_s",
+            "needs within_s",
+            "e-stops stop in category 0 or 1",
+        ),
+        Expect(
+            reaction_line(bad, "estop"),
+            "fault_reactions.estop.reaction",
+            "wired to the drives' safe torque off",
+            "e-stops stop in category 0 or 1",
+        ),
+    ]
+
+
+@case("an e-stop lowers on a robot wired to safe torque off")
+def _reaction_estop_sto(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'estop: {reaction: "off"}', "estop: {reaction: lower, within_s: 8.0}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "estop"),
+            "fault_reactions.estop.reaction",
+            "the runtime cannot lower the arm; expected off",
+            "e-stops stop in category 0 or 1",
+        )
+    ]
+
+
+@case("a software fault holds with the model")
+def _reaction_suspect_model(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", "software: {reaction: lower, support: a_priori}", "software: {reaction: lower}")
+    return bad, [
+        Expect(
+            reaction_line(bad, "software"),
+            "fault_reactions.software.support",
+            "may come from the compensation model: expected support: a_priori",
+            "no reaction leans on a suspect model",
+        )
+    ]
+
+
+@case("a reaction holds in a torque-free state")
+def _reaction_torque_free(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(
+        text,
+        "fault_reactions",
+        "isb_limit: {reaction: lower}",
+        "isb_limit: {reaction: lower, states: {settings: hold}}",
+    )
+    return bad, [
+        Expect(
+            reaction_line(bad, "isb_limit"),
+            "fault_reactions.isb_limit.states.settings",
+            "mode 'torque_off' applies no torque, so the robot holds nothing there to hold",
+            "reactions hold only what the robot held",
+        )
+    ]
+
+
+@case("a bare off in a reaction")
+def _reaction_bare_off(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", 'estop: {reaction: "off"}', "estop: {reaction: off}")
+    return bad, [Expect(reaction_line(bad, "estop"), "fault_reactions.estop.reaction", 'write "off" in quotes')]
+
+
+@case("within_s on another fault kind")
+def _reaction_within_elsewhere(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", "velocity: {reaction: lower}", "velocity: {reaction: lower, within_s: 4}")
+    return bad, [Expect(reaction_line(bad, "velocity"), "fault_reactions.velocity.within_s", "e-stop's reaction only")]
+
+
+@case("an unknown fault kind")
+def _reaction_unknown_kind(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "fault_reactions", "  overrun: {reaction: lower}", "  overrunn: {reaction: lower}")
+    return bad, [Expect(reaction_line(bad, "overrunn"), "fault_reactions.overrunn", "overrun")]
+
+
+@case("a drive ramp without its duration")
+def _drive_ramp_without_duration(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "drive_reactions", "master_lost: {reaction: ramp, ramp_s: 3.0}", "master_lost: {reaction: ramp}")
+    return bad, [
+        Expect(line(bad, "master_lost:", "drive_reactions"), "drive_reactions.master_lost.ramp_s", "ramp needs ramp_s")
+    ]
+
+
+@case("a drive ramp longer than the bound")
+def _drive_ramp_too_long(text: str) -> tuple[str, list[Expect]]:
+    bad = edit(text, "drive_reactions", "ramp_s: 3.0", "ramp_s: 60.0")
+    return bad, [
+        Expect(
+            line(bad, "master_lost:", "drive_reactions"),
+            "drive_reactions.master_lost.ramp_s",
+            "less than or equal to 10",
+        )
+    ]
 
 
 @case("FAIL mode applies torque")
@@ -521,7 +741,12 @@ def _several(text: str) -> tuple[str, list[Expect]]:
     bad = edit(bad, b, "torque_nm: 0.0", "torque_nm: 3.0")
     bad = edit(bad, c, "mode: hold", "mode: hover")
     bad = edit(bad, d, "advance: [isb_limits_recorded, ", "advance: [")  # every later enforce_isb state is wrong
-    bad = edit(bad, "fail", "reset: [faults_cleared, fault_acknowledged]", "reset: [fault_acknowledged]")
+    bad = edit(
+        bad,
+        "fail",
+        "reset: [faults_cleared, fault_acknowledged, arm_released]",
+        "reset: [fault_acknowledged, arm_released]",
+    )
     isb = [k for k, s in enumerate(SHIPPED_DATA["states"]) if s.get("enforce_isb")]
     assert isb
     assert min(isb) > d
@@ -861,6 +1086,32 @@ def test_limits_are_checked_against_the_given_robot(tmp_path: Path) -> None:
         assert row.endswith("[safety invariant: torque within the drive]")
 
 
+def _ss1(relay_delay_s: float) -> object:
+    return DEVICE.model_copy(
+        update={"estop": DEVICE.estop.model_validate({"wiring": "ss1", "relay_delay_s": relay_delay_s})}
+    )
+
+
+def test_an_estop_lowering_fits_inside_the_ss1_relay_of_the_given_robot(tmp_path: Path) -> None:
+    """With the buttons wired for a safe stop 1 the e-stop may lower the arm, within the relay's delay, not longer."""
+    path = tmp_path / "fsm_spec.yaml"
+    path.write_text(
+        edit(SHIPPED_TEXT, "fault_reactions", 'estop: {reaction: "off"}', "estop: {reaction: lower, within_s: 8.0}")
+    )
+    spec = load_fsm_spec(path, description=_ss1(10.0))  # type: ignore[arg-type]
+    assert spec.fault_reactions[FaultKind.ESTOP].within_s == 8.0
+    with pytest.raises(FsmSpecError) as info:
+        load_fsm_spec(path, description=_ss1(5.0))  # type: ignore[arg-type]
+    (row,) = str(info.value).splitlines()
+    assert (
+        f"line {line(path.read_text(), 'estop: {', 'fault_reactions')}, field fault_reactions.estop.within_s: " in row
+    )
+    assert "may take 8 s but the safety relay of the DAROR-01 cuts the power 5 s after a press" in row
+    assert row.endswith("[safety invariant: e-stops stop in category 0 or 1]")
+    # the shipped spec (off) is fine with either wiring: a category 0 stop is always allowed
+    load_fsm_spec(DEFAULT_SPEC_PATH, description=_ss1(5.0))  # type: ignore[arg-type]
+
+
 # --- files that are not a spec at all --------------------------------------------------------
 
 
@@ -964,8 +1215,8 @@ def test_schema_lists_the_registered_names() -> None:
     text = spec_json_schema_text()
     schema = json.loads(text)
     assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
-    assert set(schema["required"]) == {"version", "superstates", "states", "fail"}
-    for name in [*GUARDS, *MODES]:
+    assert set(schema["required"]) == {"version", "superstates", "states", "fail", "fault_reactions", "drive_reactions"}
+    for name in [*GUARDS, *MODES, *(kind.value for kind in FaultKind)]:
         assert f'"{name}"' in text
 
 
@@ -1056,7 +1307,7 @@ def _check_mermaid(text: str) -> None:
         if following is not None:
             assert any(r.startswith(f"    {state.name} --> {following.name}: advance") for r in rows)
     assert sum(" --> FAIL: fault" in r for r in rows) == sum(s.fail_on_fault for s in spec.states) == 7
-    assert "    FAIL --> startup: reset [faults_cleared, fault_acknowledged]" in rows
+    assert "    FAIL --> startup: reset [faults_cleared, fault_acknowledged, arm_released]" in rows
 
 
 def test_cli_diagram_stdout(capsys: pytest.CaptureFixture[str]) -> None:

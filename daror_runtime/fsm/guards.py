@@ -112,6 +112,14 @@ def _fault_latched(s: SessionSignals) -> bool:
     return s.monitor is not None and s.monitor.faulted
 
 
+@guard(
+    "arm_released",
+    "no fault reaction holds the pilot's arm: it rests with the torque off, or the torque was off",
+)
+def _arm_released(s: SessionSignals) -> bool:
+    return not s.arm_held
+
+
 @guard("robot_at_rest", "every joint is at rest (slower than the session's at-rest speed)")
 def _robot_at_rest(s: SessionSignals) -> bool:
     sample = s.sample
@@ -210,3 +218,5 @@ def _compensation_model_approved(s: SessionSignals) -> bool:
 BUILT_IN_GUARDS = ("fault_latched",)
 #: Guards FAIL's reset must list: FAIL is left only once the fault is gone and acknowledged.
 FAIL_RESET_GUARDS = ("faults_cleared", "fault_acknowledged")
+#: Guard FAIL's reset must list too: a reset enters the first state (no torque), so no reaction may still hold the arm.
+ARM_RELEASED_GUARD = "arm_released"

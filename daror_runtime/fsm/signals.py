@@ -76,6 +76,8 @@ class SessionSignals:
     identification_saved: dict[str, Path] = field(default_factory=dict)  # "training"/"validation" -> dataset file
     model: SelectedModel | None = None
     fault_acknowledged: bool = False
+    # a fault's reaction holds or lowers the arm (torque on, under the supervisor's control)
+    arm_held: bool = False
 
     def forget_visit(self) -> None:
         """Entering a state: the previous visit's tests and confirmations no longer count."""

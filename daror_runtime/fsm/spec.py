@@ -32,9 +32,10 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationEr
 from pydantic_core import PydanticCustomError
 
 from daror_runtime.errors import InputError
-from daror_runtime.fsm.guards import FAIL_RESET_GUARDS, GUARDS
+from daror_runtime.fsm.guards import ARM_RELEASED_GUARD, FAIL_RESET_GUARDS, GUARDS
 from daror_runtime.fsm.modes import MODES
-from hal.robot import RobotDescription, load_description
+from daror_runtime.safety.faults import FaultKind
+from hal.robot import MAX_RELAY_DELAY_S, RobotDescription, load_description
 from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
 
 __all__ = [
@@ -110,6 +111,88 @@ class FailGuards(_Strict):
     reset: list[GuardName] = Field(description=f"must include {', '.join(FAIL_RESET_GUARDS)}")
 
 
+#: What a fault makes the robot do (docs/safety.md, "Fault reactions"; IEC 60204-1 stop categories):
+#: ``off`` category 0, torque off now; ``lower`` category 1, hold the pose under gravity support, lower
+#: the arm at a bounded speed to the rest pose of the session settings, hand it to its rest, then
+#: torque off; ``hold`` category 2, hold the pose under gravity support until the operator acts.
+def _quoted_off(value: object) -> object:
+    """Refuse a YAML boolean where a reaction is meant: YAML 1.1 reads a bare ``off`` (or ``no``) as false."""
+    if isinstance(value, bool):
+        raise PydanticCustomError(
+            "reaction_unquoted",
+            'YAML reads a bare off (or no, false) as a yes/no value: write "off" in quotes',
+        )
+    return value
+
+
+Reaction = Annotated[Literal["off", "lower", "hold"], BeforeValidator(_quoted_off)]
+
+#: Fault kinds whose fault means that the joint it names cannot be trusted: its drive (drive), its
+#: torque path (torque, deflection: the spring at or near its end stop) or its sensors (not_finite,
+#: jump). That joint's torque must go off (category 0 for it) whatever the rest of the arm does.
+UNTRUSTED_JOINT_KINDS: tuple[FaultKind, ...] = (
+    FaultKind.DRIVE,
+    FaultKind.TORQUE,
+    FaultKind.DEFLECTION,
+    FaultKind.NOT_FINITE,
+    FaultKind.JUMP,
+)
+#: Fault kinds after which the runtime has no fresh reading of any joint: nothing can be controlled.
+BLIND_KINDS: tuple[FaultKind, ...] = (FaultKind.STALE,)
+#: Fault kinds that may come from the compensation model itself (a controller or the model failed):
+#: a reaction must not lean on that model.
+MODEL_SUSPECT_KINDS: tuple[FaultKind, ...] = (FaultKind.SOFTWARE,)
+#: The longest a drive may ramp its torque down by itself once it lost the master, s.
+MAX_DRIVE_RAMP_S = 10.0
+
+
+class FaultReaction(_Strict):
+    """What a fault of one kind commands (``fault_reactions`` of the spec)."""
+
+    reaction: Reaction = Field(
+        description="off: torque off now (category 0); lower: hold, lower to the rest pose, hand the arm to its "
+        "rest, torque off (category 1); hold: hold under gravity support until the operator acts (category 2)"
+    )
+    faulted_joint: Annotated[Literal["off", "with_the_arm"], BeforeValidator(_quoted_off)] = Field(
+        "with_the_arm",
+        description="off: the joint the fault names gets no torque (its drive or sensors cannot be trusted), the "
+        "others react as declared; with_the_arm: it reacts with the others",
+    )
+    support: Literal["model", "a_priori"] = Field(
+        "model",
+        description="the gravity support a hold or lowering uses: the model in use (approved for the pilot), or "
+        "the A Priori model (when the fault may come from the model)",
+    )
+    within_s: Annotated[Number, Field(gt=0.0, le=MAX_RELAY_DELAY_S)] | None = Field(
+        None, description="estop only, with lower (an ss1 wiring): the controlled stop ends with torque off within this"
+    )
+    states: dict[StateName, Reaction] = Field(
+        default_factory=dict, description="state name -> the reaction in that state, where it must differ"
+    )
+
+    def in_state(self, state: str) -> Reaction:
+        """The reaction in ``state`` (its override, else the kind's)."""
+        return self.states.get(state, self.reaction)
+
+
+class DriveReactionSpec(_Strict):
+    """What every drive does by itself when it loses the master (a crashed runtime, a cut bus)."""
+
+    reaction: Annotated[Literal["off", "ramp"], BeforeValidator(_quoted_off)] = Field(
+        description="off: each drive disables at once (category 0); ramp: each ramps its torque to zero over "
+        "ramp_s, then disables (category 1, done by the drive)"
+    )
+    ramp_s: Annotated[Number, Field(gt=0.0, le=MAX_DRIVE_RAMP_S)] | None = Field(
+        None, description="ramp only: how long the drive takes to bring its torque from the last target to zero, s"
+    )
+
+
+class DriveReactions(_Strict):
+    """The drives' own reactions (the CANopen backend configures them at start-up, docs/canopen.md)."""
+
+    master_lost: DriveReactionSpec
+
+
 class FailSpec(_Strict):
     name: Annotated[str, Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")] = "FAIL"
     description: str = ""
@@ -135,6 +218,10 @@ class FsmSpec(_Strict):
     superstates: list[SuperstateSpec] = Field(min_length=1)
     states: list[StateSpec] = Field(min_length=1)
     fail: FailSpec
+    fault_reactions: dict[FaultKind, FaultReaction] = Field(
+        description="fault kind -> what a fault of that kind commands (every kind listed)"
+    )
+    drive_reactions: DriveReactions
 
     @property
     def first(self) -> StateSpec:
@@ -241,6 +328,46 @@ INVARIANTS: dict[str, Invariant] = {
             "ISB limits stay enforced",
             "after the advance that requires isb_limits_recorded, every state that applies torque enforces the ISB limits",
             "once the pilot's range is known, no torque may move the arm outside it",
+        ),
+        Invariant(
+            "FAIL left only with the arm released",
+            "FAIL's reset requires arm_released",
+            "a reset enters the first state, which applies no torque: an arm the reaction still holds would drop",
+        ),
+        Invariant(
+            "every fault has a reaction",
+            "fault_reactions lists every fault kind, and names only states of the spec",
+            "a fault nobody declared a reaction for would be met by a guess; a state override for a state that does "
+            "not exist is a typo that silently keeps the kind's reaction",
+        ),
+        Invariant(
+            "untrusted joints get no torque",
+            "a fault of a joint's drive, torque path or sensors (drive, torque, deflection, not_finite, jump) takes "
+            "that joint's torque off (faulted_joint: off)",
+            "torque on a joint whose drive, spring or encoders cannot be trusted is torque nobody controls",
+        ),
+        Invariant(
+            "no reaction without fresh readings",
+            "a fault that leaves no fresh reading of any joint (stale) is met with off, in every state",
+            "holding or lowering needs the arm's pose every tick; without it the controller would act on the past",
+        ),
+        Invariant(
+            "e-stops stop in category 0 or 1",
+            "the e-stop's reaction is off, or lower with within_s (only where the robot's buttons are wired for a "
+            "safe stop 1 whose relay gives the runtime at least that long); never hold",
+            "an e-stop must end with the torque off, at once or after a bounded controlled stop (IEC 60204-1)",
+        ),
+        Invariant(
+            "no reaction leans on a suspect model",
+            "a fault that may come from the compensation model (software) holds or lowers with the A Priori model "
+            "(support: a_priori)",
+            "a model that may have caused the fault is not trusted to hold the arm while the robot stops",
+        ),
+        Invariant(
+            "reactions hold only what the robot held",
+            "a state override in a state whose mode applies no torque is off",
+            "where the drives are off the robot holds nothing; a reaction that switched torque on there would move "
+            "an arm nobody asked it to",
         ),
         Invariant(
             "only approved models compensate",
@@ -442,6 +569,7 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
         if "isb_limits_recorded" in state.guards.advance:
             isb_recorded_before = True
     yield from _model_approval_problems(spec)
+    yield from _reaction_problems(spec)
     fail_mode = MODES.get(spec.fail.mode)
     if fail_mode is None:
         yield ("fail", "mode"), f"unknown mode {spec.fail.mode!r}; expected one of {', '.join(MODES)}"
@@ -464,6 +592,108 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
                 "FAIL left only when cleared and acknowledged",
                 f"FAIL must be left only after the fault is cleared and acknowledged: add {', '.join(missing)}",
             ),
+        )
+    if ARM_RELEASED_GUARD not in spec.fail.guards.reset:
+        yield (
+            ("fail", "guards", "reset"),
+            _violates(
+                "FAIL left only with the arm released",
+                "FAIL's reset enters the first state, which applies no torque: add arm_released, so a reset never "
+                "drops an arm the fault's reaction still holds",
+            ),
+        )
+
+
+def _reaction_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """The fault reactions: complete, and each safe for what its fault means."""
+    missing = [kind.value for kind in FaultKind if kind not in spec.fault_reactions]
+    if missing:
+        yield (
+            ("fault_reactions",),
+            _violates(
+                "every fault has a reaction",
+                f"no reaction for the fault kind(s) {', '.join(missing)}; list every kind "
+                f"({', '.join(k.value for k in FaultKind)})",
+            ),
+        )
+    names = {state.name: state for state in spec.states}
+    for kind, entry in spec.fault_reactions.items():
+        where: Location = ("fault_reactions", kind.value)
+        for name, reaction in entry.states.items():
+            state = names.get(name)
+            if state is None:
+                yield (
+                    (*where, "states", name),
+                    _violates(
+                        "every fault has a reaction",
+                        f"{kind.value}: no state is called {name!r}; expected one of {', '.join(names)}",
+                    ),
+                )
+                continue
+            mode = MODES.get(state.mode)
+            if mode is not None and not mode.applies_torque and reaction != "off":
+                yield (
+                    (*where, "states", name),
+                    _violates(
+                        "reactions hold only what the robot held",
+                        f"{kind.value} in state {state.label}: mode {mode.name!r} applies no torque, so the robot "
+                        f"holds nothing there to {reaction}; expected off",
+                    ),
+                )
+        if kind in UNTRUSTED_JOINT_KINDS and entry.faulted_joint != "off":
+            yield (
+                (*where, "faulted_joint"),
+                _violates(
+                    "untrusted joints get no torque",
+                    f"a {kind.value} fault means its joint's drive, torque path or sensors cannot be trusted: "
+                    "expected faulted_joint: off",
+                ),
+            )
+        if kind in BLIND_KINDS:
+            for state, reaction in (("", entry.reaction), *entry.states.items()):
+                if reaction != "off":
+                    yield (
+                        (*where, "states", state) if state else (*where, "reaction"),
+                        _violates(
+                            "no reaction without fresh readings",
+                            f"a {kind.value} fault leaves no fresh reading of any joint"
+                            + (f" (in state {state})" if state else "")
+                            + f": nothing can {reaction} the arm without them; expected off",
+                        ),
+                    )
+        if kind in MODEL_SUSPECT_KINDS and entry.support != "a_priori" and entry.reaction != "off":
+            yield (
+                (*where, "support"),
+                _violates(
+                    "no reaction leans on a suspect model",
+                    f"a {kind.value} fault may come from the compensation model: expected support: a_priori",
+                ),
+            )
+        if kind == FaultKind.ESTOP:
+            for state, reaction in (("", entry.reaction), *entry.states.items()):
+                if reaction == "hold":
+                    yield (
+                        (*where, "states", state) if state else (*where, "reaction"),
+                        _violates(
+                            "e-stops stop in category 0 or 1",
+                            "an e-stop must end with the torque off: expected off or lower (with within_s), not hold",
+                        ),
+                    )
+                elif reaction == "lower" and entry.within_s is None:
+                    yield (
+                        (*where, "within_s"),
+                        _violates(
+                            "e-stops stop in category 0 or 1",
+                            "an e-stop that lowers the arm needs within_s: the bound within which the torque is off",
+                        ),
+                    )
+        elif entry.within_s is not None:
+            yield (*where, "within_s"), f"{kind.value}: within_s belongs to the e-stop's reaction only"
+    drive = spec.drive_reactions.master_lost
+    if (drive.reaction == "ramp") != (drive.ramp_s is not None):
+        yield (
+            ("drive_reactions", "master_lost", "ramp_s"),
+            "master_lost: ramp needs ramp_s (how long the drive ramps its torque to zero) and off takes none",
         )
 
 
@@ -493,6 +723,40 @@ def _device_problems(spec: FsmSpec, description: RobotDescription) -> Iterator[t
                     f"{max_speed:g}",
                 ),
             )
+
+
+def _wiring_problems(spec: FsmSpec, description: RobotDescription) -> Iterator[tuple[Location, str]]:
+    """The e-stop's reaction against how the robot's buttons are wired (robot description ``estop``)."""
+    estop = spec.fault_reactions.get(FaultKind.ESTOP)
+    if estop is None:
+        return
+    wiring = description.estop
+    lowers = "lower" in (estop.reaction, *estop.states.values())
+    if lowers and wiring.wiring == "sto":
+        yield (
+            ("fault_reactions", "estop", "reaction"),
+            _violates(
+                "e-stops stop in category 0 or 1",
+                f"the e-stops of the {description.name} are wired to the drives' safe torque off (robot description "
+                "estop.wiring: sto): a press removes the torque at once in hardware, so the runtime cannot lower the "
+                "arm; expected off (or wire the buttons for a safe stop 1: estop.wiring: ss1)",
+            ),
+        )
+    elif (
+        lowers
+        and estop.within_s is not None
+        and wiring.relay_delay_s is not None
+        and estop.within_s > wiring.relay_delay_s
+    ):
+        yield (
+            ("fault_reactions", "estop", "within_s"),
+            _violates(
+                "e-stops stop in category 0 or 1",
+                f"the e-stop's lowering may take {estop.within_s:g} s but the safety relay of the "
+                f"{description.name} cuts the power {wiring.relay_delay_s:g} s after a press (robot description "
+                f"estop.relay_delay_s); expected within_s at most {wiring.relay_delay_s:g}",
+            ),
+        )
 
 
 def _order_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
@@ -588,7 +852,12 @@ def check_spec(
     """
     device = description if description is not None else _packaged_description()
     lines = []
-    problems = [*_problems(spec), *_device_problems(spec, device), *_order_problems(spec)]
+    problems = [
+        *_problems(spec),
+        *_device_problems(spec, device),
+        *_wiring_problems(spec, device),
+        *_order_problems(spec),
+    ]
     for location, message in problems:
         line = line_of(root, location)
         where = f"line {line}, " if line is not None else ""
