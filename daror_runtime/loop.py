@@ -290,16 +290,15 @@ class ControlLoop:
         supervisor = self.supervisor
         controller = supervisor.on_tick(sample, faults, monitor)
         decided = len(faults)  # the supervisor saw these; later ones are passed to it at the end of the tick
-        command = TORQUE_OFF
-        if sample is not None and controller is not None and not monitor.faulted:
-            try:
-                command = controller.update(sample, self.dt_s)
-            except DarorError as exc:
-                self._report(faults, FaultKind.SOFTWARE, f"{type(controller).__name__} failed: {exc}")
-            except Exception as exc:  # a bug in a controller must stop the robot, not the loop
-                log.exception("controller raised", controller=type(controller).__name__)
-                self._report(faults, FaultKind.SOFTWARE, f"{type(controller).__name__} raised {exc!r}")
-        command = monitor.filter(command, sample)
+        command = self._command(controller, sample, faults)
+        if len(faults) > decided:
+            # Found while computing the command (the controller failed, or asked for a non-finite torque):
+            # the supervisor decides the reaction now, and a reaction that holds the arm runs in this tick.
+            supervisor.on_late_faults(sample, faults[decided:])
+            decided = len(faults)
+            reaction = getattr(supervisor, "controller", None)
+            if reaction is not None and reaction is not controller:
+                command = self._command(reaction, sample, faults)
         recorder = self.recorder
         if recorder is not None:
             try:
@@ -318,7 +317,10 @@ class ControlLoop:
                         log.warning("recorder dropped a row: the disk cannot keep up", t_s=self._last_t_s)
             except DarorError as exc:
                 self._report(faults, FaultKind.SOFTWARE, f"recorder failed: {exc}")
-                command = TORQUE_OFF
+                supervisor.on_late_faults(sample, faults[decided:])
+                decided = len(faults)
+                if not monitor.torque_permitted:  # the reaction to it is off: nothing is written with torque
+                    command = TORQUE_OFF
         try:
             hal.write(command)
         except HalError as exc:
@@ -482,6 +484,32 @@ class ControlLoop:
             timing = _new_tuple(TickTiming, (index, index * self.dt_s, 0.0, False, 0, 0))
             return ran, reason, _new_tuple(TickResult, (timing, sample, command, faults))
         return ran, reason, None
+
+    def _command(self, controller: TickController | None, sample: Sample | None, faults: list[Fault]) -> Command:
+        """What the tick writes: the controller's command through the safety filter (faults it finds go to ``faults``).
+
+        Without a reading the last command written is handed to the filter, which keeps it only
+        under a reaction that holds the arm, for a few ticks (the drives' own behaviour between
+        frames); otherwise torque off.
+        """
+        monitor = self.monitor
+        command = TORQUE_OFF
+        if sample is None:
+            command = self.last_command
+        elif controller is not None and monitor.torque_permitted:
+            try:
+                command = controller.update(sample, self.dt_s)
+            except DarorError as exc:
+                self._report(faults, FaultKind.SOFTWARE, f"{type(controller).__name__} failed: {exc}")
+            except Exception as exc:  # a bug in a controller must stop the robot, not the loop
+                log.exception("controller raised", controller=type(controller).__name__)
+                self._report(faults, FaultKind.SOFTWARE, f"{type(controller).__name__} raised {exc!r}")
+        command = monitor.filter(command, sample)
+        refused = monitor.filter_fault
+        if refused is not None:  # a non-finite command, found by the filter: one of this tick's faults like any other
+            monitor.filter_fault = None
+            faults.append(refused)
+        return command
 
     def _watchdog(self, faults: list[Fault], timing: TickTiming) -> None:
         """The overrun rules, for a tick that started late (a stall is named in ms and periods)."""

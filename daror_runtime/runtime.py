@@ -383,6 +383,11 @@ class Runtime:
         return self._core.jobs.pending
 
     @property
+    def arm_held(self) -> bool:
+        """True while a fault's reaction holds or lowers the pilot's arm (the ``arm_released`` guard does not hold)."""
+        return self._core.signals.arm_held
+
+    @property
     def at_rest(self) -> bool:
         """Every joint at rest (the ``robot_at_rest`` guard)."""
         return GUARDS["robot_at_rest"].read(self._core.signals)
@@ -520,6 +525,14 @@ class Runtime:
         """Use ``limits`` (e.g. from a clinical assessment file) as the pilot's ISB limits."""
         return requests.set_isb_limits(self._core, limits, source)
 
+    def lower_arm(self) -> Ticket:
+        """A fault's reaction holds the arm: lower it to the rest pose of the settings (docs/safety.md)."""
+        return requests.lower_arm(self._core)
+
+    def release_arm(self) -> Ticket:
+        """A fault's reaction holds the arm and someone holds it too: ramp the torque to zero."""
+        return requests.release_arm(self._core)
+
     def identify(self, kind: str) -> Ticket:
         """Start a training or validation run of the protocol (:func:`daror_runtime.session.requests.identify`)."""
         return requests.identify(self._core, kind)
@@ -553,6 +566,8 @@ class Runtime:
         core = self._core
         if core.monitor.occurrences != core.faults_announced:  # runs every tick: test before calling
             core.announce_new_faults()
+        if core.supervisor.reaction is not None or core.announced_reaction is not None:
+            core.service_reaction()
         if core.modes.identification.finished_run is not None:
             requests.collect_finished_run(core)
         if core.lock_step:

@@ -184,6 +184,18 @@ class SimulatedWorld(Protocol):
         """
         ...
 
+    def place_rest_support(self) -> int:
+        """Something carries the arm where it is now (the pilot's lap, an armrest, a tray): a support under it.
+
+        What a fault's ``lower`` reaction hands the arm to at the rest pose. Returns how many joints
+        it supports (those gravity pulls there).
+        """
+        ...
+
+    def remove_rest_support(self) -> None:
+        """Take the rest support away."""
+        ...
+
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         """``(holding, pilot)`` now, (4,) Nm each: the torque that holds the arm still where it truly is,
         and the torque the pilot applies (the simulation's truth: for reports of what the robot carries).

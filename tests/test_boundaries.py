@@ -446,10 +446,11 @@ FACADE = {
     "add_publisher", "remove_publisher",  # displays fed from the service thread (the web console)
     # lifecycle and driving the loop
     "open", "shutdown", "close", "run_ticks", "run_until", "pass_time", "background", "busy",
-    "jobs_pending", "at_rest", "wait", "start_background", "stop_background",
+    "jobs_pending", "at_rest", "arm_held", "wait", "start_background", "stop_background",
     # the operator's requests
     "request", "advance", "revert", "reset", "acknowledge", "confirm", "set_support", "rom_start",
     "rom_stop", "set_isb_limits", "identify", "stop_identification", "train", "select_model",
+    "lower_arm", "release_arm",  # a fault's reaction holds the arm (docs/safety.md)
     # what the operator sees
     "status", "snapshot",
 }  # fmt: skip

@@ -47,6 +47,7 @@ from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
 from daror_runtime.session.settings import SessionSettings
 from hal.errors import HalError
+from hal.interface import DriveState
 from hal.isb import AngleRange, IsbLimits
 from hal.robot import FloatArray
 from hal.sim.backend import SimHal
@@ -156,6 +157,59 @@ def torque_off(result: TickResult, hal: SimHal) -> bool:
         and bool(np.all(result.command.motor_torque_nm == 0.0))
         and bool(np.all(hal.applied_motor_torque_nm == 0.0))
     )
+
+
+_RANK = {"hold": 0, "lower": 1, "off": 2}
+
+
+def expected_reaction(state: StateSpec, faults: list[Fault], drives: tuple[DriveState, ...]) -> tuple[str, set[int]]:
+    """What ``fsm_spec.yaml`` declares for ``faults`` in ``state``: the reaction and the joints off.
+
+    Restated from the spec (docs/safety.md), independently of daror_runtime.safety.reactions: the
+    strictest reaction of any fault kind (its state override first); the joint a drive, torque-path or
+    sensor fault names off (every joint when it names none); a joint whose drive held nothing off; an
+    e-stop on the DAROR-01's safe-torque-off wiring off; no joint left: off.
+    """
+    reaction = "hold"
+    off = {j + 1 for j, d in enumerate(drives) if d != DriveState.ENABLED}
+    for fault in faults:
+        entry = SPEC.fault_reactions[fault.kind]
+        wanted = entry.states.get(state.name, entry.reaction)
+        if fault.kind == FaultKind.ESTOP:
+            wanted = "off"  # hal/daror01.yaml: estop.wiring sto
+        reaction = max(reaction, wanted, key=_RANK.__getitem__)
+        if entry.faulted_joint == "off":
+            off |= {fault.joint} if fault.joint is not None else {1, 2, 3, 4}
+    return ("off" if len(off) == 4 else reaction), off
+
+
+def assert_reaction(result: TickResult, hal: SimHal, reaction: str, off: set[int]) -> None:
+    """The tick's command and what the drives applied are the declared reaction's: torque off, or the
+    joints off disabled (no torque applied) while the others keep their drives enabled and torque."""
+    if reaction == "off":
+        assert torque_off(result, hal), result.command
+        return
+    command = result.command
+    assert command.enable is True, command
+    assert set(command.joints_off) == off, (command.joints_off, off)
+    applied = hal.applied_motor_torque_nm
+    for j in off:
+        assert applied[j - 1] == 0.0, applied
+    driven = [j - 1 for j in range(1, 5) if j not in off]
+    assert np.any(applied[driven] != 0.0), applied  # the held joints carry the arm
+
+
+def release_the_arm(session: Session, keep: Callable[[], None] | None = None, seconds: float = 4.0) -> None:
+    """A reaction holds the arm: the operator releases it (someone holds it) and the torque ramps out."""
+    runtime = session.runtime
+    if not runtime.arm_held:
+        return
+    accepted(session.answer(runtime.release_arm(), keep))
+    for _ in range(round(seconds * 1000)):
+        if not runtime.arm_held:
+            return
+        session.tick(1, keep)
+    raise AssertionError("the arm is still held after the release")
 
 
 def accepted(response: Response) -> Response:
@@ -741,12 +795,16 @@ def _fault_fails_the_state(
 ) -> None:
     runtime = session.runtime
     kind = condition.kind
+    before = runtime._core.signals.sample
+    assert before is not None
     result, new = provoke(session, condition)
-    # the tick the fault appears in: FAIL, torque off, drives applied nothing
+    # the tick the fault appears in: FAIL, and the reaction the spec declares (torque off, or the arm held)
     assert kind in {f.kind for f in new}, new
     assert session.state == FAIL
     assert session.visited[-1] == FAIL
-    assert torque_off(result, session.hal)
+    # the drives as the tick that found the fault read them (no reading that tick: as the tick before)
+    reaction, off = expected_reaction(state, new, (result.sample or before).drives)
+    assert_reaction(result, session.hal, reaction, off)
     if not condition.persists:
         condition.clear()
     events = audit.since(mark, runtime.session_id)
@@ -758,7 +816,17 @@ def _fault_fails_the_state(
     assert to_fail[0]["source"] == state.name
     assert to_fail[0]["trigger"] == "fail"
     assert to_fail[0]["t_s"] == faults[0]["t_s"] == new[0].t_s  # the same tick
-    for _ in range(3):  # FAIL holds torque off
+    reactions = named(events, "reaction")
+    assert len(reactions) == 1, reactions
+    assert reactions[0]["reaction"] == reaction
+    assert reactions[0]["t_s"] == new[0].t_s
+    for _ in range(3):  # FAIL keeps the reaction: torque off, or the arm held
+        assert_reaction(session.tick(1, condition.keep), session.hal, reaction, off)
+    if reaction != "off":  # a reset would drop an arm the reaction holds: refused until released
+        refusal = session.answer(runtime.reset(), condition.keep)
+        assert not refusal.accepted
+        assert "arm_released" in refusal.unmet
+        release_the_arm(session, condition.keep)
         assert torque_off(session.tick(1, condition.keep), session.hal)
     if condition.persists:
         # reset waits for both; the acknowledgement may come first, the reset still waits for the condition
@@ -796,6 +864,8 @@ def _fault_fails_the_state(
     assert torque_off(session.tick(), session.hal)  # startup: drives off
     events = audit.since(mark, runtime.session_id)
     refused = [e["unmet"] for e in named(events, "refused", request="reset")]
+    if reaction != "off":  # the first reset was refused while the reaction held the arm
+        assert "arm_released" in refused.pop(0)
     if condition.persists:
         assert refused == [["faults_cleared", "fault_acknowledged"], ["faults_cleared"]]
     else:
@@ -808,10 +878,14 @@ def _fault_in_a_test_state(
 ) -> None:
     runtime = session.runtime
     kind = condition.kind
+    before = runtime._core.signals.sample
+    assert before is not None
     result, new = provoke(session, condition)
     assert kind in {f.kind for f in new}, new
     assert session.state == state.name  # no FAIL in a test state
-    assert torque_off(result, session.hal)
+    # the drives as the tick that found the fault read them (no reading that tick: as the tick before)
+    reaction, off = expected_reaction(state, new, (result.sample or before).drives)
+    assert_reaction(result, session.hal, reaction, off)
     if not condition.persists:
         condition.clear()
     events = audit.since(mark, runtime.session_id)
@@ -824,10 +898,10 @@ def _fault_in_a_test_state(
         warnings = named(events, TEST_STATE_WARNING, state=state.name)
         assert kind.value in [e["fault"]["kind"] for e in warnings], warnings
         assert warnings[0]["level"] == "warning"
-    # torque stays off while the fault is latched
+    # the reaction lasts while the fault is latched
     for _ in range(5):
         held = session.tick(1, condition.keep)
-        assert torque_off(held, session.hal)
+        assert_reaction(held, session.hal, reaction, off)
         assert session.state == state.name
     if kind == FaultKind.ESTOP:
         # the press was the test: released, the latch clears by itself and torque returns
@@ -840,11 +914,11 @@ def _fault_in_a_test_state(
     if condition.persists:
         accepted(session.answer(runtime.acknowledge(), condition.keep))
         assert kind in {f.kind for f in runtime._core.monitor.latched}, "acknowledged away while the condition persists"
-        assert torque_off(session.tick(1, condition.keep), session.hal)
+        assert_reaction(session.tick(1, condition.keep), session.hal, reaction, off)
     condition.clear()
     settle_until_clearable(session)
-    for _ in range(3):  # gone, but latched until acknowledged
-        assert torque_off(session.tick(), session.hal)
+    for _ in range(3):  # gone, but latched until acknowledged: the reaction goes on
+        assert_reaction(session.tick(), session.hal, reaction, off)
     accepted(session.answer(runtime.acknowledge()))
     back = session.tick()
     assert not runtime._core.monitor.faulted

@@ -446,11 +446,13 @@ def kernels_loaded_in_ticks(directory: Path, model: Path, validation: Path) -> l
         session.walk_to("compensation")
         session.ok(runtime.set_support(0.5))
         runtime.pass_time(1.0)
+        hal.plant.place_rest_support(runtime._core.rest_q_rad)  # the lap the reaction lowers the arm onto
         hal.inject_fault("nan", 3)
         runtime.pass_time(0.05)
         assert session.state == "FAIL"
         hal.clear_faults()
-        runtime.pass_time(0.05)
+        # the reaction: hold, the lowering (planned in a job), the handoff onto the lap, torque off
+        assert runtime.run_until(lambda: not runtime.arm_held, 60.0)
         session.ok(runtime.acknowledge())
         session.ok(runtime.reset())
         runtime.pass_time(0.5)

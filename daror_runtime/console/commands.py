@@ -97,6 +97,8 @@ class ConsoleSession:
             "revert": lambda a: self._answer(runtime.revert()),
             "reset": lambda a: self._answer(runtime.reset()),
             "ack": lambda a: self._answer(runtime.acknowledge()),
+            "lower": lambda a: self._answer(runtime.lower_arm()),
+            "release": lambda a: self._answer(runtime.release_arm()),
             "confirm": lambda a: self._answer(runtime.confirm(a[0])),
             "support": lambda a: self._answer(runtime.set_support(a[0])),
             "rom": self._rom,
@@ -266,6 +268,11 @@ class ConsoleSession:
             world.fault(args[1], args[2], args[3])
         elif what == "clear":
             world.clear_faults()
+        elif what == "rest":
+            if args[1] == "here":
+                world.rest_here()
+            else:
+                world.rest_off()
         else:
             self._pilot(world, args[1:])
         self.say(f"{stamp(self._t())} world: {' '.join(split(self._line)[1:])}")

@@ -244,7 +244,7 @@ def _expect(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 
 SIM_USAGE = (
     "sim estop operator|pilot on|off | sim fault KIND [JOINT] [VALUE] | sim clear | "
-    "sim pilot carry SHARE|stiffness SCALE|hold|stop|sweep [SECONDS_PER_MOVE]"
+    "sim pilot carry SHARE|stiffness SCALE|hold|stop|sweep [SECONDS_PER_MOVE] | sim rest here|off"
 )
 
 
@@ -262,6 +262,8 @@ def _sim(args: list[str], context: ParseContext) -> tuple[Any, ...]:
         return ("fault", kind, joint, value)
     if args == ["clear"]:
         return ("clear",)
+    if len(args) == 2 and args[0] == "rest":
+        return ("rest", _one_of("sim rest", args[1], ("here", "off")))
     if len(args) >= 2 and args[0] == "pilot":
         what, rest = args[1], args[2:]
         if what == "carry" and len(rest) == 1:
@@ -300,6 +302,23 @@ COMMANDS: tuple[CommandSpec, ...] = (
         GROUPS[0],
         _no_args("ack"),
         aliases=("acknowledge",),
+    ),
+    CommandSpec(
+        "lower",
+        "lower",
+        "a fault's reaction holds the pilot's arm: lower it to its rest",
+        GROUPS[0],
+        _no_args("lower"),
+        "The arm goes to the rest pose of the session settings at a bounded speed, then onto its rest (lap, "
+        "armrest or the robot's stops), and the torque goes off (docs/safety.md).",
+    ),
+    CommandSpec(
+        "release",
+        "release",
+        "a fault's reaction holds the pilot's arm: ramp the torque to zero (someone must hold the arm)",
+        GROUPS[0],
+        _no_args("release"),
+        "Only once a person holds the pilot's arm: the robot lets go of it over the handoff time.",
     ),
     CommandSpec(
         "confirm",
@@ -381,7 +400,9 @@ COMMANDS: tuple[CommandSpec, ...] = (
         "sim estop operator|pilot on|off presses or releases an e-stop. sim pilot carry SHARE: how much of the "
         "arm's unsupported weight the pilot carries (1 all, 0 relaxed); stiffness SCALE (0 limp, 1 calm); "
         "hold (keep the arm where it is); stop (stop moving); sweep (move through the session's waypoints at "
-        "the pilot's own pace, or SECONDS_PER_MOVE). sim fault KIND injects a fault, sim clear removes it.",
+        "the pilot's own pace, or SECONDS_PER_MOVE). sim fault KIND injects a fault, sim clear removes it. "
+        "sim rest here: the pilot's arm lies on something where it is now (his lap, an armrest), what a fault's "
+        "lowering hands it to; sim rest off takes it away.",
         world=True,
     ),
     CommandSpec(
@@ -484,6 +505,8 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "revert": None,
         "reset": None,
         "ack": None,
+        "lower": None,
+        "release": None,
         "confirm": checklists,
         "support": None,
         "rom": {"start": None, "stop": None, "load": None},
@@ -502,6 +525,7 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
             "estop": {"operator": {"on": None, "off": None}, "pilot": {"on": None, "off": None}},
             "fault": {kind: None for kind in context.fault_kinds},
             "clear": None,
+            "rest": {"here": None, "off": None},
             "pilot": {"carry": None, "stiffness": None, "hold": None, "stop": None, "sweep": None},
         }
     return tree

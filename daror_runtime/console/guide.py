@@ -125,12 +125,31 @@ def _model_trained(status: RuntimeStatus, world: bool) -> Step:
     return Step("train the compensation model on this session's data and validate it", ("train", "wait until idle"))
 
 
+def _arm_released(status: RuntimeStatus, world: bool) -> Step:
+    reaction = status.reaction
+    if reaction is None or not reaction.arm_held:
+        return Step("no reaction holds the arm")
+    if reaction.phase in ("hold", "lower", "handoff", "letting go", "releasing"):
+        return Step(
+            f"the robot is stopping the pilot's arm ({reaction.phase}): wait until it rests on its {reaction.rest}",
+            ("wait 2",),
+        )
+    at_rest = reaction.note.startswith("the arm moved")
+    text = f"the robot holds the pilot's arm ({reaction.note})"
+    if at_rest:
+        return Step(text + ": hold the arm yourself, then release it (the torque ramps to zero)", ("release",))
+    return Step(
+        text + f": lower it to its rest on the {reaction.rest}, or release it once someone holds it", ("lower",)
+    )
+
+
 STEPS: dict[str, StepFor] = {
     "hal_connected": lambda s, w: Step("wait for the hardware to answer (drives powered, bus connected)", ("wait 1",)),
     "no_active_faults": _no_active_faults,
     "faults_cleared": _faults_cleared,
     "fault_acknowledged": lambda s, w: Step("acknowledge the fault", ("ack",)),
     "fault_latched": lambda s, w: Step("nothing to acknowledge"),
+    "arm_released": _arm_released,
     "robot_at_rest": lambda s, w: Step("wait until the arm is at rest", ("wait until still",)),
     "estop_operator_tested": _estop_test("operator"),
     "estop_pilot_tested": _estop_test("pilot"),

@@ -52,10 +52,20 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
             lines.append(f"{name}: blocked, needs")
             lines.extend(f"  - {g.name}: {g.description}" for g in gate.unmet)
     if status.faults:
-        lines.append("faults (torque stays off while any is latched):")
+        lines.append("faults (each met by its reaction until acknowledged and reset):")
         lines.extend(f"  - {f['kind']}: {f['message']} (t = {f['t_s']:.3f} s)" for f in status.faults)
     else:
         lines.append("faults: none")
+    reaction = status.reaction
+    if reaction is not None:
+        what = {"off": "torque off", "lower": "hold, lower to the rest, torque off", "hold": "hold"}[reaction.reaction]
+        off = f", joint(s) {', '.join(map(str, reaction.joints_off))} off" if reaction.joints_off else ""
+        lines.append(
+            f"reaction: {what} (category {reaction.category}; {', '.join(reaction.causes)}{off}; support "
+            f"{reaction.support})"
+        )
+        if reaction.phase is not None:
+            lines.append(f"  now: {reaction.phase}" + (f": {reaction.note}" if reaction.note else ""))
     pressed = [b for b, on in status.estop_pressed.items() if on]
     lines.append(f"e-stops: {'PRESSED: ' + ', '.join(pressed) if pressed else 'released'}")
     joints = status.joints

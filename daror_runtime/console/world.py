@@ -104,6 +104,14 @@ class SimWorld:
     def clear_faults(self) -> None:
         self.simulated.clear_faults()
 
+    def rest_here(self) -> None:
+        """The pilot's arm lies on something where it is now (his lap, an armrest): what a fault's lowering hands it to."""
+        self.simulated.place_rest_support()
+
+    def rest_off(self) -> None:
+        """Take the rest away: nothing but the robot carries the arm."""
+        self.simulated.remove_rest_support()
+
     def pilot_carries(self, share: float) -> None:
         """The share of the arm's weight the pilot carries (1 alone, 0 relaxed on the robot)."""
         self.simulated.pilot_carries(share)

@@ -27,12 +27,17 @@ import numpy as np
 from daror_runtime.control.base import ControlError, ControlSettingError
 from daror_runtime.control.handover import DEFAULT_TOLERANCE_NM, MAX_RAMP_DT_S, Handover, handover_reference
 from daror_runtime.control.sea_torque import SeaTorqueController
+from daror_runtime.control.soft_walls import SoftWalls
 from daror_runtime.errors import ShapeError
 from daror_runtime.models.base import CompensationModel, ReadingErrorTracker
 from hal.interface import Command, Sample
 from hal.robot import FloatArray
 
 __all__ = ["Compensation", "MinimalImpedance", "TorqueOff"]
+
+#: The damping's low-pass on the joints' speed: 5 Hz at the 1 kHz tick (first order, one step per tick).
+DAMPING_FILTER_HZ = 5.0
+DAMPING_FILTER_ALPHA = 1.0 - math.exp(-2.0 * math.pi * DAMPING_FILTER_HZ * 1e-3)
 
 
 class TorqueOff:
@@ -58,12 +63,14 @@ class MinimalImpedance:
 
     commands: tuple[str, ...] = ("motor_torque",)
 
-    def __init__(self, torque: SeaTorqueController, ramp_per_s: float = 0.5) -> None:
+    def __init__(self, torque: SeaTorqueController, ramp_per_s: float = 0.5, walls: SoftWalls | None = None) -> None:
         self.torque = torque
         self.handover = Handover(ramp_per_s, by_motion=False)
+        self.walls = walls
         self._zero = np.zeros(torque.n_joints)
         self._zero.flags.writeable = False  # shared every tick; nobody may change it
         self._reference = np.zeros(torque.n_joints)
+        self._wall = np.zeros(torque.n_joints)
         self.last_reference_nm: FloatArray = self._zero
 
     def reset(self, sample: Sample) -> None:
@@ -86,6 +93,9 @@ class MinimalImpedance:
             self.handover.set_dt(dt_s)
             handover_reference(self._zero, sample.q_rad, self.handover.state, self._reference)
             reference = self._reference
+        walls = self.walls
+        if walls is not None and walls.torque(sample.q_rad, sample.dq_rad_s, self._wall):
+            reference = reference + self._wall  # a few degrees inside a limit: the wall pushes back
         command = Command(self.torque.motor_torque(reference, sample, dt_s), True)
         self.last_reference_nm = reference
         return command
@@ -116,6 +126,14 @@ class Compensation:
             brings in missing support at this rate; None applies level changes at once.
         handover_tolerance_nm: missing support per joint, at entry, that is handed over by the
             pilot's motion rather than by time (what a validated model may be off by at one pose).
+        walls: soft walls a few degrees inside the device's joint limits and the pilot's ISB limits
+            (:mod:`daror_runtime.control.soft_walls`), added to the reference where they act (not
+            scaled by the support level: a wall holds whatever the level); None: none.
+
+    :attr:`damping_nms_per_rad` (set between ticks, 0 by default) subtracts ``b dq`` from the
+    reference: the session sets it while the model in use is not validated on this pilot's data
+    (the A Priori model the operator confirmed), so the model's error moves a limp arm only slowly
+    (docs/safety.md, "Fault reactions": the operative check).
 
     Entering the mode is bumpless: the reference starts at the torque the springs carry and never
     dips below what was holding the arm until the pilot moves it (docs/control.md, "handover").
@@ -134,6 +152,7 @@ class Compensation:
         support_level: float = 1.0,
         ramp_per_s: float | None = 0.5,
         handover_tolerance_nm: float = DEFAULT_TOLERANCE_NM,
+        walls: SoftWalls | None = None,
     ) -> None:
         if ramp_per_s is not None and not (math.isfinite(ramp_per_s) and ramp_per_s > 0.0):
             raise ControlSettingError(f"support ramp must be a positive rate per second or None, got {ramp_per_s!r}")
@@ -145,7 +164,28 @@ class Compensation:
         self._level = self._target
         self._support = np.zeros(torque.n_joints)
         self._reading_error: ReadingErrorTracker | None = None
+        self.walls = walls
+        self._wall = np.zeros(torque.n_joints)
+        self._damping = 0.0
+        self._damping_weight = 1.0  # ramps in after a reset: the damping never steps the reference
+        self._speed = np.zeros(torque.n_joints)  # the joints' speed, low-passed for the damping (rad/s)
         self.last_reference_nm: FloatArray = np.zeros(torque.n_joints)
+
+    @property
+    def damping_nms_per_rad(self) -> float:
+        """Viscous damping on the joints' speed in the reference, Nms/rad (0: none)."""
+        return self._damping
+
+    @damping_nms_per_rad.setter
+    def damping_nms_per_rad(self, value: float) -> None:
+        """Set between ticks.
+
+        Raises:
+            ControlSettingError: not a finite number >= 0.
+        """
+        if isinstance(value, bool) or not (math.isfinite(value) and value >= 0.0):
+            raise ControlSettingError(f"compensation damping must be a finite number >= 0 Nms/rad, got {value!r}")
+        self._damping = float(value)
 
     @property
     def support_level(self) -> float:
@@ -188,6 +228,8 @@ class Compensation:
         if self._reading_error is not None:
             self._reading_error.reset(sample.q_rad)
         self.handover.start(sample, self.torque.spring_torque_nm(sample), target)
+        self._damping_weight = 0.0
+        self._speed[:] = sample.dq_rad_s
 
     def update(self, sample: Sample, dt_s: float) -> Command:
         """Motor torques (Nm) delivering ``support x model torque`` (plus the entry's handover) at the springs.
@@ -224,6 +266,19 @@ class Compensation:
             self.handover.set_dt(dt_s)
             handover_reference(np.asarray(tau_ref, dtype=float), sample.q_rad, self.handover.state, self._support)
             tau_ref = self._support.copy()
+        walls = self.walls
+        if walls is not None and walls.torque(sample.q_rad, sample.dq_rad_s, self._wall):
+            tau_ref = tau_ref + self._wall  # a few degrees inside a limit: the wall pushes back
+        if self._damping:
+            # An arm that moves when the mode takes over (a pilot who lets go, torque back after an e-stop)
+            # would make the damping a step in the reference: it comes in at the support ramp's rate.
+            if self._damping_weight < 1.0:
+                rate = self.ramp_per_s or 1.0 / MAX_RAMP_DT_S
+                self._damping_weight = min(self._damping_weight + rate * min(max(dt_s, 0.0), MAX_RAMP_DT_S), 1.0)
+            # The drives' speed estimate carries the encoders' noise, which the torque loop would amplify:
+            # the damping acts on slow motion (a sagging arm), so it sees the speed low-passed.
+            self._speed += DAMPING_FILTER_ALPHA * (sample.dq_rad_s - self._speed)
+            tau_ref = tau_ref - (self._damping * self._damping_weight) * self._speed
         try:
             command = self.torque.motor_torque(tau_ref, sample, dt_s)
         except ControlError:

@@ -20,7 +20,13 @@ reading error that switches with the direction of motion (Sec. 2.2.2), which fed
 
 Limits: the reference is clipped to what the spring carries before its end stop and slew-limited
 (500 Nm/s); the observer's correction to the motor limit; the motor torque to
-``description.sea.max_motor_torque_nm``. Anti-windup: the ``u`` fed to the observer and to D is
+``description.sea.max_motor_torque_nm``.
+
+**Soft start.** A joint whose drive was not enabled when the controller was reset (torque comes back
+after an e-stop, a fault, a disabled start) has a motor that coasts on the spring: its filters start
+at rest but the motor does not, and the first commands would answer that motion with a step of
+several Nm. Such a joint's command is brought in over :data:`SOFT_START_S` (a weight from 0 to 1):
+the first command is near zero, like the torque the disabled drive applied. Anti-windup: the ``u`` fed to the observer and to D is
 recomputed as the value that would have produced exactly the clipped torque (back-calculation
 through the direct feedthrough ``1 + K_p + w D``), so no state winds up while saturated.
 
@@ -41,7 +47,7 @@ from daror_runtime.control.base import ControlDesignError, ControlError
 from daror_runtime.control.filters import FilterBank
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign, design_inner_loop
 from daror_runtime.errors import ShapeError
-from hal.interface import Sample
+from hal.interface import DriveState, Sample
 from hal.robot import N_JOINTS, FloatArray, SeaConstants
 
 # --- the per-tick kernel ---------------------------------------------------------------------
@@ -52,6 +58,9 @@ _F1 = numba.float64[::1]
 _F2 = numba.float64[:, ::1]
 _F3 = numba.float64[:, :, ::1]
 _F4 = numba.float64[:, :, :, ::1]
+
+#: How long a joint whose drive was off at the reset takes to get its whole command (s): the soft start.
+SOFT_START_S = 0.05
 
 #: Bank order in the stacked arrays the kernel reads.
 _BANK_MODEL, _BANK_Q, _BANK_C, _BANK_D = 0, 1, 2, 3
@@ -212,6 +221,8 @@ class SeaTorqueController:
         self._abcx = np.ascontiguousarray(
             np.concatenate([a, b[..., None], c[..., None], np.zeros_like(b)[..., None]], -1)
         )
+        self._soft = np.ones(n_joints)  # the soft start's weight per joint (1: the whole command)
+        self._softening = False
 
     @property
     def _banks(self) -> tuple[FilterBank, ...]:
@@ -244,6 +255,12 @@ class SeaTorqueController:
         self._work[_W_DHAT] = 0.0
         self._work[_W_U] = tau0
         self._work[_W_PREV] = tau0  # the reference slews from the torque the springs carry now
+        self._soft[:] = 1.0
+        if sample is not None:
+            for j, drive in enumerate(sample.drives[: self.n_joints]):
+                if drive != DriveState.ENABLED:  # its motor coasts on the spring: bring the command in softly
+                    self._soft[j] = 0.0
+        self._softening = bool(np.any(self._soft < 1.0))
 
     @property
     def regulates_reading_error(self) -> bool:
@@ -307,6 +324,11 @@ class SeaTorqueController:
                 f"joint {status}: non-finite torque reference ({tau_ref[j]}), measured torque ({tau_meas[j]}), "
                 f"motor angle ({theta[j]}) or link angle ({q[j]}); torque controller not advanced"
             )
+        if self._softening:
+            soft = self._soft
+            command *= soft
+            np.minimum(soft + self.design.period_s / SOFT_START_S, 1.0, out=soft)
+            self._softening = bool(np.any(soft < 1.0))
         return command
 
     def linear_model(self, joint: int = 1) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:

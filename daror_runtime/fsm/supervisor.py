@@ -28,6 +28,13 @@ Rules kept here:
   after the controller enforces them, so a controller never has to know the state.
 * A controller is reset with the current sample before its first update in a state, and again
   when torque returns after a latched fault, so no filter or observer resumes from stale state.
+* Every fault is met, in the tick it is found, with the reaction the spec declares for its kind
+  (``fault_reactions``; :mod:`daror_runtime.safety.reactions`): off, or the safe stop controller
+  holding and lowering the arm (:class:`~daror_runtime.control.safe_stop.SafeStop`), with the
+  joints a fault took off disabled. The supervisor grants the reaction to the monitor's filter
+  (a new fault withdraws it until decided); a reaction only gets stricter until it ends: at its
+  rest (the torque off), when a test state's faults are cleared, or by a reset out of FAIL
+  (which needs ``arm_released``). Its start, every change and its end are in the audit log.
 * Everything is in the audit log: every request, transition, refusal (with the unmet guards
   named), e-stop test and fault.
 
@@ -41,11 +48,12 @@ import threading
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
 from daror_runtime.control.base import ControlError, Controller
+from daror_runtime.control.safe_stop import SafeStop, SafeStopPhase
 from daror_runtime.errors import ConfigurationError, DarorError
 from daror_runtime.fsm.guards import GUARDS
 from daror_runtime.fsm.machine import Event, Outcome, SafetyMachine
@@ -55,8 +63,13 @@ from daror_runtime.fsm.spec import FailSpec, FsmSpec, StateSpec
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import IsbFunction, SafetyMonitor
-from hal.interface import Sample
+from daror_runtime.safety.reactions import ReactionPlan, escalate, plan_reaction
+from hal.interface import DriveState, Sample
 from hal.isb import IsbLimits
+from hal.robot import N_JOINTS
+
+if TYPE_CHECKING:
+    from daror_runtime.models.base import CompensationModel
 
 log = structlog.get_logger(__name__)
 
@@ -138,6 +151,12 @@ class FsmSupervisor:
             at once (at least 1).
         max_requests_per_tick: requests one tick applies at most (at least 1); a tick also stops
             after the first request that changed the state.
+        on_fault_acknowledged: called when the operator acknowledges (the drives' fault reset).
+        safe_stop: the controller of the ``hold`` and ``lower`` reactions (None: every reaction is
+            off, as for a spec that declares only off).
+        estop_wiring: the robot's e-stop wiring (``sto``: a press has cut the power in hardware).
+        support_model: the model whose gravity support a reaction uses in a state: the compensation
+            model where the state applies one, else None (the A Priori model).
 
     Raises:
         ConfigurationError: a mode of the spec has no controller entry; a queue bound below 1.
@@ -155,6 +174,9 @@ class FsmSupervisor:
         max_pending_requests: int = DEFAULT_MAX_PENDING_REQUESTS,
         max_requests_per_tick: int = DEFAULT_MAX_REQUESTS_PER_TICK,
         on_fault_acknowledged: Callable[[], None] | None = None,
+        safe_stop: SafeStop | None = None,
+        estop_wiring: str = "sto",
+        support_model: Callable[[StateSpec], CompensationModel | None] | None = None,
     ) -> None:
         if max_pending_requests < 1 or max_requests_per_tick < 1:
             raise ConfigurationError(
@@ -192,6 +214,22 @@ class FsmSupervisor:
         self._tick_faults: list[Fault] = []  # the loop's list of this tick's faults (ours go in too)
         self.transitions = 0
         self.listeners: list[Callable[[StateSpec | FailSpec, Outcome], None]] = []
+        self.safe_stop = safe_stop
+        self.estop_wiring = estop_wiring
+        self._support_model = support_model
+        #: The reaction to the latched faults (None: none since the last reset or cleared test faults).
+        self.reaction: ReactionPlan | None = None
+        self.reaction_started_s: float | None = None
+        self._reaction_state = spec.first  # the state the reaction's first fault was found in
+        self._reaction_deadline_s = float("inf")
+        self._reaction_running = False  # the safe stop holds the arm (torque on under the reaction)
+        self._stop_phase: SafeStopPhase | None = None
+        self._drives: tuple[DriveState, ...] = (DriveState.DISABLED,) * N_JOINTS  # of the last sample
+        #: Called in the tick a reaction starts or gets stricter, with the plan (the session plans a lowering).
+        self.reaction_listeners: list[Callable[[ReactionPlan], None]] = []
+        #: Called whenever the state's limits are applied, with the pilot's ISB limits it enforces (None:
+        #: none): the soft walls of the torque modes follow them.
+        self.limits_listeners: list[Callable[[IsbLimits | None], None]] = []
         self._enter(spec.first, None)
 
     # --- what the rest of the runtime reads -----------------------------------------------
@@ -277,16 +315,163 @@ class FsmSupervisor:
             if ended:
                 self._log_flood_end(ended)
         faulted = monitor.faulted
-        if self._was_faulted and not faulted:
+        if self.reaction is not None:
+            if not faulted and not self.machine.in_fail:
+                self._end_reaction("the faults were cleared: the state's own controller takes over")
+            elif self._reaction_running:
+                self._follow_the_stop()
+        elif self._was_faulted and not faulted:
             self._needs_reset = True  # torque comes back: start the controller from the present
         self._was_faulted = faulted
-        if self._needs_reset and sample is not None and not faulted:
+        if sample is not None:
+            self._drives = sample.drives
+        if self._needs_reset and sample is not None and monitor.torque_permitted:
             self._reset_controller(sample)
         return self._controller
 
     def on_late_faults(self, sample: Sample | None, faults: list[Fault]) -> None:
-        """Faults the loop found after :meth:`on_tick` (controller, recorder, HAL write): same tick."""
+        """Faults the loop found after :meth:`on_tick` (controller, recorder, HAL write): same tick.
+
+        The loop then asks :attr:`controller` again: a reaction that holds the arm runs in this very tick.
+        """
         self._route(faults, sample)
+        if self._needs_reset and sample is not None and self.monitor.torque_permitted:
+            self._reset_controller(sample)
+
+    # --- the fault's reaction ---------------------------------------------------------------
+
+    @property
+    def reaction_running(self) -> bool:
+        """True while a reaction holds the arm (the safe stop controller commands torque)."""
+        return self._reaction_running
+
+    def request_lowering(self) -> Response:
+        """The operator asks a held arm to be lowered to its rest (at a tick boundary)."""
+        stop = self.safe_stop
+        if not self._reaction_running or stop is None:
+            return Response("lower", False, self.state_name, "no fault reaction holds the arm")
+        if stop.phase not in (SafeStopPhase.HOLD, SafeStopPhase.HELD):
+            return Response("lower", False, self.state_name, f"the arm is already being stopped ({stop.phase.value})")
+        if stop.phase is SafeStopPhase.HELD and stop.note.startswith("the arm moved"):
+            return Response(
+                "lower", False, self.state_name,
+                "the arm is at its rest pose and nothing carries it there: release it once someone holds the arm",
+            )  # fmt: skip
+        stop.lower_now()
+        log.warning("reaction: lowering asked by the operator", state=self.state_name, t_s=self._t_s)
+        for listener in self.reaction_listeners:
+            listener(self.reaction)  # type: ignore[arg-type]
+        return Response("lower", True, self.state_name)
+
+    def request_release(self) -> Response:
+        """The operator releases a held arm to someone holding it: the torque ramps to zero (at a tick boundary)."""
+        stop = self.safe_stop
+        if not self._reaction_running or stop is None:
+            return Response("release", False, self.state_name, "no fault reaction holds the arm")
+        stop.release()
+        log.warning("reaction: release asked by the operator", state=self.state_name, t_s=self._t_s)
+        return Response("release", True, self.state_name)
+
+    def _react(self, faults: list[Fault], sample: Sample | None) -> None:
+        """Decide the reaction to ``faults`` (with those already latched) and put it in force now."""
+        if self.reaction is None:
+            state = self.machine.state
+            self._reaction_state = state if isinstance(state, StateSpec) else self._reaction_state
+        drives = sample.drives if sample is not None else self._drives
+        if self.reaction is not None and not self._reaction_running:
+            # Off (or ended with the torque off): nothing is held any more, so nothing can be given back.
+            drives = (DriveState.DISABLED,) * N_JOINTS
+        plan = plan_reaction(faults, self._reaction_state.name, self.spec.fault_reactions, self.estop_wiring, drives)
+        previous = self.reaction
+        plan = escalate(previous, plan)
+        if plan == previous:
+            if self._reaction_running:
+                self.monitor.grant(plan.joints_off, self._reaction_deadline_s)  # the new fault withdrew it
+            return
+        self.reaction = plan
+        now = self._t_s
+        if previous is None:
+            self.reaction_started_s = now
+        if plan.within_s is not None and (previous is None or previous.within_s is None):
+            self._reaction_deadline_s = now + plan.within_s
+        stop = self.safe_stop
+        if not plan.holds or stop is None:
+            self._stop_running("off")
+        elif not self._reaction_running:
+            support = self._support_model(self._reaction_state) if self._support_model is not None else None
+            stop.arm(plan.reaction == "lower", plan.joints_off, support if plan.support == "model" else None,
+                     self._reaction_deadline_s, self.monitor.last_finite_q())  # fmt: skip
+            self._reaction_running = True
+            self.signals.arm_held = True
+            self._controller = stop
+            # The reaction works within the limits of the state the fault was found in (FAIL's are 0 Nm).
+            self._set_limits(self._reaction_state)
+            self._needs_reset = sample is None  # no reading this tick: the stop takes over at the next one
+            if sample is not None:
+                try:
+                    stop.reset(sample)
+                except (ControlError, ValueError) as exc:  # cannot hold: off is all that is left
+                    log.error("reaction: the safe stop cannot take over", error=str(exc), t_s=now)
+                    self.reaction = plan = plan._replace(reaction="off")
+                    self._stop_running(f"the safe stop could not take over: {exc}")
+            if self._reaction_running:
+                self.monitor.grant(plan.joints_off, self._reaction_deadline_s)
+                self._stop_phase = stop.phase
+        else:
+            stop.escalate(plan.reaction == "lower", plan.joints_off, plan.support == "a_priori",
+                          self._reaction_deadline_s)  # fmt: skip
+            self.monitor.grant(plan.joints_off, self._reaction_deadline_s)
+        log.warning(
+            "reaction" if previous is None else "reaction escalated",
+            reaction=plan.reaction,
+            category=plan.category,
+            joints_off=list(plan.joints_off),
+            support=plan.support,
+            within_s=plan.within_s,
+            causes=list(plan.causes),
+            state=self._reaction_state.name,
+            t_s=now,
+        )
+        for listener in self.reaction_listeners:
+            listener(plan)
+
+    def _stop_running(self, why: str) -> None:
+        """The reaction commands no torque (any more): withdraw the grant, drives off, the arm released."""
+        self.monitor.withdraw()
+        if self._reaction_running or self._controller is self.safe_stop:
+            self._controller = None
+        if self.machine.in_fail:
+            self._set_fail_limits()
+        self._reaction_running = False
+        self.signals.arm_held = False
+        self._stop_phase = None
+        log.warning("reaction: torque off", why=why, state=self.state_name, t_s=self._t_s)
+
+    def _follow_the_stop(self) -> None:
+        """In the tick: log the safe stop's phases; end the reaction once the arm rests with the torque off."""
+        stop = self.safe_stop
+        if stop is None:
+            return
+        phase = stop.phase
+        if phase is self._stop_phase:
+            return
+        self._stop_phase = phase
+        log.warning("reaction phase", phase=phase.value, note=stop.note, state=self.state_name, t_s=self._t_s)
+        if stop.finished:
+            self._stop_running(stop.note or "the reaction ended")
+
+    def _end_reaction(self, why: str) -> None:
+        """The reaction is over (a test state's faults cleared, or a reset): the state's controller comes back."""
+        if self._reaction_running:
+            self._stop_running(why)
+        self.monitor.withdraw()
+        self.reaction = None
+        self.reaction_started_s = None
+        self._reaction_deadline_s = float("inf")
+        state = self.machine.state
+        self._controller = self.controllers[state.mode]
+        self._needs_reset = self._controller is not None
+        log.info("reaction ended", why=why, state=self.state_name, t_s=self._t_s)
 
     # --- events ---------------------------------------------------------------------------
 
@@ -358,7 +543,11 @@ class FsmSupervisor:
             ticket.resolve(response)
 
     def _route(self, faults: list[Fault], sample: Sample | None) -> None:
-        """Faults of this tick: FAIL from a state that fails; the test's evidence in a test state."""
+        """Faults of this tick: FAIL from a state that fails, the test's evidence in a test state; the reaction."""
+        self._record(faults, sample)
+        self._react(faults, sample)
+
+    def _record(self, faults: list[Fault], sample: Sample | None) -> None:
         machine = self.machine
         if machine.in_fail:
             self.signals.fault_acknowledged = False  # a new fault needs its own acknowledgement
@@ -366,6 +555,7 @@ class FsmSupervisor:
             return
         if self._fail_on_fault:
             log.error("fault", state=self.state_name, faults=_fault_list(faults), t_s=self._t_s)
+            self._reaction_state = machine.state if self.reaction is None else self._reaction_state  # type: ignore[assignment]
             self.fire(Event.FAIL, "fault")
             return
         for fault in faults:
@@ -394,19 +584,24 @@ class FsmSupervisor:
             if outcome.source == self.spec.fail.name:
                 self.monitor.clear()
                 signals.fault_acknowledged = False
+            if self.reaction is not None:
+                self._end_reaction(f"reset from {outcome.source}")
             signals.forget_installation()
         else:
             signals.forget_visit()
         if isinstance(state, StateSpec):
             self._fail_on_fault = state.fail_on_fault
             self._set_limits(state)
+        elif not self._reaction_running:  # a reaction keeps the limits of the state it began in
+            self._fail_on_fault = True
+            self._set_fail_limits()
         else:
             self._fail_on_fault = True
-            self.monitor.set_limits(
-                self.device_limits.for_state(0.0, float(self.device_limits.max_velocity_rad_s.max()))
-            )
-        self._controller = self.controllers[state.mode]
-        self._needs_reset = self._controller is not None
+        if self._reaction_running:  # the reaction goes on holding the arm, whatever the state
+            self._controller = self.safe_stop
+        else:
+            self._controller = self.controllers[state.mode]
+            self._needs_reset = self._controller is not None
         if outcome is not None:
             self.transitions += 1
             log.info(
@@ -420,18 +615,23 @@ class FsmSupervisor:
             for listener in self.listeners:
                 listener(state, outcome)
         sample = signals.sample
-        if self._needs_reset and sample is not None and not self.monitor.faulted:
+        if self._needs_reset and sample is not None and self.monitor.torque_permitted:
             self._reset_controller(sample)
 
     def _set_limits(self, state: StateSpec) -> None:
         limits = self.device_limits.for_state(state.limits.torque_nm, state.limits.velocity_rad_s)
         isb = self.signals.isb_limits if state.enforce_isb else None
+        for listener in self.limits_listeners:
+            listener(isb)
         if isb is None:
             self.monitor.set_limits(limits.with_isb(None))
             return
         if self._isb_function is None:
             raise ConfigurationError(f"state {state.label} enforces ISB limits but the supervisor has no ISB function")
         self.monitor.set_limits(limits.with_isb(isb, self.isb_margin_rad), self._isb_function(isb))
+
+    def _set_fail_limits(self) -> None:
+        self.monitor.set_limits(self.device_limits.for_state(0.0, float(self.device_limits.max_velocity_rad_s.max())))
 
     def refresh_limits(self) -> None:
         """Apply the current state's limits again (after the pilot's ISB limits changed)."""

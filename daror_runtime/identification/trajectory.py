@@ -26,7 +26,7 @@ from hal.robot import N_JOINTS, FloatArray
 if TYPE_CHECKING:
     from daror_runtime.identification.trajectory_planning import TrajectorySettings
 
-__all__ = ["ReferenceTimeError", "ReferenceTrajectory", "Stop", "TrajectoryKind"]
+__all__ = ["ReferenceTimeError", "ReferenceTrajectory", "Stop", "TrajectoryKind", "evaluate_piece"]
 
 TrajectoryKind = Literal["training", "validation"]
 
@@ -90,7 +90,7 @@ class ReferenceTrajectory:
         self.time_offset_s = 0.0
         self._ends = [*self._starts[1:], math.inf]
         self._cursor = 0
-        _evaluate_piece(self._coefficients, 0, 0.0)  # compile (or load from the cache) before the first tick
+        evaluate_piece(self._coefficients, 0, 0.0)  # compile (or load from the cache) before the first tick
 
     # --- per tick ---------------------------------------------------------------------------
 
@@ -105,7 +105,7 @@ class ReferenceTrajectory:
             if not math.isfinite(t_s):  # NaN fails the test above; never hand the loop a made-up pose
                 raise ReferenceTimeError(f"reference() needs a finite robot time, got {t_s}")
             k = self._cursor = max(bisect.bisect_right(self._starts, t_s) - 1, 0)
-        out = _evaluate_piece(self._coefficients, k, t_s - self._starts[k])
+        out = evaluate_piece(self._coefficients, k, t_s - self._starts[k])
         return out[:N_JOINTS], out[N_JOINTS:]
 
     def __call__(self, t_s: float) -> tuple[FloatArray, FloatArray]:
@@ -153,7 +153,7 @@ class ReferenceTrajectory:
 
 
 @njit(cache=True)
-def _evaluate_piece(coefficients: FloatArray, k: int, tau: float) -> FloatArray:
+def evaluate_piece(coefficients: FloatArray, k: int, tau: float) -> FloatArray:
     """Rows of piece ``k`` (8 cubics: q then dq) at local time ``tau``; numba halves the per-tick cost."""
     out = np.empty(2 * N_JOINTS)
     for r in range(2 * N_JOINTS):

@@ -55,6 +55,7 @@ __all__ = [
     "TrajectorySettings",
     "build_trajectory",
     "build_visit_trajectory",
+    "hermite_pieces",
     "integrate_move",
     "minimum_jerk",
     "prepend_approach",
@@ -349,7 +350,7 @@ def _rodrigues(axis: FloatArray, angle: float) -> FloatArray:
 # --- cubic Hermite pieces ----------------------------------------------------------------------
 
 
-def _hermite_pieces(qk: FloatArray, dqk: FloatArray, h: float) -> FloatArray:
+def hermite_pieces(qk: FloatArray, dqk: FloatArray, h: float) -> FloatArray:
     """Pieces (n, 8, 4) between ``n + 1`` knots ``qk`` (rad) and ``dqk`` (rad/s), ``h`` s apart.
 
     Row ``r`` of a piece holds the cubic's coefficients ``c0..c3`` in the local time: rows q1..q4
@@ -400,7 +401,7 @@ def prepend_approach(
     combined = ReferenceTrajectory(
         trajectory.kind,
         np.concatenate([h * np.arange(n), [approach_s], starts + offset]),
-        np.concatenate([_hermite_pieces(qk, dqk, h), hold, coefficients]),
+        np.concatenate([hermite_pieces(qk, dqk, h), hold, coefficients]),
         trajectory.duration_s + offset,
         shifted,
         trajectory.order,
@@ -450,7 +451,7 @@ class _Builder:
         h = every / self.settings.rate_hz
         n = qk.shape[0] - 1
         self.starts.append(self.t_s + h * np.arange(n))
-        self.coefficients.append(_hermite_pieces(qk, dqk, h))
+        self.coefficients.append(hermite_pieces(qk, dqk, h))
         self.t_s += h * n
 
     def check_waypoint(self, number: int) -> FloatArray:

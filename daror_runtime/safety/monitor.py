@@ -13,6 +13,13 @@ message. A NaN fails every comparison, so it can never slip through the fast pat
 
 A fault is *latched* until :meth:`SafetyMonitor.clear` is called while its condition is gone;
 a condition is only reported again after it went away (no fault storm from one held e-stop).
+
+While a fault is latched (or an e-stop pressed) the filter lets no torque through unless the
+supervisor has *granted* the fault's reaction (:meth:`SafetyMonitor.grant`, docs/safety.md "Fault
+reactions"): then it passes the reaction controller's command, with the joints the reaction took off
+disabled and nothing after the reaction's deadline. Every new fault withdraws the grant the moment it
+is latched, so a fault nobody has decided on yet is torque off: the supervisor decides in the same
+tick and grants again.
 """
 
 from __future__ import annotations
@@ -75,6 +82,12 @@ class SafetyMonitor:
         self._previous_seq: int | None = None
         self._same_seq = 0
         self._fault_free_drives: tuple[DriveState, ...] | None = None
+        # The reaction the supervisor granted while faults are latched: the joints off, and the robot time
+        # after which no torque passes (inf: none). None: nothing granted, torque off.
+        self._grant: tuple[tuple[int, ...], float] | None = None
+        self._blind_ticks = 0  # ticks in a row without a reading in which the last command was kept
+        #: A fault :meth:`filter` found (a non-finite command), for the loop to route; the loop clears it.
+        self.filter_fault: Fault | None = None
         #: Every new fault occurrence since the monitor was made: a count and the latest ones (for
         #: announcing them outside the tick; the tick only appends).
         self.occurrences = 0
@@ -139,6 +152,35 @@ class SafetyMonitor:
     @property
     def latched(self) -> list[Fault]:
         return list(self._latched.values())
+
+    # --- the fault's reaction ---------------------------------------------------------------
+
+    def grant(self, joints_off: tuple[int, ...], until_t_s: float = float("inf")) -> None:
+        """Let the reaction's commands through while faults are latched: ``joints_off`` (1-4) disabled, none after ``until_t_s``.
+
+        Called by the supervisor in the tick it decided the reaction (after every new fault, which
+        withdraws the grant when it is latched).
+        """
+        self._grant = (tuple(joints_off), until_t_s)
+
+    def withdraw(self) -> None:
+        """No torque while a fault is latched (the reaction is off, or has ended)."""
+        self._grant = None
+
+    @property
+    def granted(self) -> bool:
+        """True while a reaction's commands may pass although faults are latched."""
+        return self._grant is not None
+
+    def last_finite_q(self) -> FloatArray | None:
+        """The joint angles (4,) rad of the last sample whose angles were all finite (a copy), None before one."""
+        previous = self._previous
+        return previous[0:4].copy() if previous[4] > 0.0 else None
+
+    @property
+    def torque_permitted(self) -> bool:
+        """True when a controller's command may reach the drives: nothing latched, or a reaction granted."""
+        return not self._latched or self._grant is not None
 
     def _holds(self, key: tuple[FaultKind, int | None]) -> bool:
         return key in self._present or key in self._reported_now or key in self._reported_before
@@ -274,18 +316,46 @@ class SafetyMonitor:
         return True
 
     def filter(self, command: Command, sample: Sample | None) -> Command:
-        """The command that may reach the drives: off while faulted or an e-stop is pressed, else clipped."""
-        if self._latched or sample is None or True in sample.estop or not command.enable:
+        """The command that may reach the drives, clipped to the state's torque limit.
+
+        Off while a fault is latched or an e-stop is pressed, unless the supervisor granted the
+        fault's reaction (:meth:`grant`): then the reaction's command passes with the joints it took
+        off disabled, until its deadline. In a tick without a reading (``sample`` None) a granted
+        reaction keeps the command the loop hands back (the last one written: what the drives
+        apply between two frames anyway) for at most ``stale_ticks`` ticks in a row; then off.
+        """
+        if sample is None:
+            return self._blind(command)
+        if self._blind_ticks:
+            self._blind_ticks = 0
+        if not command.enable:
             return TORQUE_OFF
+        joints_off: tuple[int, ...] = ()
+        if self._latched or True in sample.estop:
+            grant = self._grant
+            if grant is None or sample.t_s > grant[1]:
+                return TORQUE_OFF
+            joints_off = grant[0]
         torque = command.motor_torque_nm
         limit = self._command_limit
         status = (self._status_checked if type(command) is CheckedCommand else command_status)(torque, limit)
-        if status == 0:  # the common case: the controller's own command, untouched
+        if status == 0 and not joints_off:  # the common case: the controller's own command, untouched
             return command
         if status < 0:
-            self.report(FaultKind.SOFTWARE, sample.t_s, f"controller produced a non-finite torque {torque.tolist()}")
+            self.filter_fault = self.report(
+                FaultKind.SOFTWARE, sample.t_s, f"controller produced a non-finite torque {torque.tolist()}"
+            )
             return TORQUE_OFF
-        return Command(np.clip(torque, -limit, limit), True)
+        if joints_off:
+            joints_off = tuple(sorted({*command.joints_off, *joints_off}))
+        return Command(np.clip(torque, -limit, limit) if status else torque, True, joints_off or command.joints_off)
+
+    def _blind(self, command: Command) -> Command:
+        """A tick without a reading: the last command stays only under a granted reaction, a few ticks at most."""
+        if self._grant is None or not command.enable or self._blind_ticks >= self.limits.stale_ticks:
+            return TORQUE_OFF
+        self._blind_ticks += 1
+        return command
 
     # --- internals ------------------------------------------------------------------------
 
@@ -299,6 +369,7 @@ class SafetyMonitor:
                 new.append(fault)
                 log.error("fault", **fault.as_dict())
                 self._latched[key] = fault
+                self._grant = None  # undecided: torque off until the supervisor decides the reaction
                 self.occurrences += 1
                 self.recent.append(fault)
             else:

@@ -25,6 +25,7 @@ from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.control.sea_torque import SeaTorqueController
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign
+from daror_runtime.control.soft_walls import SoftWalls
 from daror_runtime.models.base import CompensationModel
 from hal.interface import Command, DriveState, Sample
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
@@ -179,13 +180,15 @@ def build_mode_controllers(
     support_level: float,
     support_ramp_per_s: float,
     handover_tolerance_nm: float,
+    walls: SoftWalls | None = None,
 ) -> ModeControllers:
     """Every mode's controller for ``description`` at the tick period ``dt_s``.
 
     ``feedforward`` is the position modes' gravity feed-forward (the A Priori model: it exists
     before anything is identified; a stiff position loop, not the model, holds the arm there);
     ``compensation_model`` is what compensation starts with: None until a model is approved for
-    the pilot (compensation refuses to start without one).
+    the pilot (compensation refuses to start without one). ``walls``: the soft walls of the
+    pilot-driven torque modes (minimal impedance and compensation), configured per state.
 
     Raises:
         ControlDesignError: a controller design is unstable for this robot.
@@ -196,7 +199,7 @@ def build_mode_controllers(
     hold = Hold(description, feedforward, bounds, dt_s)
     identification_hold = Hold(description, feedforward, bounds, dt_s)
     controllers = ModeControllers(
-        minimal_impedance=MinimalImpedance(SeaTorqueController(description.sea, design), support_ramp_per_s),
+        minimal_impedance=MinimalImpedance(SeaTorqueController(description.sea, design), support_ramp_per_s, walls),
         hold=hold,
         identification=IdentificationMode(identification_hold),
         compensation=Compensation(
@@ -205,6 +208,7 @@ def build_mode_controllers(
             support_level,
             support_ramp_per_s,
             handover_tolerance_nm,
+            walls,
         ),
     )
     _warm_up(controllers, feedforward, dt_s)

@@ -21,22 +21,28 @@ import numpy as np
 import structlog
 
 from daror_runtime.clocks import Clock, check_clock, clock_for
+from daror_runtime.control.position import LinkBounds
+from daror_runtime.control.safe_stop import SafeStop
+from daror_runtime.control.soft_walls import SoftWalls
 from daror_runtime.errors import InputError
+from daror_runtime.fsm.modes import MODES
 from daror_runtime.fsm.signals import SessionSignals
-from daror_runtime.fsm.spec import FsmSpec, load_fsm_spec
+from daror_runtime.fsm.spec import FsmSpec, StateSpec, check_spec, load_fsm_spec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response
 from daror_runtime.loop import ControlLoop
+from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.linear import APModel
 from daror_runtime.safety.limits import SafetyLimits
+from daror_runtime.safety.lowering import plan_lowering
 from daror_runtime.safety.monitor import SafetyMonitor
 from daror_runtime.session.controllers import ModeControllers, build_mode_controllers
 from daror_runtime.session.events import AnnouncementKind, Announcements
 from daror_runtime.session.identification import abandon_run
 from daror_runtime.session.jobs import Jobs
 from daror_runtime.session.rom import RomEnvelope
-from daror_runtime.session.settings import SessionSettings
-from hal.interface import Hal
-from hal.isb import Shoulder, monitor_isb_function
+from daror_runtime.session.settings import SessionSettings, SessionSettingsError
+from hal.interface import DriveReaction, Hal
+from hal.isb import Shoulder, UnreachablePoseError, monitor_isb_function
 from hal.robot import RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -83,7 +89,13 @@ class SessionCore:
         clock: Clock | None = None,
         session_id: str | None = None,
     ) -> None:
-        self.spec = spec if spec is not None else load_fsm_spec()
+        description: RobotDescription = hal.description
+        # The spec's limits and e-stop reaction are checked against the robot this session drives.
+        if spec is None:
+            spec = load_fsm_spec(description=description)
+        else:
+            check_spec(spec, "fsm spec", description=description)
+        self.spec = spec
         self.settings = settings or SessionSettings()
         self.hal = hal
         self.session_dir = Path(session_dir)
@@ -92,14 +104,22 @@ class SessionCore:
         self.clock = clock if clock is not None else clock_for(hal, self.dt_s)
         check_clock(self.clock, hal)  # lock-step only on a backend that owns its time
         self.lock_step = self.clock.virtual
-        description: RobotDescription = hal.description
         self.description = description
         self.shoulder = Shoulder.from_description(description)
+        rest = self.settings.rest
+        try:
+            #: the rest pose of the settings in joint angles (4,) rad: where every lowering ends
+            self.rest_q_rad = self.shoulder.q_from_isb(rest.pose_isb_rad)
+        except UnreachablePoseError as exc:
+            raise SessionSettingsError(f"session settings, field rest.pose_isb_deg: {exc}") from None
         for readonly in (True, False):  # loaded now, not in the tick that first records or checks ISB angles
             q = np.zeros(4)
             q.flags.writeable = not readonly
             self.shoulder.isb_single(q)
         self.a_priori = APModel.from_description(description, self.settings.dummy_arm, self.settings.dummy_arm)
+        #: walls a few degrees inside the device's joint limits and, where the state enforces them, the pilot's
+        #: ISB limits: the pilot-driven torque modes add them to their reference (docs/control.md)
+        self.walls = SoftWalls(description, self.shoulder)
         self.modes: ModeControllers = build_mode_controllers(
             description,
             feedforward=self.a_priori,
@@ -108,7 +128,19 @@ class SessionCore:
             support_level=self.settings.support_level,
             support_ramp_per_s=self.settings.support_ramp_per_s,
             handover_tolerance_nm=self.settings.handover_tolerance_nm,
+            walls=self.walls,
         )
+        stop = self.settings.safe_stop
+        self.safe_stop = SafeStop(
+            description,
+            LinkBounds.from_description(description),
+            self.dt_s,
+            self.a_priori,
+            hold_s=stop.hold_s,
+            handoff_s=stop.handoff_s,
+            handoff_motion_rad=float(np.deg2rad(stop.handoff_motion_deg)),
+        )
+        self._warm_up_the_safe_stop()
         device = SafetyLimits.from_description(description)
         self.monitor = SafetyMonitor(device.for_state(0.0, float(device.max_velocity_rad_s.max())))
         self.signals = SessionSignals(at_rest_rad_s=self.settings.at_rest_rad_s)
@@ -121,7 +153,14 @@ class SessionCore:
             isb_function=lambda limits: monitor_isb_function(self.shoulder, limits),
             isb_margin_rad=float(np.deg2rad(self.settings.isb_margin_deg)),
             on_fault_acknowledged=hal.request_fault_reset,
+            safe_stop=self.safe_stop,
+            estop_wiring=description.estop.wiring,
+            support_model=self.support_model,
         )
+        self.supervisor.limits_listeners.append(self.walls.set_limits)
+        self.walls.set_limits(None)  # the first state enforces no ISB limits (the spec's invariant)
+        master_lost = self.spec.drive_reactions.master_lost
+        hal.set_drive_reaction(DriveReaction(master_lost.ramp_s if master_lost.reaction == "ramp" else None))
         self.loop = ControlLoop(hal, self.monitor, self.supervisor, self.clock)
         self.announcements = Announcements()
         self.jobs = Jobs(threaded=not self.lock_step, on_failure=self.job_failed)
@@ -129,7 +168,101 @@ class SessionCore:
         self.rom: RomEnvelope | None = None  # the range of motion being recorded
         self.collecting = False  # a finished identification run's data are being saved
         self.faults_announced = 0  # fault occurrences announced so far
+        self.lowering_planned_for: float | None = None  # the reaction (its start time) a lowering was planned for
+        self.announced_reaction: tuple[object, object, str] | None = None  # (plan, phase, note) last announced
         self.supervisor.listeners.append(self.state_changed)
+
+    def support_model(self, state: StateSpec) -> CompensationModel | None:
+        """The model whose gravity support a reaction in ``state`` uses: compensation's where the state applies it."""
+        return self.modes.compensation.model if MODES[state.mode].applies_model else None
+
+    def _warm_up_the_safe_stop(self) -> None:
+        """Plan one lowering now: its compiled integrator loads here, not in the first reaction's job."""
+        q = self.rest_q_rad.copy()
+        q[3] += 0.05
+        plan_lowering(q, self.rest_q_rad, self.shoulder)
+
+    def service_reaction(self) -> None:
+        """Between ticks: plan a lowering the safe stop waits for (a job), and announce the reaction's news."""
+        supervisor = self.supervisor
+        plan = supervisor.reaction
+        stop = self.safe_stop
+        if plan is None:
+            self.announced_reaction = None
+            return
+        if (
+            supervisor.reaction_running
+            and stop.wants_path
+            and self.lowering_planned_for != supervisor.reaction_started_s
+        ):
+            self._plan_the_lowering()
+        phase = stop.phase if supervisor.reaction_running or stop.finished else None
+        seen = (plan, phase, stop.note)
+        if seen != self.announced_reaction:
+            previous = self.announced_reaction
+            self.announced_reaction = seen
+            new = previous is None or previous[0] != plan
+            t_s = supervisor.reaction_started_s if new and previous is None else self.t_s()
+            self.announcements.announce(AnnouncementKind.REACTION, self._reaction_text(plan, previous), t_s)
+
+    def _reaction_text(self, plan: Any, previous: tuple[object, object, str] | None) -> str:
+        stop = self.safe_stop
+        support = self.settings.rest.support
+        if previous is None or previous[0] != plan:
+            what = {
+                "off": "torque off (category 0)",
+                "lower": f"hold, then lower the arm to its rest on the {support} (category 1)",
+                "hold": "hold the arm until the operator acts (category 2)",
+            }[plan.reaction]
+            off = f"; joint(s) {', '.join(map(str, plan.joints_off))} off" if plan.joints_off and plan.holds else ""
+            return f"{', '.join(plan.causes)}: {what}{off}"
+        if not self.supervisor.reaction_running and stop.finished:
+            return f"reaction ended: {stop.note}"
+        return f"reaction: {stop.phase.value}" + (f": {stop.note}" if stop.note else "")
+
+    def _plan_the_lowering(self) -> None:
+        """A job plans the lowering from where the safe stop holds the arm; a request hands it over at a tick boundary."""
+        supervisor = self.supervisor
+        token = supervisor.reaction_started_s
+        self.lowering_planned_for = token
+        plan = supervisor.reaction
+        stop = self.safe_stop
+        q_start = stop.hold_pose_rad
+        joints_off = plan.joints_off if plan is not None else ()
+        limits = self.signals.isb_limits
+        margin = float(np.deg2rad(self.settings.isb_margin_deg))
+        speed = self.settings.safe_stop.lowering_speed_rad_s
+
+        def job() -> None:
+            from daror_runtime.safety.lowering import LoweringError
+
+            try:
+                path, why = (
+                    plan_lowering(q_start, self.rest_q_rad, self.shoulder, joints_off, limits, margin, speed),
+                    "",
+                )
+            except LoweringError as exc:
+                path, why = None, str(exc)
+
+            def install(supervisor: FsmSupervisor) -> Response:
+                if supervisor.reaction_started_s != token or not supervisor.reaction_running or not stop.wants_path:
+                    return self.refuse("lowering", "the reaction changed while the lowering was planned")
+                if not np.allclose(stop.hold_pose_rad, q_start, atol=1e-9):
+                    self.lowering_planned_for = None  # planned from another pose: plan again
+                    return self.refuse("lowering", "the arm is held elsewhere than the plan started: planned again")
+                stop.install_path(path, why)
+                if path is None:
+                    log.error("reaction: no safe lowering", why=why, t_s=self.t_s())
+                else:
+                    log.warning(
+                        "reaction: lowering planned", duration_s=round(path.duration_s, 2), method=path.method,
+                        rest_deg=[round(float(v), 1) for v in np.degrees(path.q_end_rad)], t_s=self.t_s(),
+                    )  # fmt: skip
+                return Response("lowering", path is not None, supervisor.state_name, why)
+
+            supervisor.post("lowering", install, essential=True)
+
+        self.jobs.submit("plan the lowering", job)
 
     def t_s(self) -> float | None:
         """Robot time of the last sample (s), None before the first."""

@@ -17,6 +17,7 @@ from enum import StrEnum
 class AnnouncementKind(StrEnum):
     TRANSITION = "transition"
     FAULT = "fault"
+    REACTION = "reaction"  # what a fault made the robot do, and how it goes on
     IDENTIFICATION = "identification"
     MODEL = "model"
     JOB_FAILED = "job failed"

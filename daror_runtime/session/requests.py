@@ -92,6 +92,8 @@ def _use_a_priori(core: SessionCore, supervisor: FsmSupervisor) -> Response | No
             f"the validated model {selected.name} ({selected.kind}) is in use; the A Priori model is not needed",
         )
     core.modes.compensation.model = core.a_priori
+    # not validated on this pilot: its error moves a limp arm, slowly (docs/safety.md)
+    core.modes.compensation.damping_nms_per_rad = core.settings.unvalidated_model_damping_nms_per_rad
     core.progress.last_model = a_priori_summary(core)
     log.info("model in use", **core.progress.last_model, state=supervisor.state_name, t_s=core.t_s())
     return None
@@ -189,6 +191,19 @@ def _rom_state_refusal(core: SessionCore, request: str) -> Response | None:
 
 
 def _set_isb_limits(core: SessionCore, supervisor: FsmSupervisor, limits: IsbLimits, source: str) -> Response:
+    rest = core.settings.rest
+    outside = rest.outside(limits)
+    if outside:
+        # Every lowering ends at the rest pose: limits that exclude it would leave a fault nowhere to lower to.
+        return core.refuse(
+            "isb limits",
+            f"the rest pose of the session settings ({rest.support}: "
+            + ", ".join(f"{v:g}" for v in rest.pose_isb_deg)
+            + f" deg) lies outside these limits by more than {rest.tolerance_deg:g} deg ("
+            + "; ".join(outside)
+            + "): a fault's lowering could not end there; set rest.pose_isb_deg in the session settings to where "
+            "the pilot's arm rests inside his range",
+        )
     supervisor.signals.isb_limits = limits
     supervisor.refresh_limits()
     ranges = {
@@ -197,6 +212,21 @@ def _set_isb_limits(core: SessionCore, supervisor: FsmSupervisor, limits: IsbLim
     }
     log.info("ISB limits recorded", source=source, limits_deg=ranges, state=supervisor.state_name, t_s=core.t_s())
     return Response("isb limits", True, supervisor.state_name, detail=limits)
+
+
+# --- a fault's reaction ---------------------------------------------------------------------
+
+
+def lower_arm(core: SessionCore) -> Ticket:
+    """In FAIL (or a test state) with the arm held: lower it to its rest pose (planned outside the tick)."""
+    log.info("request", request="lower", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post("lower", lambda supervisor: supervisor.request_lowering())
+
+
+def release_arm(core: SessionCore) -> Ticket:
+    """With the arm held by a reaction and someone holding it: the torque ramps to zero (docs/safety.md)."""
+    log.info("request", request="release", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post("release", lambda supervisor: supervisor.request_release())
 
 
 # --- identification ------------------------------------------------------------------------
@@ -434,6 +464,7 @@ def post_model(core: SessionCore, trained: TrainedModel, request: str, data: dic
             core.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", core.t_s())
             return core.refuse(request, reason)
         core.modes.compensation.model = trained.model
+        core.modes.compensation.damping_nms_per_rad = 0.0  # validated on this pilot's data: transparent
         core.announcements.announce(
             AnnouncementKind.MODEL,
             f"{request} done: {selected.name} ({selected.kind}) validated, RMSE {trained.validation.rmse_nm:.3g} Nm "

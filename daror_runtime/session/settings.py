@@ -10,14 +10,17 @@ Every value has a default a session can run with; the file only lists what diffe
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, model_validator
 from pydantic_core import PydanticCustomError
 
 from daror_runtime.errors import InputError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.models.registry import kind_names
+from hal.isb import ISB_NAMES, IsbLimits
+from hal.robot import FloatArray
 from hal.yamlfile import Flag, Number, load_yaml_model
 
 
@@ -53,6 +56,61 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class RestSettings(_Strict):
+    """Where the pilot's arm rests with the torque off: the end of every ``lower`` reaction (docs/safety.md)."""
+
+    support: Literal["lap", "armrest", "stops"] = Field(
+        "lap", description="what carries the arm there: the pilot's lap, an armrest or tray, or the robot's lower stops"
+    )
+    pose_isb_deg: tuple[Number, Number, Number, Number] = Field(
+        (0.0, 0.0, 0.0, 30.0),
+        description="the rest pose in ISB angles (elevation, horizontal rotation, axial rotation, elbow), deg: "
+        "inside the pilot's ISB limits",
+    )
+
+    tolerance_deg: Number = Field(
+        2.0,
+        ge=0.0,
+        le=5.0,
+        description="the rest pose may lie this far outside the recorded ISB range (a hanging arm is recorded at "
+        "the very edge of its range), deg",
+    )
+
+    @property
+    def pose_isb_rad(self) -> FloatArray:
+        return np.deg2rad(np.asarray(self.pose_isb_deg, dtype=float))
+
+    def outside(self, limits: IsbLimits) -> list[str]:
+        """What puts the rest pose outside ``limits`` beyond the tolerance, one phrase per angle; empty when inside."""
+        boxed = np.degrees(limits.for_box_check(self.pose_isb_rad))
+        found = []
+        for name, value, rng in zip(ISB_NAMES, boxed, limits.ranges, strict=True):
+            if value < rng.lower_deg - self.tolerance_deg or value > rng.upper_deg + self.tolerance_deg:
+                found.append(f"{name} {value:.1f} deg outside [{rng.lower_deg:g}, {rng.upper_deg:g}] deg")
+        return found
+
+
+class SafeStopSettings(_Strict):
+    """How a ``hold`` or ``lower`` reaction holds and lowers the arm (docs/safety.md, "Fault reactions")."""
+
+    hold_s: Number = Field(2.0, ge=0.0, le=30.0, description="the arm is held where the fault found it this long, s")
+    lowering_speed_rad_s: Number = Field(
+        0.15, gt=0.0, le=0.2, description="no joint moves faster than this while the arm is lowered, rad/s"
+    )
+    handoff_s: Number = Field(
+        2.0,
+        ge=0.2,
+        le=10.0,
+        description="at the rest pose the gravity support, then the position loop's torque, ramp out over this each, s",
+    )
+    handoff_motion_deg: Number = Field(
+        2.0,
+        gt=0.0,
+        le=10.0,
+        description="motion during the handoff that shows nothing carries the arm (the reaction then holds it), deg",
+    )
+
+
 class SessionSettings(_Strict):
     """Settings of one session; units in the names."""
 
@@ -79,7 +137,17 @@ class SessionSettings(_Strict):
     max_validation_rmse_nm: Number = Field(
         1.5, gt=0.0, le=20.0, description="a model is validated when its validation RMSE is at most this"
     )
+    unvalidated_model_damping_nms_per_rad: Number = Field(
+        4.0,
+        ge=0.0,
+        le=6.0,
+        description="while compensation uses a model not validated on this pilot's data (the A Priori model the "
+        "operator confirmed), this damping on the joints' speed keeps the model's error from moving a limp arm "
+        "fast, Nms/rad",
+    )
     identification: IdentificationSettings = Field(default_factory=IdentificationSettings)
+    rest: RestSettings = Field(default_factory=RestSettings)
+    safe_stop: SafeStopSettings = Field(default_factory=SafeStopSettings)
 
     @model_validator(mode="after")
     def _tolerance_inside_margin(self) -> SessionSettings:

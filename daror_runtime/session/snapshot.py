@@ -20,6 +20,7 @@ from daror_runtime.session.status import (
     JointReadings,
     LoopStatus,
     ModelStatus,
+    ReactionStatus,
     RuntimeStatus,
 )
 from hal.interface import Command, Sample
@@ -93,6 +94,28 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
         ),
         transitions=supervisor.transitions,
         a_priori_includes_dummy_arm=core.settings.dummy_arm,
+        reaction=_reaction_status(core),
+    )
+
+
+def _reaction_status(core: SessionCore) -> ReactionStatus | None:
+    supervisor = core.supervisor
+    plan = supervisor.reaction
+    if plan is None:
+        return None
+    stop = core.safe_stop
+    running = supervisor.reaction_running
+    return ReactionStatus(
+        reaction=plan.reaction,
+        category=plan.category,
+        causes=plan.causes,
+        joints_off=plan.joints_off,
+        support=plan.support,
+        arm_held=running,
+        phase=stop.phase.value if running or stop.finished else None,
+        note=stop.note if running or stop.finished else "",
+        since_t_s=supervisor.reaction_started_s,
+        rest=core.settings.rest.support,
     )
 
 

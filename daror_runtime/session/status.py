@@ -60,6 +60,22 @@ class ModelStatus:
 
 
 @dataclass(frozen=True)
+class ReactionStatus:
+    """What a fault made the robot do (docs/safety.md, "Fault reactions"), while it lasts."""
+
+    reaction: str  # off, lower, hold
+    category: int  # IEC 60204-1 stop category: 0, 1, 2
+    causes: tuple[str, ...]  # the faults that decided it ("drive 2", "estop")
+    joints_off: tuple[int, ...]  # joints whose torque is off whatever the reaction
+    support: str  # the gravity support a hold or lowering uses: model or a_priori
+    arm_held: bool  # the robot holds or lowers the arm now (torque on, under the reaction)
+    phase: str | None  # hold, lower, handoff, letting go, releasing, held, rested (None: off)
+    note: str  # why the arm is held, or how the reaction ended
+    since_t_s: float | None  # robot time it began
+    rest: str  # what the arm is lowered onto (the settings' rest support)
+
+
+@dataclass(frozen=True)
 class LoopStatus:
     clock: str  # "lock-step" or "real time"
     rate_hz: float
@@ -106,6 +122,7 @@ class RuntimeStatus:
     transitions: int
     a_priori_includes_dummy_arm: bool  # the settings: what the A Priori model holds besides the robot
     notes: list[str] = field(default_factory=list)  # things the operator should know (settings vs. the world)
+    reaction: ReactionStatus | None = None  # what a fault made the robot do, until the reaction ends
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (``session.json``, ``status json``)."""

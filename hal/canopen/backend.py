@@ -20,6 +20,11 @@ the drives     real ones                                :mod:`hal.canopen.sim` i
 The loop's rate is the SYNC rate: the configuration's ``rate_hz``, or the highest rate the PDO
 mapping allows within the bus-load budget (:mod:`hal.canopen.busload`; 500 Hz for four drives on
 1 Mbit/s). A configuration over the budget is refused with the numbers.
+
+What each drive does by itself when it loses the master is the runtime's to declare
+(:meth:`CanHal.set_drive_reaction`, before ``open``; category 0 when it declares nothing); the
+master configures it at start-up where a drive supports it and says per drive what it got
+(:meth:`CanHal.drive_reaction_report`, :mod:`hal.canopen.reaction`).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,12 +46,13 @@ from hal.canopen.mapping import DAROR_MAPPING
 from hal.canopen.master import CanMaster, MasterSettings
 from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig
 from hal.errors import HalConfigError, HalError, HalNotOpenError, ShapeError
-from hal.interface import CheckedCommand, CheckedSample, Command, Hal, HalFaultError, Sample
+from hal.interface import CheckedCommand, CheckedSample, Command, DriveReaction, Hal, HalFaultError, Sample
 from hal.robot import N_JOINTS, RobotDescription, load_description
 
 if TYPE_CHECKING:
     from hal.canopen.sim.drives import SimulatedDriveSet
     from hal.canopen.sim.world import CanSimWorld
+    from hal.sim.backend import SimHal
 
 __all__ = ["CanHal", "SimulatedCanHal"]
 
@@ -111,6 +118,8 @@ class CanHal(Hal):
         self._sample: Sample | None = None
         self._pending_fault: str | None = None
         self._t0 = 0.0
+        self._reaction = DriveReaction(None)  # category 0 until the runtime declares otherwise
+        self._reaction_report: tuple[str, ...] = ()
 
     @classmethod
     def from_config(cls, config: AnyHalConfig) -> CanHal:
@@ -154,7 +163,45 @@ class CanHal(Hal):
             rpdo_deadline_ms=(
                 c.rpdo_deadline_ms if c.rpdo_deadline_ms is not None else math.ceil(5000.0 / self._rate_hz)
             ),
+            ramp_s=self._reaction.ramp_s,
         )
+
+    # --- the drives' own reaction to losing the master ------------------------------------------------
+
+    def set_drive_reaction(self, reaction: DriveReaction) -> None:
+        """What every drive does by itself when it loses the master, configured at the next :meth:`open`.
+
+        ``reaction.ramp_s`` None: each drive disables at once (0x6007 disable voltage, category 0,
+        also what the backend configures when nothing was declared); a time: each ramps its torque
+        from the last target to zero over it (0x6007 quick stop, 0x605A, 0x6087), where the drive
+        supports it. Each drive's outcome is in :meth:`drive_reaction_report` after ``open``.
+
+        Raises:
+            HalError: the backend is open (the drives are configured at start-up only), or ``ramp_s``
+                is not a finite, positive time.
+        """
+        if self._is_open:
+            raise HalError(
+                f"{self.kind} backend: the drives' reaction to losing the master is configured at start-up; "
+                "set it before open()"
+            )
+        ramp_s = reaction.ramp_s
+        if ramp_s is not None and (
+            isinstance(ramp_s, bool)
+            or not isinstance(ramp_s, int | float)
+            or not (math.isfinite(ramp_s) and ramp_s > 0)
+        ):
+            raise HalError(f"{self.kind} backend: a drive ramp of {ramp_s!r} s; expected a finite, positive time")
+        self._reaction = DriveReaction(None if ramp_s is None else float(ramp_s))
+
+    def drive_reaction_report(self) -> tuple[str, ...]:
+        """After :meth:`open`: per drive, one sentence on what it does when it loses the master (empty before).
+
+        The last start-up's (and a recovery's, when it configured a drive again); kept after :meth:`close`.
+        """
+        if self._master is not None:
+            self._reaction_report = self._master.reaction_report()
+        return self._reaction_report
 
     def _velocity_filter_hz(self) -> float:
         return float(getattr(self.config, "velocity_filter_hz", 50.0))
@@ -261,6 +308,7 @@ class CanHal(Hal):
     def _shutdown(self) -> None:
         if self._master is not None:
             self._counts = self._master_counts(self._master)  # what the last session did, for bus_report
+            self._reaction_report = self._master.reaction_report()
         if self._source is not None:
             self._source.close()
             self._source = None
@@ -357,11 +405,16 @@ class SimulatedCanHal(CanHal):
 
     Args:
         config: the ``can-sim`` configuration (scenario, seed, node ids, rate, heartbeats, EDS).
-        description: the robot (default: the one the scenario names).
+        description: the robot (default: the one the scenario names); its e-stop wiring
+            (``estop``: sto, or ss1 with a relay delay) is the plant's, which the drives' safe
+            torque off inputs follow.
         traffic_log: where to log every frame in candump format (None: no log).
+        drive_eds: node id -> the EDS a simulated drive is built from instead of the master's (a
+            drive of another firmware, that lacks or limits objects the master writes; tests).
 
     Raises:
-        HalConfigError: as :class:`CanHal`, or an interface other than ``virtual``.
+        HalConfigError: as :class:`CanHal`, an interface other than ``virtual``, a ``drive_eds``
+            that cannot be read or names a node that is not a drive's.
         DescriptionError: the scenario or the robot description cannot be loaded.
     """
 
@@ -370,7 +423,11 @@ class SimulatedCanHal(CanHal):
     drives_hardware = False
 
     def __init__(
-        self, config: CanSimHalConfig, description: RobotDescription | None = None, traffic_log: Path | None = None
+        self,
+        config: CanSimHalConfig,
+        description: RobotDescription | None = None,
+        traffic_log: Path | None = None,
+        drive_eds: Mapping[int, Path | str] | None = None,
     ) -> None:
         from hal.sim.backend import SimHal
         from hal.sim.scenario import load_scenario
@@ -390,6 +447,10 @@ class SimulatedCanHal(CanHal):
         self._plant = SimHal(scenario, rate, description)
         super().__init__(config, self._plant.description, None, traffic_log)
         self._channel = f"{config.channel}-{next(_CHANNELS)}"
+        unknown = sorted(set(drive_eds or {}) - set(config.node_ids))
+        if unknown:
+            raise HalConfigError(f"HAL backend can-sim: drive_eds names node(s) {unknown}, which are not the drives'")
+        self._drive_dictionaries = {node: load_dictionary(path) for node, path in (drive_eds or {}).items()}
         self._drive_bus: can.BusABC | None = None
         self._drives: SimulatedDriveSet | None = None
         self._world: CanSimWorld | None = None
@@ -408,7 +469,12 @@ class SimulatedCanHal(CanHal):
 
         if self._drives is None:
             self._drives = SimulatedDriveSet(
-                None, self._plant, tuple(self.config.node_ids), self.dictionary, self.config.master_node_id
+                None,
+                self._plant,
+                tuple(self.config.node_ids),
+                self.dictionary,
+                self.config.master_node_id,
+                self._drive_dictionaries,
             )
         return self._drives
 
@@ -425,6 +491,32 @@ class SimulatedCanHal(CanHal):
     def applied_motor_torque_nm(self) -> np.ndarray:
         """The torque the drives' power stages apply now, Nm (tests)."""
         return self._drive_set().applied_motor_torque_nm
+
+    @property
+    def plant(self) -> SimHal:
+        """The simulated plant behind the drives (tests: its truth, the torque it applied, its e-stop circuit)."""
+        return self._plant
+
+    @property
+    def drive_set(self) -> SimulatedDriveSet:
+        """The simulated drives (tests: their power states and objects; :class:`hal.canopen.sim.drives.SimulatedDriveSet`)."""
+        return self._drive_set()
+
+    def tick_without_master(self) -> None:
+        """One SYNC period of robot time in which the master sends nothing: a crashed or hung runtime (tests).
+
+        The drives and the plant go on as they would on the robot: the drives' own timers (the
+        master's heartbeat they consume, their RPDO deadline, a stop ramp under way), their power
+        stages and the physics. No SYNC: no TPDO, no RPDO applied. What the drives send waits in
+        the master's receive queue until it reads again.
+
+        Raises:
+            HalNotOpenError: the backend is not open.
+            HalError: the plant failed (diverged).
+        """
+        if not self._is_open:
+            raise HalNotOpenError(f"{self.kind} backend is not open; call open() first")
+        self._drive_set().tick_without_sync()
 
     def _now(self) -> float:
         return self._plant.world.t_s

@@ -33,6 +33,8 @@ __all__ = ["DEFAULT_EDS", "DriveDictionary", "DriveUnits", "load_dictionary"]
 DEFAULT_EDS = Path(__file__).with_name("daror_sea.eds")
 #: The largest EDS read (a drive's EDS is tens of kB).
 EDS_MAX_BYTES = 2 * 1024 * 1024
+#: EDS access types a master may write by SDO (CiA 306).
+_WRITABLE_ACCESS = frozenset({"rw", "wo", "rww", "rwr"})
 
 
 @dataclass(frozen=True)
@@ -155,6 +157,24 @@ class DriveDictionary:
 
     def access(self, index: int, sub: int = 0) -> str:
         return str(self.variable(index, sub).access_type)
+
+    def has(self, index: int, sub: int = 0) -> bool:
+        """True if the EDS defines ``index:sub`` (an optional object the backend configures only where it exists)."""
+        return self._find(index, sub) is not None
+
+    def writable(self, index: int, sub: int = 0) -> bool:
+        """True if the EDS defines ``index:sub`` and a master may write it by SDO."""
+        return self.has(index, sub) and self.access(index, sub) in _WRITABLE_ACCESS
+
+    def limits(self, index: int, sub: int = 0) -> tuple[int | None, int | None]:
+        """The value range the EDS gives ``index:sub`` (LowLimit, HighLimit; None where it gives none).
+
+        Raises:
+            HalConfigError: the EDS has no such object.
+        """
+        variable = self.variable(index, sub)
+        low, high = getattr(variable, "min", None), getattr(variable, "max", None)
+        return (int(low) if low is not None else None, int(high) if high is not None else None)
 
     def pdo_mappable(self, index: int, sub: int = 0) -> bool:
         return bool(self.variable(index, sub).pdo_mappable)

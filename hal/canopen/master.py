@@ -6,7 +6,9 @@ Start-up (:meth:`CanMaster.start`, outside the tick, may wait on the bus)::
     per drive, by SDO: read its identity and units (device type, rated torque, encoder resolutions)
       and refuse a drive whose units are not its EDS's; write cyclic synchronous torque (0x6060),
       the peak torque (0x6072), the heartbeat producer (0x1017) and the master's heartbeat as its
-      consumer (0x1016), every PDO's communication and mapping parameters (never the defaults)
+      consumer (0x1016), every PDO's communication and mapping parameters (never the defaults),
+      and what it does by itself when it loses the master (0x6007, 0x605E, 0x6087, 0x605A:
+      :mod:`hal.canopen.reaction`; a drive without them is reported, not refused)
     NMT start -> the first SYNC -> every drive's first TPDOs
 
 The tick, in one order, never waiting (:meth:`CanMaster.receive` is the HAL's read,
@@ -17,8 +19,9 @@ The tick, in one order, never waiting (:meth:`CanMaster.receive` is the HAL's re
            thread); the sample
     write: the CiA 402 power state machine of every drive, at most one transition per tick
            (timeouts counted in ticks, fault reset on an explicit request only); the RPDOs
-           (controlword, target torque); due SDO transfers of a recovery; the master's heartbeat;
-           the SYNC (the runtime's tick is the SYNC producer)
+           (controlword, target torque); the torque slope of a drive that ramps when it loses the
+           master, rewritten as its torque changes (:mod:`hal.canopen.cia402.torque_slope`); due
+           SDO transfers; the master's heartbeat; the SYNC (the runtime's tick is the SYNC producer)
 
 A drive that goes silent (heartbeat lost), whose TPDOs stop, or that restarted on its own is
 *lost*: it shows as a drive in FAULT with a code (:data:`LOST_CODES`) and gets no torque. Every
@@ -66,8 +69,10 @@ from hal.canopen.cia402.statemachine import (
     decode_statusword,
     drive_state,
 )
+from hal.canopen.cia402.torque_slope import SlopeFollower
 from hal.canopen.dictionary import DriveDictionary
 from hal.canopen.mapping import DAROR_MAPPING, DrivePdos
+from hal.canopen.reaction import ReactionPlan, format_ramp_s, plan_reaction
 from hal.errors import HalError
 from hal.interface import DriveState
 
@@ -80,6 +85,10 @@ LOST_CODES = {
     "restarted": 0x8140,  # recovered from bus off / restarted: its configuration is gone
     "recovery": 0x8000,  # monitoring: bringing it back failed
 }
+
+
+#: Power states in which a drive ramps its torque down by itself (its slope is left alone).
+_STOPPING = frozenset({PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
 
 
 @dataclass(frozen=True)
@@ -101,6 +110,9 @@ class MasterSettings:
         boot_timeout_s: how long a drive may take to send its boot-up message after a reset.
         rpdo_deadline_ms: the drives' RPDO deadline monitoring (RPDO event timer): a drive that
             receives no RPDO this long faults by itself (0: off).
+        ramp_s: what every drive does by itself when it loses the master (its heartbeat consumer or
+            RPDO deadline): None, disable at once (category 0); a time, s, ramp its torque from the
+            last target to zero over it, then disable (:mod:`hal.canopen.reaction`).
     """
 
     node_ids: tuple[int, ...]
@@ -115,6 +127,7 @@ class MasterSettings:
     sdo_timeout_s: float = 0.5
     boot_timeout_s: float = 2.0
     rpdo_deadline_ms: int = 0
+    ramp_s: float | None = None
 
 
 @dataclass
@@ -145,6 +158,10 @@ class _Drive:
     recovery: _Recovery | None = None
     controlword: int = CW_DISABLE_VOLTAGE
     was_stale: bool = False  # its values were not of the last update's SYNC
+    reaction: ReactionPlan | None = None  # the writes of its own reaction to losing the master
+    reaction_sentence: str = ""  # what it got, for the report
+    slope: SlopeFollower | None = None  # while it ramps when it loses the master: its torque slope, followed
+    slope_write: tuple[SdoTransfer, int] | None = None  # a slope write in flight and its value
 
 
 class CanMaster:
@@ -208,6 +225,7 @@ class CanMaster:
         self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
         self.sdo = SdoClient(timeout_s=settings.sdo_timeout_s)
         self._peak_permille = min(round(settings.peak_torque_nm / self.units.nm_per_permille), 32767)
+        self._joint = {d.node_id: j + 1 for j, d in enumerate(self.drives)}
         self._latched: list[str] = []
         self.syncs = 0  # SYNCs sent
         self._last_sync_s = 0.0
@@ -267,6 +285,7 @@ class CanMaster:
         for drive in self.drives:
             drive.lost, drive.lost_why, drive.emcy, drive.recovery = None, "", None, None
             drive.power, drive.statusword = None, None
+            drive.reaction, drive.reaction_sentence, drive.slope, drive.slope_write = None, "", None, None
         booted: set[int] = set()
         for drive in self.drives:
             self._send(*nmt_frame(NmtCommand.RESET_COMMUNICATION, drive.node_id))
@@ -275,6 +294,8 @@ class CanMaster:
         transfers = [t for drive in self.drives for t in self._configuration(drive.node_id)]
         self._run_sdo(transfers, "configuring the drives")
         self._check_identity(transfers)
+        for drive in self.drives:
+            self._reaction_configured(drive)
         for drive in self.drives:
             self._send(*nmt_frame(NmtCommand.START, drive.node_id))
         self._started_s = self._now()
@@ -328,7 +349,11 @@ class CanMaster:
             waited += step
 
     def _configuration(self, node_id: int) -> list[SdoTransfer]:
-        """Queue the SDO transfers that identify and configure ``node_id``; returns them all (reads first)."""
+        """Queue the SDO transfers that identify and configure ``node_id``; returns them all, in order.
+
+        The identity reads first, then the writes; the drive's own reaction to losing the master
+        last (kept in its ``reaction``).
+        """
         s, d, sdo = self.settings, self.dictionary, self.sdo
         reads = [
             sdo.read(node_id, obj.DEVICE_TYPE, 0, "device type"),
@@ -348,10 +373,14 @@ class CanMaster:
         for pdo in self.mapping.all:
             writes += pdo.configuration(node_id, s.rpdo_deadline_ms if pdo.direction == "rpdo" else 0)
         optional = {(pdo.communication_index, sub) for pdo in self.mapping.all for sub in OPTIONAL_SUBS}
-        return reads + [
+        transfers = reads + [
             sdo.write(node_id, index, sub, data, what, optional=(index, sub) in optional)
             for index, sub, data, what in writes
         ]
+        drive = self._by_node[node_id]
+        drive.reaction = plan_reaction(sdo, d, self._joint[node_id], node_id, s.ramp_s, self._peak_permille)
+        drive.slope, drive.slope_write = None, None  # a new configuration: followed again once it is done
+        return transfers + list(drive.reaction.transfers)
 
     def _run_sdo(self, transfers: list[SdoTransfer], doing: str) -> None:
         """Start-up only: run the SDO client until every queued transfer is done.
@@ -635,6 +664,8 @@ class CanMaster:
         nm_per_permille = self.units.nm_per_permille
         peak = self._peak_permille
         pack = self._pack_rpdo
+        following = self.settings.ramp_s is not None
+        commanded: list[int | None] = []
         for j, drive in enumerate(self.drives):
             seen = drive.lost is None and drive.recovery is None  # a lost drive's last statusword is stale
             healthy = seen and drive.emcy is None
@@ -647,7 +678,13 @@ class CanMaster:
             if wanted and healthy and torque_nm is not None:
                 permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille)))
             self._send(self._rpdo_cob[j], pack(outcome.controlword, permille))
+            if following:
+                commanded.append(
+                    permille if outcome.controlword == CW_ENABLE_OPERATION and wanted and healthy else None
+                )
         now = self._now()
+        if following:
+            self._follow_slopes(commanded, now)
         for cob_id, data in self.sdo.frames_due(now):
             self._send(cob_id, data)
         self._send_heartbeat_if_due()
@@ -682,6 +719,79 @@ class CanMaster:
         if self._pump is not None:
             self._pump()
 
+    # --- the drives' own reaction to losing the master --------------------------------------------------
+
+    def reaction_report(self) -> tuple[str, ...]:
+        """One sentence per drive on what it does by itself when it loses the master (as configured last).
+
+        Empty until every drive was configured (a start-up that failed reports nothing).
+        """
+        sentences = tuple(drive.reaction_sentence for drive in self.drives)
+        return sentences if all(sentences) else ()
+
+    def _reaction_configured(self, drive: _Drive) -> None:
+        """Its reaction writes are done: what it got, and the slope follower of a drive that ramps."""
+        plan = drive.reaction
+        if plan is None:
+            return
+        drive.reaction_sentence = plan.sentence()
+        ramp_s = self.settings.ramp_s
+        if plan.ramps and ramp_s is not None:
+            drive.slope = SlopeFollower(ramp_s, self._peak_permille, plan.slope_permille_per_s)
+
+    def _follow_slopes(self, commanded: list[int | None], now: float) -> None:
+        """Rewrite the torque slope of drives that ramp, as the torque they are commanded changes (never waits).
+
+        ``commanded`` holds each drive's target torque this cycle, per mille (None: not commanded torque).
+        """
+        sdo = self.sdo
+        for drive, torque in zip(self.drives, commanded, strict=True):
+            follower = drive.slope
+            if follower is None:
+                continue
+            if drive.lost is not None or drive.recovery is not None:
+                self._drop_slope_write(drive)
+                continue
+            if drive.slope_write is not None:
+                transfer, value = drive.slope_write
+                if not transfer.done:
+                    continue
+                drive.slope_write = None
+                if not transfer.succeeded:
+                    self._slope_failed(drive, follower, transfer, value)
+                    continue
+                follower.confirmed(value)
+            if sdo.node_busy(drive.node_id) or drive.emcy is not None or drive.power in _STOPPING:
+                # A drive stopping by itself (a quick stop, a fault reaction) ramps at the slope it has:
+                # a new one would change the ramp under way (the drive reads it as it goes).
+                continue
+            slope = follower.due(torque, now)
+            if slope is not None:
+                data = self.dictionary.encode(obj.TORQUE_SLOPE, 0, slope)
+                drive.slope_write = (sdo.write(drive.node_id, obj.TORQUE_SLOPE, 0, data, "torque slope"), slope)
+
+    def _drop_slope_write(self, drive: _Drive) -> None:
+        """A lost drive: its slope write in flight is forgotten (it may or may not have landed: written again when back)."""
+        if drive.slope_write is None:
+            return
+        drive.slope_write = None
+        self.sdo.cancel_node(drive.node_id)  # a lost drive has no other transfer: a recovery queues its own later
+        if drive.slope is not None:
+            drive.slope.confirmed(0)  # unknown: any torque it holds when back wants a write
+
+    def _slope_failed(self, drive: _Drive, follower: SlopeFollower, transfer: SdoTransfer, value: int) -> None:
+        """A slope the drive did not take: reported once, and the slope is no longer followed (it keeps what it has)."""
+        drive.slope = None
+        ramp = format_ramp_s(follower.ramp_s)
+        why = transfer.error or transfer.declined or "skipped"
+        slope = f"{follower.held} per mille a second" if follower.held > 0 else "the slope it last took"
+        drive.reaction_sentence = (
+            f"drive {self._joint[drive.node_id]} (node 0x{drive.node_id:02X}): its torque slope could not be set to "
+            f"{value} per mille of the rated torque per second ({why}): when it loses the master it ramps at "
+            f"{slope} from the torque it holds, not over {ramp} s, then disables"
+        )
+        self._latch(f"drive {drive.node_id}: 0x6087 torque slope not updated to {value} per mille/s: {why}")
+
     # --- fault reset and recovery --------------------------------------------------------------------
 
     def request_fault_reset(self) -> None:
@@ -693,6 +803,7 @@ class CanMaster:
         now = self._now()
         for drive in self.drives:
             if drive.lost is not None and drive.recovery is None:
+                self._drop_slope_write(drive)
                 drive.recovery = _Recovery("reset", now)
                 drive.emcy = None
                 self._send(*nmt_frame(NmtCommand.RESET_NODE, drive.node_id))
@@ -721,6 +832,7 @@ class CanMaster:
                 except HalError as exc:
                     self._recovery_failed(drive, str(exc))
                     continue
+                self._reaction_configured(drive)
                 self._send(*nmt_frame(NmtCommand.START, drive.node_id))
                 recovery.phase, recovery.since_s = "start", now
                 drive.status_sync = drive.load_sync = -1

@@ -1,7 +1,9 @@
 """The object dictionary entries the backend and the simulated drives use (CiA 301, CiA 402, manufacturer).
 
 Index and sub-index constants, named as the standards name them; the EDS
-(``hal/canopen/daror_sea.eds``) must define every one listed in :data:`REQUIRED`.
+(``hal/canopen/daror_sea.eds``) must define every one listed in :data:`REQUIRED`. The objects of
+the drives' own stop reactions (0x6007, 0x605A, 0x605E, 0x6087) are optional: a drive without them
+is configured for what it has and reported (:mod:`hal.canopen.reaction`).
 """
 
 from __future__ import annotations
@@ -12,9 +14,12 @@ ERROR_REGISTER = 0x1001  # u8
 CONSUMER_HEARTBEAT_TIME = 0x1016  # array of u32: node id << 16 | ms
 PRODUCER_HEARTBEAT_TIME = 0x1017  # u16, ms
 # CiA 402 device profile
+ABORT_CONNECTION_OPTION_CODE = 0x6007  # i16: what the drive does when it loses the master (optional)
 ERROR_CODE = 0x603F  # u16
 CONTROLWORD = 0x6040  # u16
 STATUSWORD = 0x6041  # u16
+QUICK_STOP_OPTION_CODE = 0x605A  # i16: how a quick stop ends (optional)
+FAULT_REACTION_OPTION_CODE = 0x605E  # i16: how a fault the drive detects ends (optional)
 MODES_OF_OPERATION = 0x6060  # i8
 MODES_OF_OPERATION_DISPLAY = 0x6061  # i8
 POSITION_ACTUAL = 0x6064  # i32, increments (the SEA's motor side)
@@ -23,6 +28,7 @@ TARGET_TORQUE = 0x6071  # i16, per mille of the rated torque
 MAX_TORQUE = 0x6072  # u16, per mille of the rated torque
 MOTOR_RATED_TORQUE = 0x6076  # u32, mNm
 TORQUE_ACTUAL = 0x6077  # i16, per mille of the rated torque (the spring's torque)
+TORQUE_SLOPE = 0x6087  # u32, per mille of the rated torque per second (optional)
 POSITION_ENCODER_RESOLUTION = 0x608F  # array: sub 1 increments, sub 2 motor revolutions
 # DAROR-01 SEA drive (manufacturer range)
 LOAD_POSITION_ACTUAL = 0x2010  # i32, increments (the link)
@@ -66,3 +72,11 @@ REQUIRED: tuple[tuple[int, int, str], ...] = (
     (LOAD_POSITION_ACTUAL, 0, "load side position"),
     (LOAD_ENCODER_RESOLUTION, 0, "load side encoder resolution"),
 )
+
+#: 0x6007 abort connection option code (CiA 402): what a drive does when it loses the master.
+ABORT_FAULT_SIGNAL = 1  # a fault (FAULT REACTION ACTIVE, then FAULT; the reaction is 0x605E's)
+ABORT_DISABLE_VOLTAGE = 2  # disable voltage: SWITCH ON DISABLED at once, no torque (category 0)
+ABORT_QUICK_STOP = 3  # quick stop: QUICK STOP ACTIVE, ended as 0x605A says
+#: 0x605A quick stop option code and 0x605E fault reaction option code (CiA 402).
+STOP_DISABLE_DRIVE = 0  # disable drive function: no torque at once
+STOP_SLOW_DOWN_RAMP = 1  # slow down on the slow-down ramp (torque modes: the torque slope 0x6087), then disable

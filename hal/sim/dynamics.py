@@ -77,10 +77,11 @@ P_INVERSE_SMOOTHING = P_INVERSE_MOTOR_INERTIA + N_JOINTS  # 1 / eps
 P_N_SPRINGS = P_INVERSE_SMOOTHING + 1
 P_SPRINGS = P_N_SPRINGS + 1  # MAX_SPRINGS of SPRING_SIZE each
 SPRING_SIZE = 5  # joint index 0-3, stiffness, slack angle, +1 resists flexion / -1 extension, damping
-# The Dummy Arm's elbow springs (2), an end stop at each end of every joint (8) and a pair per
-# undeclared two-sided joint spring (up to 4 pairs); unused slots cost nothing (the kernels loop
-# over P_N_SPRINGS), and springs are the last block, so no other offset moves.
-MAX_SPRINGS = 20
+# The Dummy Arm's elbow springs (2), an end stop at each end of every joint (8), a pair per
+# undeclared two-sided joint spring (up to 4 pairs) and the arm's rest support when one is placed
+# (up to 4: a pilot's lap, an armrest); unused slots cost nothing (the kernels loop over
+# P_N_SPRINGS), and springs are the last block, so no other offset moves.
+MAX_SPRINGS = 24
 PARAM_SIZE = P_SPRINGS + MAX_SPRINGS * SPRING_SIZE
 
 # --- scratch layout -----------------------------------------------------------------------------

@@ -49,6 +49,13 @@ class PlantTruth(NamedTuple):
     tau_spring_nm: FloatArray
 
 
+#: A rest support under the arm (a lap, an armrest): push-only per joint, softer than an end stop (Nm/rad, Nms/rad).
+REST_SUPPORT_STIFFNESS_NM_PER_RAD = 400.0
+REST_SUPPORT_DAMPING_NMS_PER_RAD = 4.0
+#: A joint that holds less than this at the rest pose needs no support there (Nm).
+REST_SUPPORT_MIN_NM = 0.05
+
+
 def joint_vector(value: object, name: str) -> FloatArray:
     """``value`` as a finite float (4,) array.
 
@@ -209,6 +216,7 @@ class DynamicPlant:
             coulomb_smoothing_rad_s=drive.coulomb_smoothing_rad_s,
             springs=springs,
         )
+        self._fixed_springs = int(self.params[dynamics.P_N_SPRINGS])  # the scenario's; a rest support goes after them
         #: The state [q, theta, q', theta'] (16,); the simulated HAL steps it in place.
         self.state = np.zeros(N_STATE)
         self.work = dynamics.new_work()
@@ -358,6 +366,37 @@ class DynamicPlant:
         q = joint_vector(q_rad, "q_rad")
         dynamics.bias_torque(q, joint_vector(dq_rad_s, "dq_rad_s"), self.params, self.work, out)
         return out
+
+    def place_rest_support(self, q_rad: FloatArray | None) -> int:
+        """Put something under the arm at ``q_rad`` (a pilot's lap, an armrest, a tray); None takes it away.
+
+        Per joint that gravity (and the springs) pull one way at ``q_rad``, a push-only, damped
+        support that keeps the joint from going farther that way: :data:`REST_SUPPORT_STIFFNESS_NM_PER_RAD`,
+        :data:`REST_SUPPORT_DAMPING_NMS_PER_RAD` (softer than an end stop: a lap gives a little). Joints
+        that hold less than :data:`REST_SUPPORT_MIN_NM` there need none. Returns how many joints it supports.
+
+        Raises:
+            ShapeError, InputError: ``q_rad`` not a finite (4,) array.
+        """
+        n = self._fixed_springs
+        self.params[dynamics.P_N_SPRINGS] = n
+        if q_rad is None:
+            return 0
+        q = joint_vector(q_rad, "rest pose")
+        holding = self.holding_torque_nm(q)
+        placed = 0
+        for j in range(N_JOINTS):
+            if abs(holding[j]) < REST_SUPPORT_MIN_NM:
+                continue
+            # Holding needs +g: gravity pulls the joint towards smaller angles, which the support stops.
+            resists = -1.0 if holding[j] > 0 else 1.0
+            base = dynamics.P_SPRINGS + (n + placed) * dynamics.SPRING_SIZE
+            self.params[base : base + dynamics.SPRING_SIZE] = (
+                j, REST_SUPPORT_STIFFNESS_NM_PER_RAD, q[j], resists, REST_SUPPORT_DAMPING_NMS_PER_RAD,
+            )  # fmt: skip
+            placed += 1
+        self.params[dynamics.P_N_SPRINGS] = n + placed
+        return placed
 
     def holding_torque_nm(self, q_rad: FloatArray) -> FloatArray:
         """``g(q) = dV/dq`` (4,), Nm: gravity of every body plus the pull-only joint springs.

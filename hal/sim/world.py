@@ -130,6 +130,17 @@ class PlantWorld:
         poses.append(self.hal.truth().q_rad)  # and back to where the arm was
         return pilot.sweep(poses, self.t_s, seconds_per_move)
 
+    def place_rest_support(self) -> int:
+        """The arm rests on something where it is now (the pilot's lap, an armrest): a support under it there.
+
+        Returns how many joints it supports (those gravity pulls at that pose; hal.sim.plant).
+        """
+        return self.hal.plant.place_rest_support(self.hal.truth().q_rad)
+
+    def remove_rest_support(self) -> None:
+        """Take the rest support away (the arm hangs in the robot alone again)."""
+        self.hal.plant.place_rest_support(None)
+
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         """``(holding, pilot)`` now, (4,) Nm: the plant's true holding torque and the pilot's torque."""
         pilot = self.pilot

@@ -13,6 +13,10 @@ for more is refused before it is sent.
 asked (:meth:`SdoClient.frames_due`), takes responses as they arrive (:meth:`SdoClient.on_response`)
 and times transfers out against a time the caller passes in. It blocks nowhere: ``open`` runs it
 until every transfer is done (outside the tick), and the tick can run it a frame at a time.
+
+A write may be one the drive is free to refuse (``may_decline``: a capability, not a failure; its
+abort is recorded in ``declined``) and may need earlier transfers to the same node to have
+succeeded (``needs``: else it is skipped, never sent). A missing answer is always an error.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ __all__ = [
     "SdoClient",
     "SdoTransfer",
     "abort_frame",
+    "describe_abort",
     "download_request",
     "download_response",
     "parse_request",
@@ -60,6 +65,11 @@ ABORT_MESSAGES: dict[int, str] = {
     0x08000020: "data cannot be transferred or stored to the application",
     0x08000022: "data cannot be transferred or stored because of the present device state",
 }
+
+
+def describe_abort(code: int) -> str:
+    """An abort code and its meaning (CiA 301 table 22), for a message: ``0x06020000 object does not exist ...``."""
+    return f"0x{code:08X} {ABORT_MESSAGES.get(code, 'unknown abort code')}"
 
 
 def download_request(index: int, sub: int, data: bytes) -> bytes:
@@ -154,8 +164,11 @@ def parse_response(frame: bytes) -> SdoResponse:
 class SdoTransfer:
     """One transfer of an :class:`SdoClient`: a write of ``data`` to, or a read of, ``index:sub`` of ``node_id``.
 
-    ``done`` once answered or failed; ``error`` says why it failed (None if it succeeded);
-    ``value`` holds the bytes a read returned.
+    ``done`` once answered, failed, declined or skipped; ``error`` says why it failed (None if it
+    did not: a transport failure, an unexpected answer, or an abort of a transfer that may not be
+    declined); ``declined`` says why the drive refused a write that may be declined (its abort
+    code and meaning); ``skipped`` is set when a transfer it ``needs`` did not succeed, and it was
+    never sent. ``value`` holds the bytes a read returned.
     """
 
     node_id: int
@@ -164,14 +177,23 @@ class SdoTransfer:
     data: bytes | None  # None: a read
     what: str = ""  # what the transfer is for, for messages ("TPDO1 mapping entry 2")
     optional: bool = False  # the object may not exist on the drive: "does not exist" is not an error
+    may_decline: bool = False  # any abort is the drive's answer (recorded in ``declined``), not an error
+    needs: tuple[SdoTransfer, ...] = ()  # earlier transfers of the same node that must have succeeded
     sent_at_s: float | None = None
     done: bool = False
     error: str | None = None
+    declined: str | None = None
+    skipped: bool = False
     value: bytes = b""
 
     @property
     def target(self) -> str:
         return f"node {self.node_id} 0x{self.index:04X}:{self.sub}" + (f" ({self.what})" if self.what else "")
+
+    @property
+    def succeeded(self) -> bool:
+        """True once the drive answered it as asked (not failed, declined or skipped)."""
+        return self.done and self.error is None and self.declined is None and not self.skipped
 
 
 @dataclass
@@ -187,18 +209,32 @@ class SdoClient:
     _in_flight: dict[int, SdoTransfer] = field(default_factory=dict)
 
     def write(
-        self, node_id: int, index: int, sub: int, data: bytes, what: str = "", optional: bool = False
+        self,
+        node_id: int,
+        index: int,
+        sub: int,
+        data: bytes,
+        what: str = "",
+        optional: bool = False,
+        may_decline: bool = False,
+        needs: tuple[SdoTransfer, ...] = (),
     ) -> SdoTransfer:
         """Queue a write of ``data`` (1-4 bytes) to ``index:sub`` of ``node_id``.
 
         ``optional``: an object the drive may not have; its "object/sub-index does not exist"
-        abort completes the transfer without an error.
+        abort completes the transfer without an error. ``may_decline``: a write the drive may
+        refuse (a capability the caller checks): any abort completes it with ``declined`` set, not
+        ``error`` (a missing answer is still an error). ``needs``: earlier transfers to the same
+        node; if one of them did not succeed when this one's turn comes, it is skipped, never sent
+        (a value that only makes sense once those were taken).
 
         Raises:
-            ValueError: ``data`` does not fit an expedited transfer.
+            ValueError: ``data`` does not fit an expedited transfer, or a transfer it needs is for another node.
         """
         download_request(index, sub, data)  # refused now rather than on the bus
-        return self._queue(SdoTransfer(node_id, index, sub, data, what, optional))
+        if any(needed.node_id != node_id for needed in needs):
+            raise ValueError(f"node {node_id} 0x{index:04X}:{sub}: a transfer can only need transfers to its own node")
+        return self._queue(SdoTransfer(node_id, index, sub, data, what, optional, may_decline, needs))
 
     def read(self, node_id: int, index: int, sub: int, what: str = "") -> SdoTransfer:
         """Queue a read of ``index:sub`` of ``node_id`` (at most 4 bytes expected)."""
@@ -222,9 +258,11 @@ class SdoClient:
                 del self._in_flight[node_id]
         frames = []
         for node_id, queue in self._queues.items():
-            if node_id in self._in_flight or not queue:
+            if node_id in self._in_flight:
                 continue
-            transfer = queue.popleft()
+            transfer = self._next(queue)
+            if transfer is None:
+                continue
             transfer.sent_at_s = now_s
             self._in_flight[node_id] = transfer
             payload = (
@@ -234,6 +272,16 @@ class SdoClient:
             )
             frames.append((SDO_REQUEST_BASE + node_id, payload))
         return frames
+
+    @staticmethod
+    def _next(queue: deque[SdoTransfer]) -> SdoTransfer | None:
+        """The next transfer of a node to send; those whose needed transfers did not succeed are skipped."""
+        while queue:
+            transfer = queue.popleft()
+            if all(needed.succeeded for needed in transfer.needs):
+                return transfer
+            transfer.done = transfer.skipped = True
+        return None
 
     def on_response(self, node_id: int, frame: bytes) -> SdoTransfer | None:
         """A frame from ``node_id``'s SDO server: completes its transfer in flight (returned), or is ignored."""
@@ -247,9 +295,10 @@ class SdoClient:
         transfer.done = True
         if response.kind == "aborted" and transfer.optional and response.abort_code in _DOES_NOT_EXIST:
             pass  # the drive has no such object: nothing to configure
+        elif response.kind == "aborted" and transfer.may_decline and transfer.data is not None:
+            transfer.declined = describe_abort(response.abort_code)
         elif response.kind == "aborted":
-            meaning = ABORT_MESSAGES.get(response.abort_code, "unknown abort code")
-            transfer.error = f"{transfer.target}: the drive aborted the transfer: 0x{response.abort_code:08X} {meaning}"
+            transfer.error = f"{transfer.target}: the drive aborted the transfer: {describe_abort(response.abort_code)}"
         elif transfer.data is None and response.kind == "uploaded":
             transfer.value = response.data
         elif transfer.data is not None and response.kind == "downloaded":

@@ -9,7 +9,8 @@ the state the runtime wants, one transition per tick (:class:`PowerStepper`); th
     NOT READY TO SWITCH ON --(auto)--> SWITCH ON DISABLED --shutdown 0x06--> READY TO SWITCH ON
       --switch on 0x07--> SWITCHED ON --enable operation 0x0F--> OPERATION ENABLED
     disable voltage 0x00 from any of the last three: back to SWITCH ON DISABLED (no torque)
-    quick stop 0x02 from OPERATION ENABLED: QUICK STOP ACTIVE, then SWITCH ON DISABLED
+    quick stop 0x02 from OPERATION ENABLED: QUICK STOP ACTIVE, then SWITCH ON DISABLED once the
+      quick stop is over (0x605A: at once, or at the end of the torque ramp) or on disable voltage
     a fault anywhere: FAULT REACTION ACTIVE, then FAULT; a rising edge of bit 7 (0x80): SWITCH ON DISABLED
 
 Statusword bits 14 and 15 are manufacturer-specific in CiA 402; the DAROR drives report the
@@ -121,6 +122,10 @@ def device_next_state(state: PowerState, controlword: int, previous_controlword:
 
     The fault states are left only by a rising edge of bit 7 (transition 15); FAULT REACTION
     ACTIVE ends in FAULT by itself (the caller steps it); NOT READY TO SWITCH ON ends by itself.
+    QUICK STOP ACTIVE is left for SWITCH ON DISABLED by disable voltage (transition 12); otherwise
+    it lasts until the quick stop is over, which the caller judges (0x605A: at once, or when the
+    torque ramp reached zero). The DAROR drives take quick stop option codes 0 and 1 only, which go
+    on to SWITCH ON DISABLED: transition 16 back to OPERATION ENABLED (codes 5-8) does not exist here.
     """
     if state is PowerState.FAULT:
         if controlword & CW_FAULT_RESET and not previous_controlword & CW_FAULT_RESET:
@@ -137,7 +142,7 @@ def device_next_state(state: PowerState, controlword: int, previous_controlword:
     if not enable_voltage:
         return PowerState.SWITCH_ON_DISABLED  # transitions 7, 9, 10, 12
     if state is PowerState.QUICK_STOP_ACTIVE:
-        return PowerState.SWITCH_ON_DISABLED  # the quick stop is over: transition 12
+        return state  # the quick stop goes on; the caller ends it (transition 12)
     if not quick_stop_off:  # quick stop: 11 from operation enabled, else 7 / 10
         return PowerState.QUICK_STOP_ACTIVE if state is PowerState.OPERATION_ENABLED else PowerState.SWITCH_ON_DISABLED
     if state is PowerState.SWITCH_ON_DISABLED:
@@ -188,7 +193,10 @@ class PowerStepper:
         self._reset_phase = 0  # 0 none, 1 sent 0x00, 2 sent 0x80
 
     def request_fault_reset(self) -> None:
-        """Send one fault-reset edge at the next ticks (the drive leaves FAULT if its cause is gone)."""
+        """Send one fault-reset edge at the next ticks (the drive leaves FAULT if its cause is gone).
+
+        A drive still in FAULT REACTION ACTIVE (ramping its torque down) gets the edge once it is in FAULT.
+        """
         self._reset_phase = 1
 
     def step(self, state: PowerState | None, want_torque: bool) -> StepOutcome:
@@ -198,6 +206,10 @@ class PowerStepper:
                 command = CW_DISABLE_VOLTAGE if self._reset_phase == 1 else CW_FAULT_RESET
                 self._reset_phase = 2 if self._reset_phase == 1 else 0
                 return self._send(command, None)
+            if state is PowerState.FAULT_REACTION_ACTIVE:
+                # Its fault reaction (a torque ramp, 0x605E) is still under way: CiA 402 resets only
+                # from FAULT, so the request waits for it rather than being lost.
+                return self._send(CW_DISABLE_VOLTAGE, None)
             self._reset_phase = 0  # nothing to reset any more
         if not want_torque or state in (None, PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
             timed_out = None

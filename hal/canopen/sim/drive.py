@@ -4,9 +4,11 @@ A pure, deterministic state machine: no bus, no thread, no clock. Frames leave t
 ``send(cob_id, data)`` callback given at construction; frames arrive through
 :meth:`SimulatedSeaDrive.receive`, in bus order; time is robot time in seconds, passed in by the
 caller at every call. The caller owns the SYNC: it calls :meth:`SimulatedSeaDrive.on_sync` with
-what the drive's sensors measure (the plant's state and the e-stop buttons) instead of passing the
-SYNC frame to ``receive``, and :meth:`SimulatedSeaDrive.advance` whenever time passes (heartbeats,
-the heartbeat consumer, the end of a fault reaction).
+what the drive's sensors measure (the plant's state, the e-stop buttons and the power stage's
+safe torque off input) instead of passing the SYNC frame to ``receive``,
+:meth:`SimulatedSeaDrive.on_inputs` when its hardwired inputs change between SYNCs, and
+:meth:`SimulatedSeaDrive.advance` whenever time passes (heartbeats, the heartbeat consumer, the
+RPDO deadline, a stop ramp, the end of a fault reaction).
 
 What the drive does, in the words of the standards:
 
@@ -28,13 +30,25 @@ What the drive does, in the words of the standards:
 * Sensors: sampled at every SYNC the drive sees, in every NMT state (an SDO read at start-up finds
   the real position): 0x6064 and 0x2010 in increments, 0x6077 in per mille, saturated at their
   types. The velocity 0x606C is not simulated (it stays 0; the DAROR mapping does not carry it).
-* CiA 402: :func:`device_next_state` on every controlword (RPDO or SDO); both e-stop buttons are
-  wired to the drive's safe torque off: while either is pressed the power stage is off (SWITCH ON
-  DISABLED, which the drive cannot leave). Faults go through FAULT REACTION ACTIVE to FAULT at the
-  next :meth:`~SimulatedSeaDrive.on_sync` or :meth:`~SimulatedSeaDrive.advance`; a fault reset
-  clears 0x603F and the error register and sends the EMCY error reset.
-* Heartbeat producer (0x1017, ms) and consumer (0x1016:1, ``node << 16 | ms``): a consumed node
-  silent longer than its time while the drive is OPERATIONAL is a fault (0x8130).
+* CiA 402: :func:`device_next_state` on every controlword (RPDO or SDO). The safe torque off
+  input: while the power is cut the power stage is off (SWITCH ON DISABLED, which the drive cannot
+  leave). The e-stop circuit cuts it: with the robot's ``sto`` wiring whenever a button is pressed,
+  with ``ss1`` once its relay's delay ran out (the caller passes the plant's ``power_cut``); the
+  buttons themselves are reported at once in statusword bits 14 and 15 either way. Faults go
+  through FAULT REACTION ACTIVE to FAULT: at the next :meth:`~SimulatedSeaDrive.on_sync` or
+  :meth:`~SimulatedSeaDrive.advance` (0x605E = 0, disable drive function), or at the end of a
+  torque ramp at the slope 0x6087 (0x605E = 1) unless the power stage itself failed (``drive_fault``:
+  nothing left to ramp with); a fault reset clears 0x603F and the error register and sends the
+  EMCY error reset. A quick stop (controlword, or losing the master with 0x6007 = 3) goes through
+  QUICK STOP ACTIVE to SWITCH ON DISABLED: at once (0x605A = 0) or at the end of the torque ramp
+  (0x605A = 1); disable voltage ends it at once (transition 12).
+* Heartbeat producer (0x1017, ms) and consumer (0x1016:1, ``node << 16 | ms``), and the RPDO
+  deadline (an RPDO's event timer 0x1400:5): a consumed node silent longer than its time while the
+  drive is OPERATIONAL (0x8130), or no RPDO for that long while its power stage is on (0x8250), is
+  the drive losing the master. It sends the EMCY and does what 0x6007 says: 1 fault signal (a fault,
+  as above), 2 disable voltage (SWITCH ON DISABLED at once), 3 quick stop (as above). Without a
+  fault the error stays in 0x603F and the error register until the master is back (its heartbeat,
+  an RPDO): then the EMCY error reset.
 
 Fault injection (:meth:`SimulatedSeaDrive.inject`) does to the drive what a bench test rig would
 do to a real one; see :data:`FAULT_KINDS`.
@@ -67,6 +81,7 @@ from hal.canopen.cia301.nmt import (
 from hal.canopen.cia301.pdo import COB_ID_INVALID, MappedObject, PdoCodec, PdoMapping, struct_format
 from hal.canopen.cia402.statemachine import PowerState, device_next_state, statusword_of
 from hal.canopen.dictionary import DriveDictionary
+from hal.canopen.sim.stop_ramp import StopRamp
 from hal.errors import HalConfigError
 
 __all__ = [
@@ -109,6 +124,7 @@ _ABORT_LENGTH = 0x06070010
 _ABORT_NO_SUB = 0x06090011
 _ABORT_INVALID_VALUE = 0x06090030
 _ABORT_VALUE_TOO_HIGH = 0x06090031
+_ABORT_VALUE_TOO_LOW = 0x06090032
 _ABORT_GENERAL = 0x08000000
 
 _READABLE = frozenset({"ro", "rw", "rww", "rwr", "const"})
@@ -124,6 +140,15 @@ _POWER_STAGE_STATES = frozenset(
 )
 #: The states a drive may not keep when it loses its PDOs (it could not be commanded any more).
 _COMMANDED_STATES = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE})
+#: The objects of the drive's own stop reactions (optional in its EDS).
+_STOP_OBJECTS = (
+    obj.ABORT_CONNECTION_OPTION_CODE,
+    obj.QUICK_STOP_OPTION_CODE,
+    obj.FAULT_REACTION_OPTION_CODE,
+    obj.TORQUE_SLOPE,
+)
+#: The states whose torque comes from a stop ramp (the drive's own, nobody commands it).
+_RAMPING_STATES = frozenset({PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
 _INT16 = (-(1 << 15), (1 << 15) - 1)
 _INT32 = (-(1 << 31), (1 << 31) - 1)
 #: CAN identifiers are 11 bits: a COB-ID's bits 11-28 are 0, and bit 29 (a 29-bit frame) is refused.
@@ -200,9 +225,11 @@ class SimulatedSeaDrive:
         self._tpdos = self._find_pdos("tpdo", 0x1800, 0x1A00)
         self._slots = {index: slot for slot in (*self._rpdos, *self._tpdos) for index in (slot.comm, slot.mapping)}
         self._factory: dict[tuple[int, int], Any] = {}
-        # The e-stop inputs are hardwired buttons, not drive state: they survive a power cycle.
+        # The e-stop inputs are hardwired buttons, not drive state: they survive a power cycle; so
+        # does the safe torque off input (the e-stop circuit cut the power stage's supply).
         self._estop_operator = False
         self._estop_pilot = False
+        self._power_cut = False
         self._powered = False
         self._nmt = NmtState.BOOT_UP
         self._power = PowerState.NOT_READY_TO_SWITCH_ON
@@ -226,6 +253,10 @@ class SimulatedSeaDrive:
         self._heard_s: dict[int, float] = {}
         self._consumer_set_s = 0.0
         self._consumer_lost = False
+        self._rpdo_deadline_lost = False  # the RPDO deadline ran out (once per loss: until an RPDO comes)
+        self._communication_errors: set[int] = set()  # losses of the master in force without a fault
+        self._ramp: StopRamp | None = None  # the torque ramp of a quick stop or fault reaction under way
+        self._limits: dict[tuple[int, int], tuple[int | None, int | None]] = {}
         for index, sub in self._objects_read_at_run_time():
             self._get(index, sub)  # a factory value missing from the EDS is found now, not at a SYNC
 
@@ -241,6 +272,9 @@ class SimulatedSeaDrive:
         ]
         if self._exists(_COB_ID_EMCY, 0):
             objects.append((_COB_ID_EMCY, 0))
+        for index in _STOP_OBJECTS:  # optional: a drive without them stops at once
+            if self._exists(index, 0):
+                objects.append((index, 0))
         for slot in (*self._rpdos, *self._tpdos):
             objects += [(slot.comm, 1), (slot.comm, 2), *((slot.mapping, n) for n in range(slot.max_entries + 1))]
         return objects
@@ -286,14 +320,22 @@ class SimulatedSeaDrive:
     def applied_torque_nm(self) -> float:
         """The torque the power stage applies, N m.
 
-        The target torque 0x6071 saturated at +-max torque 0x6072 (both per mille of the rated
-        torque), only in OPERATION ENABLED with no e-stop pressed; else 0.0.
+        In OPERATION ENABLED the target torque 0x6071 saturated at +-max torque 0x6072 (both per
+        mille of the rated torque); during a stop ramp (QUICK STOP ACTIVE, FAULT REACTION ACTIVE)
+        the ramp's torque as of the last :meth:`on_sync`, :meth:`on_inputs` or :meth:`advance`;
+        else, and whenever the power is cut, 0.0.
         """
-        if not self._powered or self._power is not PowerState.OPERATION_ENABLED or self._estop_pressed:
+        return self._applied_permille() * self._units.nm_per_permille
+
+    def _applied_permille(self) -> float:
+        if not self._powered or self._power_cut:
             return 0.0
-        limit = int(self._get(obj.MAX_TORQUE, 0))
-        target = int(self._get(obj.TARGET_TORQUE, 0))
-        return max(-limit, min(limit, target)) * self._units.nm_per_permille
+        if self._power is PowerState.OPERATION_ENABLED:
+            limit = int(self._get(obj.MAX_TORQUE, 0))
+            return float(max(-limit, min(limit, int(self._get(obj.TARGET_TORQUE, 0)))))
+        if self._ramp is not None and self._power in _RAMPING_STATES:
+            return self._ramp.torque_permille
+        return 0.0
 
     def value(self, index: int, sub: int = 0) -> int:
         """The current value of object ``index:sub``, as the drive stores it (increments, per mille, ...).
@@ -310,8 +352,9 @@ class SimulatedSeaDrive:
         return int(value)
 
     @property
-    def _estop_pressed(self) -> bool:
-        return self._estop_operator or self._estop_pilot
+    def power_cut(self) -> bool:
+        """True while the safe torque off input says the power stage has no supply."""
+        return self._power_cut
 
     # ------------------------------------------------------------------ the caller's entry points
 
@@ -327,6 +370,7 @@ class SimulatedSeaDrive:
         self._fault_register = 0
         self._drop_until_s = None
         self._power = PowerState.SWITCH_ON_DISABLED
+        self._ramp = None
         self._restart_communication(now_s)
 
     def receive(self, cob_id: int, data: bytes, now_s: float) -> None:
@@ -364,6 +408,7 @@ class SimulatedSeaDrive:
         estop_operator: bool,
         estop_pilot: bool,
         now_s: float,
+        power_cut: bool | None = None,
     ) -> None:
         """A SYNC at ``now_s``, s, with what the drive's inputs measure at that instant.
 
@@ -374,10 +419,12 @@ class SimulatedSeaDrive:
             estop_operator: the operator's e-stop button is pressed.
             estop_pilot: the pilot's e-stop button is pressed.
             now_s: robot time, s.
+            power_cut: the safe torque off input: the e-stop circuit cut the power stage's supply.
+                None: either button cuts it (the ``sto`` wiring).
 
-        The e-stop inputs act in every NMT state (they are wired to the safe torque off) and the
-        drive samples its sensors at every SYNC it sees (so that an SDO read finds fresh values);
-        only in OPERATIONAL does it apply the RPDO data buffered since the last SYNC and send its
+        The hardwired inputs act in every NMT state (:meth:`on_inputs`) and the drive samples its
+        sensors at every SYNC it sees (so that an SDO read finds fresh values); only in
+        OPERATIONAL does it apply the RPDO data buffered since the last SYNC and send its
         synchronous TPDOs. A SYNC lost to ``drop_frames`` is not seen.
 
         Raises:
@@ -386,12 +433,9 @@ class SimulatedSeaDrive:
         for name, x in (("q_rad", q_rad), ("theta_rad", theta_rad), ("tau_nm", tau_nm)):
             if not math.isfinite(x):
                 raise ValueError(f"{name} = {x}: a drive's sensors never measure a non-finite value")
-        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        self.on_inputs(estop_operator, estop_pilot, power_cut, now_s)
         if not self._powered:
             return
-        self._end_fault_reaction()
-        if self._estop_pressed and self._power in _POWER_STAGE_STATES:
-            self._power = PowerState.SWITCH_ON_DISABLED  # safe torque off: the power stage is gone
         self._sample(q_rad, theta_rad, tau_nm)
         if self._nmt is not NmtState.OPERATIONAL or self._dropping(now_s):
             return
@@ -399,12 +443,33 @@ class SimulatedSeaDrive:
         self._apply_pending_rpdos(now_s)
         self._transmit_tpdos(now_s)
 
-    def advance(self, now_s: float) -> None:
-        """Time passes until ``now_s``, s: the end of a fault reaction, the watchdogs (the master's
-        heartbeat, the RPDO deadline), heartbeats due."""
+    def on_inputs(self, estop_operator: bool, estop_pilot: bool, power_cut: bool | None, now_s: float) -> None:
+        """The hardwired inputs at ``now_s``, s: the e-stop buttons (statusword bits 14, 15) and the safe torque off.
+
+        ``power_cut`` None: either button cuts the power (the ``sto`` wiring). Acts in every NMT
+        state: a power stage without supply is off (SWITCH ON DISABLED, a stop ramp cut short). A
+        stop ramp under way moves on to ``now_s`` first.
+        """
+        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        self._power_cut = self._estop_operator or self._estop_pilot if power_cut is None else bool(power_cut)
         if not self._powered:
             return
-        self._end_fault_reaction()
+        self._step_stop(now_s)
+        self._cut_if_unpowered()
+
+    def _cut_if_unpowered(self) -> None:
+        if not self._power_cut:
+            return
+        if self._power in _POWER_STAGE_STATES:
+            self._power = PowerState.SWITCH_ON_DISABLED  # safe torque off: the power stage is gone
+        self._ramp = None  # nothing to ramp with (a fault reaction ends at the next step)
+
+    def advance(self, now_s: float) -> None:
+        """Time passes until ``now_s``, s: a stop ramp, the end of a fault reaction or quick stop, the
+        watchdogs (the master's heartbeat, the RPDO deadline), heartbeats due."""
+        if not self._powered:
+            return
+        self._step_stop(now_s)
         self._check_consumer(now_s)
         self._check_rpdo_deadline(now_s)
         self._produce_heartbeat(now_s)
@@ -415,7 +480,7 @@ class SimulatedSeaDrive:
         A drive that keeps its last torque with nobody commanding it is what CiA 301's deadline
         monitoring prevents; the timer runs while the drive is operational and its power stage on.
         """
-        if self._nmt is not NmtState.OPERATIONAL or self._power not in _COMMANDED_STATES:
+        if self._nmt is not NmtState.OPERATIONAL or self._power not in _COMMANDED_STATES or self._rpdo_deadline_lost:
             return
         for slot in self._rpdos:
             cob, _, _ = self._plan(slot)
@@ -424,7 +489,8 @@ class SimulatedSeaDrive:
                 continue
             heard = self._rpdo_heard_s.get(slot.comm, self._operational_since_s)
             if now_s - heard > deadline_ms / 1000.0:
-                self._fault(ERROR_RPDO_TIMEOUT, _REGISTER_COMMUNICATION, now_s)
+                self._rpdo_deadline_lost = True
+                self._lose_master(ERROR_RPDO_TIMEOUT, now_s)
                 return
 
     def inject(self, kind: str, now_s: float, duration_s: float | None = None) -> None:
@@ -435,9 +501,10 @@ class SimulatedSeaDrive:
         * ``heartbeat_loss``: the heartbeat producer stops until reset node, reset communication
           or :meth:`power_on`;
         * ``emcy``: excess temperature (0x4310, error register 0x09) reported in a short 4-byte
-          EMCY; FAULT via the fault reaction; a fault reset clears it;
+          EMCY; FAULT via the fault reaction (0x605E: at once, or ramped); a fault reset clears it;
         * ``drive_fault``: the power stage faults (0x2310, error register 0x03; 8-byte EMCY);
-          FAULT via the fault reaction; a fault reset clears it;
+          FAULT via the fault reaction, torque off at once whatever 0x605E says (the power stage
+          that would ramp is what failed); a fault reset clears it;
         * ``frozen_pdo``: the TPDOs stop (heartbeat, SDO, NMT and RPDOs go on) until reset node,
           reset communication or :meth:`power_on`;
         * ``drop_frames``: every frame to and from the drive (the SYNC included) is lost for
@@ -460,7 +527,7 @@ class SimulatedSeaDrive:
         elif kind == "emcy":
             self._fault(ERROR_TEMPERATURE, 0x09, now_s, emcy_length=4)
         elif kind == "drive_fault":
-            self._fault(ERROR_DRIVE_OVER_CURRENT, 0x03, now_s)
+            self._fault(ERROR_DRIVE_OVER_CURRENT, 0x03, now_s, power_stage=True)
         else:
             self._start_dropping(now_s, DEFAULT_DROP_S if duration_s is None else duration_s)
 
@@ -515,7 +582,9 @@ class SimulatedSeaDrive:
         return self._factory[key]
 
     def _error_register(self) -> int:
-        communication = _REGISTER_GENERIC | _REGISTER_COMMUNICATION if self._pdo_length_error else 0
+        communication = (
+            _REGISTER_GENERIC | _REGISTER_COMMUNICATION if self._pdo_length_error or self._communication_errors else 0
+        )
         return self._fault_register | communication
 
     def _sample(self, q_rad: float, theta_rad: float, tau_nm: float) -> None:
@@ -560,6 +629,21 @@ class SimulatedSeaDrive:
             node, reserved = (int(value) >> 16) & 0xFF, int(value) >> 24
             if reserved or node > 127 or (node == self._node_id and int(value) & 0xFFFF):
                 return _ABORT_INVALID_VALUE  # no node id 128-255; a node does not consume its own heartbeat
+        return self._range_problem(index, sub, value)
+
+    def _range_problem(self, index: int, sub: int, value: Any) -> int | None:
+        """The abort code of a value outside the range the EDS gives the object (LowLimit, HighLimit), else None."""
+        key = (index, sub)
+        limits = self._limits.get(key)
+        if limits is None:
+            limits = self._limits[key] = self._dictionary.limits(index, sub)
+        low, high = limits
+        if not isinstance(value, int) or (low is None and high is None):
+            return None
+        if low is not None and value < low:
+            return _ABORT_VALUE_TOO_LOW
+        if high is not None and value > high:
+            return _ABORT_VALUE_TOO_HIGH
         return None
 
     # ------------------------------------------------------------------ PDO parameters
@@ -683,17 +767,23 @@ class SimulatedSeaDrive:
             self._sync_count = 0
             self._tpdo_last.clear()
             self._rpdo_heard_s.clear()
+            self._rpdo_deadline_lost = False
             self._operational_since_s = now_s
         elif self._nmt is NmtState.OPERATIONAL or state is NmtState.STOPPED:
             self._lose_pdos()  # STOPPED: no SDO either, the drive could not be commanded at all
         self._nmt = state
 
     def _lose_pdos(self) -> None:
-        """The PDOs stop: buffered RPDO data are dropped, and a drive that was being commanded stops."""
+        """The PDOs stop: buffered RPDO data are dropped, and a drive that was being commanded stops.
+
+        At once, whatever 0x6007 says: an NMT command comes from a master that is there (ours sends
+        torque off before it), so this is no loss of the master to soften with a ramp.
+        """
         self._rpdo_pending.clear()
         self._tpdo_last.clear()
         if self._power in _COMMANDED_STATES:
             self._power = PowerState.SWITCH_ON_DISABLED
+            self._ramp = None
 
     def _restart_communication(self, now_s: float) -> None:
         """Reset communication: 0x1000-0x1FFF to factory, communication faults gone, boot-up, PRE-OPERATIONAL."""
@@ -706,6 +796,11 @@ class SimulatedSeaDrive:
         self._heard_s.clear()
         self._consumer_set_s = now_s
         self._consumer_lost = False
+        self._rpdo_deadline_lost = False
+        if self._communication_errors:
+            self._communication_errors.clear()  # communication faults are gone with a reset communication
+            if not self._fault_register:
+                self._values[(obj.ERROR_CODE, 0)] = ERROR_RESET
         self._pdo_length_error = False
         self._heartbeat_stopped = False
         self._pdo_frozen = False
@@ -792,6 +887,9 @@ class SimulatedSeaDrive:
                 return
             self._clear_pdo_length_error(now_s)
             self._rpdo_heard_s[slot.comm] = now_s
+            if self._rpdo_deadline_lost:
+                self._rpdo_deadline_lost = False
+                self._master_back(ERROR_RPDO_TIMEOUT, now_s)
             writes = tuple(zip(codec.mapping.objects, values, strict=True))
             if transmission <= 240:
                 self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
@@ -835,26 +933,100 @@ class SimulatedSeaDrive:
         previous = int(self._get(obj.CONTROLWORD, 0))
         self._values[(obj.CONTROLWORD, 0)] = controlword
         state = device_next_state(self._power, controlword, previous)
-        if self._estop_pressed and state in _POWER_STAGE_STATES:
+        if self._power_cut and state in _POWER_STAGE_STATES:
             state = PowerState.SWITCH_ON_DISABLED  # safe torque off: the drive cannot leave SWITCH ON DISABLED
         fault_reset = self._power is PowerState.FAULT and state is not PowerState.FAULT
+        if state is PowerState.QUICK_STOP_ACTIVE and self._power is PowerState.OPERATION_ENABLED:
+            self._begin_stop(obj.QUICK_STOP_OPTION_CODE, now_s)  # transition 11
+        elif state is not self._power:
+            self._ramp = None  # disable voltage ends a quick stop at once (transition 12)
         self._power = state
         if fault_reset:
             self._values[(obj.ERROR_CODE, 0)] = ERROR_RESET
             self._fault_register = 0
             self._emcy(ERROR_RESET, now_s)
 
-    def _fault(self, code: int, register: int, now_s: float, emcy_length: int = 8) -> None:
-        """A fault: FAULT REACTION ACTIVE (unless already in FAULT), 0x603F and 0x1001 set, EMCY sent."""
-        if self._power is not PowerState.FAULT:
+    def _fault(self, code: int, register: int, now_s: float, emcy_length: int = 8, power_stage: bool = False) -> None:
+        """A fault: FAULT REACTION ACTIVE (unless already in FAULT), 0x603F and 0x1001 set, EMCY sent.
+
+        The reaction is 0x605E's (a ramp of the torque applied now, or none), except for a fault of
+        the power stage itself (``power_stage``), which ends the torque at once.
+        """
+        if power_stage:
+            self._ramp = None
+        if self._power is not PowerState.FAULT and self._power is not PowerState.FAULT_REACTION_ACTIVE:
+            if not power_stage:
+                self._begin_stop(obj.FAULT_REACTION_OPTION_CODE, now_s)
             self._power = PowerState.FAULT_REACTION_ACTIVE
         self._values[(obj.ERROR_CODE, 0)] = code
         self._fault_register |= register | _REGISTER_GENERIC
         self._emcy(code, now_s, emcy_length)
 
-    def _end_fault_reaction(self) -> None:
+    def _begin_stop(self, option_code: int, now_s: float) -> None:
+        """A quick stop or fault reaction begins: a torque ramp from what the power stage applies now, if the option code asks for one.
+
+        ``option_code`` is 0x605A or 0x605E: 1 (slow down on the slow-down ramp, the torque slope
+        0x6087) ramps; 0 (disable drive function, also a drive without the object) does not: the
+        state ends at the next step.
+        """
+        self._ramp = None
+        if self._option(option_code, obj.STOP_DISABLE_DRIVE) == obj.STOP_SLOW_DOWN_RAMP:
+            applied = self._applied_permille()
+            if applied != 0.0:
+                self._ramp = StopRamp(applied, now_s)
+
+    def _step_stop(self, now_s: float) -> None:
+        """A quick stop or fault reaction moves on to ``now_s``: its ramp, and the state it ends in once the ramp is over."""
+        if self._power not in _RAMPING_STATES:
+            return
+        ramp = self._ramp
+        if ramp is not None and not self._power_cut:
+            slope = int(self._get(obj.TORQUE_SLOPE, 0)) if self._exists(obj.TORQUE_SLOPE, 0) else 0
+            if ramp.step(now_s, slope) != 0.0:
+                return
+        self._ramp = None
         if self._power is PowerState.FAULT_REACTION_ACTIVE:
             self._power = PowerState.FAULT
+        else:
+            self._power = PowerState.SWITCH_ON_DISABLED  # the quick stop is over: transition 12
+
+    def _option(self, index: int, absent: int) -> int:
+        """The value of an option code (0x6007, 0x605A, 0x605E); ``absent`` for a drive whose EDS has no such object."""
+        return int(self._get(index, 0)) if self._exists(index, 0) else absent
+
+    def _lose_master(self, code: int, now_s: float) -> None:
+        """The master is lost (its heartbeat, or the RPDOs' deadline): the EMCY, then what 0x6007 says.
+
+        1 fault signal: a fault (its reaction is 0x605E's). 2 disable voltage: SWITCH ON DISABLED at
+        once. 3 quick stop: QUICK STOP ACTIVE from OPERATION ENABLED (ended as 0x605A says), SWITCH
+        ON DISABLED from the states before it. Without a fault the error stays reported until the
+        master is back (:meth:`_master_back`).
+        """
+        action = self._option(obj.ABORT_CONNECTION_OPTION_CODE, obj.ABORT_FAULT_SIGNAL)
+        if action == obj.ABORT_FAULT_SIGNAL:
+            self._fault(code, _REGISTER_COMMUNICATION, now_s)
+            return
+        self._communication_errors.add(code)
+        self._values[(obj.ERROR_CODE, 0)] = code
+        self._emcy(code, now_s)
+        if self._power is PowerState.OPERATION_ENABLED and action == obj.ABORT_QUICK_STOP:
+            self._begin_stop(obj.QUICK_STOP_OPTION_CODE, now_s)
+            self._power = PowerState.QUICK_STOP_ACTIVE
+        elif self._power in _POWER_STAGE_STATES and self._power is not PowerState.QUICK_STOP_ACTIVE:
+            self._power = PowerState.SWITCH_ON_DISABLED  # disable voltage (or a quick stop before OPERATION ENABLED)
+            self._ramp = None
+        elif self._power is PowerState.QUICK_STOP_ACTIVE and action == obj.ABORT_DISABLE_VOLTAGE:
+            self._power = PowerState.SWITCH_ON_DISABLED
+            self._ramp = None
+
+    def _master_back(self, code: int, now_s: float) -> None:
+        """The cause of a loss of the master without a fault is gone: the last one gone sends the EMCY error reset."""
+        if code not in self._communication_errors:
+            return
+        self._communication_errors.discard(code)
+        if not self._communication_errors and not self._fault_register:
+            self._values[(obj.ERROR_CODE, 0)] = ERROR_RESET
+            self._emcy(ERROR_RESET, now_s)
 
     def _report_pdo_length_error(self, now_s: float) -> None:
         """An RPDO of the wrong length: not processed; EMCY 0x8210 once, until a good one arrives."""
@@ -903,6 +1075,7 @@ class SimulatedSeaDrive:
         self._heard_s[node_id] = now_s
         if node_id == (int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1)) >> 16) & 0x7F:
             self._consumer_lost = False
+            self._master_back(ERROR_HEARTBEAT, now_s)
 
     def _check_consumer(self, now_s: float) -> None:
         """The heartbeat consumer: a fault when the consumed node is silent too long while OPERATIONAL.
@@ -918,7 +1091,7 @@ class SimulatedSeaDrive:
         silent_s = now_s - max(heard, self._consumer_set_s)
         if self._nmt is NmtState.OPERATIONAL and silent_s > time_ms / 1000.0 + _TIME_EPS_S:
             self._consumer_lost = True
-            self._fault(ERROR_HEARTBEAT, _REGISTER_COMMUNICATION, now_s)
+            self._lose_master(ERROR_HEARTBEAT, now_s)
 
     # ------------------------------------------------------------------ the bus
 

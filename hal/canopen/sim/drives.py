@@ -6,13 +6,25 @@ copies instead of 5 x 4 + 13 x 4). :meth:`SimulatedDriveSet.step` processes the 
 arrived since the last call in bus order; a SYNC is where time passes::
 
     SYNC: every drive applies the RPDOs received since the previous SYNC and samples its joint
-          (q, theta and the spring torque of the plant's readings now, the e-stop inputs) into
-          its TPDOs; the plant then runs one tick with the torques the drives' power stages apply
+          (q, theta and the spring torque of the plant's readings now, the e-stop buttons, the
+          safe torque off input) into its TPDOs; the plant then runs one tick with the torques
+          the drives' power stages apply
 
 so a TPDO carries the state at the SYNC that triggered it, and a target torque acts from the
 SYNC after the RPDO that carried it (CiA 402 cyclic synchronous torque). The plant is a
-:class:`hal.sim.backend.SimHal` (physics, sensors, pilot, e-stop buttons) whose encoders are not
-quantised: the drives quantise, in the units of their EDS. Robot time is the plant's.
+:class:`hal.sim.backend.SimHal` (physics, sensors, pilot, e-stop buttons, the e-stop circuit)
+whose encoders are not quantised: the drives quantise, in the units of their EDS. Robot time is
+the plant's.
+
+The e-stop: the buttons reach every drive's statusword bits 14 and 15 at once; the drives' safe
+torque off input is the plant's ``power_cut`` (the robot's ``estop.wiring``: ``sto`` cuts at the
+press, ``ss1`` after the safety relay's delay, during which the drives keep their power). The
+plant decides the cut when it runs a tick, so a drive sees it at the SYNC after the tick in
+which it happened, and is switched off right after that tick (its applied torque then is what
+the plant applied: none); its statusword shows it from the next SYNC.
+
+:meth:`SimulatedDriveSet.tick_without_sync` lets the world go on while no SYNC comes (a master
+that went silent): the drives' timers, their stop ramps and the physics, one period at a time.
 
 In lock-step the master calls :meth:`step` after it sent its frames (no thread, one fixed order:
 the run is deterministic).
@@ -21,7 +33,7 @@ the run is deterministic).
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import can
 import numpy as np
@@ -48,6 +60,7 @@ class SimulatedDriveSet:
         node_ids: the node id of the drive of joints 1-4.
         dictionary: the drives' EDS.
         master_node_id: the node id whose heartbeat the drives consume.
+        dictionaries: node id -> another EDS that drive is built from (a drive of another firmware).
     """
 
     def __init__(
@@ -57,11 +70,13 @@ class SimulatedDriveSet:
         node_ids: tuple[int, ...],
         dictionary: DriveDictionary,
         master_node_id: int,
+        dictionaries: Mapping[int, DriveDictionary] | None = None,
     ) -> None:
         self.bus = bus
         self.plant = plant
         self.dictionary = dictionary
-        self.drives = [SimulatedSeaDrive(n, dictionary, self._send, master_node_id) for n in node_ids]
+        own = dict(dictionaries or {})
+        self.drives = [SimulatedSeaDrive(n, own.get(n, dictionary), self._send, master_node_id) for n in node_ids]
         self._by_node = {d.node_id: d for d in self.drives}
         self._torques = np.zeros(N_JOINTS)
         self._scheduled: list[tuple[float, str, int, float | None]] = []
@@ -196,21 +211,62 @@ class SimulatedDriveSet:
     def _sync(self) -> None:
         now = self.t_s
         self._inject_due(now)
+        plant = self.plant
+        sample = plant.read_without_faults()
+        operator, pilot = sample.estop[0], sample.estop[1]
+        cut = plant.power_cut
+        q, theta, tau = sample.q_rad, sample.theta_rad, sample.tau_nm
+        for j, drive in enumerate(self.drives):
+            drive.on_sync(float(q[j]), float(theta[j]), float(tau[j]), operator, pilot, now, cut)
+        self.syncs += 1
+        self._plant_tick(operator, pilot)
+
+    def tick_without_sync(self) -> None:
+        """One SYNC period of robot time without a SYNC: the master went silent, the world did not.
+
+        What arrived on the bus is processed first (nothing, from a silent master); then the
+        drives read their hardwired inputs, their stop ramps and power stages act on the plant for
+        one tick, and their timers run (the master's heartbeat, the RPDO deadline: what makes them
+        stop by themselves). They send no TPDO (no SYNC) but their heartbeats and EMCYs.
+
+        Raises:
+            HalError: the plant failed (diverged).
+        """
+        self.step()
+        now = self.t_s
+        self._inject_due(now)
         sample = self.plant.read_without_faults()
         operator, pilot = sample.estop[0], sample.estop[1]
-        q, theta, tau = sample.q_rad, sample.theta_rad, sample.tau_nm
+        cut = self.plant.power_cut
+        for drive in self.drives:
+            drive.on_inputs(operator, pilot, cut, now)
+        self._plant_tick(operator, pilot)
+
+    def _plant_tick(self, operator: bool, pilot: bool) -> None:
+        """The plant runs one tick with the torques the drives' power stages apply; then the drives' time moves on.
+
+        The plant decides in its tick whether the e-stop circuit cut the power (at the press with
+        sto, once the relay's delay ran out with ss1): a drive whose supply went in that tick is
+        off right after it, before its timers run.
+
+        Raises:
+            HalError: the plant failed (diverged).
+        """
         torques = self._torques
         enable = False
         for j, drive in enumerate(self.drives):
-            drive.on_sync(float(q[j]), float(theta[j]), float(tau[j]), operator, pilot, now)
             torques[j] = drive.applied_torque_nm
             enable = enable or torques[j] != 0.0
-        self.syncs += 1
+        plant = self.plant
         try:
-            self.plant.write(Command(torques.copy(), enable))
+            plant.write(Command(torques.copy(), enable))
         except HalError as exc:
             raise HalError(f"simulated plant behind the CAN drives: {exc}") from None
         now = self.t_s
+        if plant.power_cut:
+            for drive in self.drives:
+                if not drive.power_cut:
+                    drive.on_inputs(operator, pilot, True, now)
         for drive in self.drives:
             drive.advance(now)
 

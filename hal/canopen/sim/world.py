@@ -98,3 +98,9 @@ class CanSimWorld:
 
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         return self._plant.support_torques()
+
+    def place_rest_support(self) -> int:
+        return self._plant.place_rest_support()
+
+    def remove_rest_support(self) -> None:
+        self._plant.remove_rest_support()
