@@ -442,3 +442,114 @@ def test_a_fault_that_recurs_in_fail_needs_a_new_acknowledgement() -> None:
     assert not ticket.response.accepted
     assert ticket.response.unmet == ("fault_acknowledged",)
     assert machine.state == FAIL
+
+
+# --- with the fault reactions the spec declares (issue 23) -------------------------------------------
+
+_RANK = {"hold": 0, "lower": 1, "off": 2}
+#: The reactions the runs saw hold the arm (state the reaction began in, joints off): they must see some.
+HELD: set[tuple[str, tuple[int, ...]]] = set()
+
+
+class FsmWithReactions(FsmInTheTick):
+    """The same machine with the session's safe stop: faults are met with the spec's reactions.
+
+    Invariants added to issue 4's (which they replace where a reaction now holds the arm):
+
+    * while a fault is latched or an e-stop pressed, torque passes only while a reaction holds the arm
+      (an e-stop on the DAROR-01's wiring, safe torque off: never), within the limit of the state the
+      reaction began in, and the joint of every drive or sensor fault has its drive disabled;
+    * a reaction only gets stricter while it lasts (off > lower > hold; joints once off stay off);
+    * FAIL is left only once the arm is released (no reaction holds it).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        from daror_runtime.control.position import LinkBounds
+        from daror_runtime.control.safe_stop import SafeStop
+        from daror_runtime.models.linear import APModel
+
+        a_priori = APModel.from_description(DESCRIPTION, False, False)
+        stop = SafeStop(DESCRIPTION, LinkBounds.from_description(DESCRIPTION), 1e-3, a_priori)
+        self.supervisor = FsmSupervisor(
+            SPEC,
+            self.monitor,
+            SafetyLimits.from_description(DESCRIPTION),
+            self.supervisor.controllers,
+            self.signals,
+            isb_function=lambda limits: monitor_isb_function(SHOULDER, limits),
+            safe_stop=stop,
+        )
+        self.loop = ControlLoop(self.hal, self.monitor, self.supervisor, LockStepClock(1e-3))
+        self.loop.start()
+        self.previous_plan: object = None
+
+    @rule(kind=st.sampled_from(["drive", "nan"]))
+    def fault_appears(self, kind: str) -> None:
+        source = self.state
+        COVERED.add((source, "fault"))
+        already = self.hal.drive_fault if kind == "drive" else self.hal.nan
+        setattr(self.hal, "drive_fault" if kind == "drive" else "nan", True)
+        self.tick()
+        if not already:
+            self.check_new_fault(source, "a fault")
+
+    @rule()
+    def fault_recurs(self) -> None:
+        self.faults_clear()
+        self.fault_appears("drive")
+
+    @invariant()
+    def torque_follows_the_state(self) -> None:
+        result = self.last
+        if result is None:
+            return
+        command = result.command
+        pressed = result.sample is not None and True in result.sample.estop
+        plan = self.supervisor.reaction
+        if pressed:
+            assert command.enable is False, "the e-stop's buttons cut the power (sto): torque off"
+        if not (self.state == FAIL or pressed or self.monitor.faulted):
+            if command.enable:
+                state = self.supervisor.state
+                assert isinstance(state, StateSpec)
+                assert np.all(np.abs(command.motor_torque_nm) <= state.limits.torque_nm + 1e-12)
+            return
+        if not self.supervisor.reaction_running:
+            assert command.enable is False, (self.state, command, plan)
+            return
+        assert plan is not None and plan.holds
+        assert command.enable is True
+        HELD.add((self.supervisor._reaction_state.name, command.joints_off))
+        untrusted = {f.joint for f in self.monitor.latched if f.kind.value in ("drive", "not_finite")}
+        assert untrusted <= set(command.joints_off), (untrusted, command.joints_off)
+        started_in = self.supervisor._reaction_state
+        assert np.all(np.abs(command.motor_torque_nm) <= started_in.limits.torque_nm + 1e-12)
+
+    @invariant()
+    def reactions_only_get_stricter(self) -> None:
+        plan = self.supervisor.reaction
+        previous = self.previous_plan
+        if plan is not None and previous is not None:
+            assert _RANK[plan.reaction] >= _RANK[previous.reaction], (previous, plan)  # type: ignore[attr-defined]
+            assert set(previous.joints_off) <= set(plan.joints_off)  # type: ignore[attr-defined]
+        self.previous_plan = plan
+
+    @invariant()
+    def fail_is_left_only_with_the_arm_released(self) -> None:
+        if self.state == FIRST and self.supervisor.transitions and self.signals.arm_held:
+            raise AssertionError("a reset left FAIL while a reaction held the arm")
+
+
+class RandomStartWithReactions(FsmWithReactions):
+    @initialize(pair=st.sampled_from(sorted(PAIRS)), button=st.sampled_from([0, 1]))
+    def start(self, pair: tuple[str, str], button: int) -> None:
+        self.begin(pair, button)
+
+
+def test_random_sessions_with_fault_reactions_keep_the_rules() -> None:
+    HELD.clear()
+    run_state_machine_as_test(RandomStartWithReactions, settings=_settings(100))
+    # the runs met faults the safe stop held the arm through, with the faulted joint off
+    assert any(off for _, off in HELD), HELD
+    assert len({state for state, _ in HELD}) >= 3, HELD

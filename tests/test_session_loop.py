@@ -962,21 +962,28 @@ def test_fail_is_not_left_while_the_condition_persists(session_in_settings: Sess
     assert session.state == FAIL
 
 
-def test_acknowledging_an_overrun_in_a_test_state_keeps_torque_off_while_it_persists(
+def test_acknowledging_an_overrun_in_a_test_state_keeps_its_reaction_while_it_persists(
     tmp_path: Path, model_files: ModelFiles
 ) -> None:
+    """An overrun in safety_check: the spec's reaction (lower) holds the arm; acknowledging while the loop still
+    overruns does not hand the robot back to the state's own controller."""
     session = Session(tmp_path / "session", model_files)
     try:
         session.walk_to("safety_check")
+        before = session.runtime._core.signals.sample
         session.clock.overrunning = True
-        result, _ = provoke(session, Overrun(session))
+        result, new = provoke(session, Overrun(session))
         assert session.state == "safety_check"
-        assert torque_off(result, session.hal)
+        reaction, off = expected_reaction(SPEC.state("safety_check"), new, (result.sample or before).drives)
+        assert_reaction(result, session.hal, reaction, off)
         ticket = session.runtime.acknowledge()
         written = [session.tick() for _ in range(5)]
         assert ticket.response is not None
         assert ticket.response.accepted
-        assert [r.command.enable for r in written] == [False] * 5  # the loop still overruns
+        for r in written:  # the loop still overruns: still the reaction, not minimal impedance
+            assert_reaction(r, session.hal, reaction, off)
+        assert session.runtime._core.supervisor.reaction is not None
+        assert session.runtime._core.supervisor.controller is not session.runtime._core.modes.minimal_impedance
     finally:
         session.clock.overrunning = False
         session.close()

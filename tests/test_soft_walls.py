@@ -682,3 +682,28 @@ def test_limp_arm_rising_behind_the_body_stays_below_the_free_elevation(
     assert below_deg > 2.5
     assert drift.speed_rad_s.max() < 0.2
     assert np.abs(drift.wall_nm).max() < DEFAULT_MAX_TORQUE_NM
+
+
+def test_a_recorded_range_that_starts_at_the_hanging_arm_has_no_wall_under_it() -> None:
+    """A range of motion recorded from the hanging arm starts at an elevation of ~0.001 deg: a wall there would push
+    the arm resting by the pilot's side up (the demo's rehearsal measured 0.6-1.0 Nm the relaxed pilot had to hold
+    against it). Only a lower elevation limit beyond the onset gets a wall."""
+    description = load_description()
+    shoulder = default_shoulder()
+    walls = SoftWalls(description, shoulder)
+    recorded = IsbLimits(
+        elevation=AngleRange(lower_deg=0.00125, upper_deg=91.4),
+        horizontal_rotation=AngleRange(lower_deg=27.0, upper_deg=153.5),
+        axial_rotation=AngleRange(lower_deg=-50.9, upper_deg=41.1),
+        elbow=AngleRange(lower_deg=9.2, upper_deg=110.8),
+    )
+    walls.set_limits(recorded)
+    out = np.zeros(4)
+    hanging = shoulder.q_from_isb(np.deg2rad([0.4, -105.4, 0.2, 29.7]))
+    assert not walls.torque(hanging, np.zeros(4), out)
+    np.testing.assert_array_equal(out, 0.0)
+    # a shoulder that cannot hang straight (its range starts at 20 deg) gets the wall: pushed up at 15 deg
+    walls.set_limits(recorded.model_copy(update={"elevation": AngleRange(lower_deg=20.0, upper_deg=91.4)}))
+    low = shoulder.q_from_isb(np.deg2rad([15.0, 60.0, 0.0, 30.0]))
+    assert walls.torque(low, np.zeros(4), out)
+    assert np.any(out != 0.0)

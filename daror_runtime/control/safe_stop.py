@@ -52,6 +52,8 @@ __all__ = ["DEFAULT_HANDOFF_MOTION_RAD", "DEFAULT_HANDOFF_S", "DEFAULT_HOLD_S", 
 
 #: How long the arm is held where the fault found it before it is lowered (s).
 DEFAULT_HOLD_S = 2.0
+#: How long an e-stop's safe stop 1 holds the arm before it lowers it (s): its bound leaves little time.
+E_STOP_HOLD_S = 0.5
 #: How long the torque takes to ramp down onto the arm's rest (s).
 DEFAULT_HANDOFF_S = 2.0
 #: Motion of a driven joint during the handoff (rad) that shows nothing carries the arm at the rest pose.
@@ -200,6 +202,7 @@ class SafeStop:
         self.lowers = False  # a lower reaction: the path follows the hold
         self._model: CompensationModel = a_priori
         self._deadline_s = math.inf  # robot time by which the torque must have ramped to zero
+        self._hold_s = hold_s  # this reaction's hold (shorter under an e-stop's bound, none once the operator asked)
         self._t0_s = 0.0  # robot time of the reset
         self._weight = 1.0  # share of the PD's torque commanded (letting go, releasing)
         self._ramp_per_s = 1.0 / handoff_s
@@ -225,6 +228,8 @@ class SafeStop:
         self.joints_off = joints_off
         self._model = model if model is not None else self.a_priori
         self._deadline_s = deadline_s
+        # An e-stop's safe stop 1 has a bound: the arm is held only briefly before it is lowered.
+        self._hold_s = self.hold_s if math.isinf(deadline_s) else min(self.hold_s, E_STOP_HOLD_S)
         self._taken_over = False
         if last_finite_q_rad is not None:
             self._last_finite_q[:] = last_finite_q_rad
@@ -309,7 +314,7 @@ class SafeStop:
             self._reference.hold(self.hold_pose_rad)
             self.phase = SafeStopPhase.HOLD
             self.note = ""
-            self.hold_s = 0.0
+            self._hold_s = 0.0  # the operator asked: no need to wait
 
     def release(self) -> None:
         """The operator releases the arm to someone holding it: the torque ramps to zero, no motion check."""
@@ -346,7 +351,7 @@ class SafeStop:
             # An e-stop's bound: the torque has ramped to zero by the deadline, wherever the arm is.
             phase = self.phase = SafeStopPhase.RELEASING
             self.note = "the e-stop's bound ran out: the torque ramped to zero before the relay cuts the power"
-        if phase is SafeStopPhase.HOLD and reference.path is not None and t >= self.hold_s:
+        if phase is SafeStopPhase.HOLD and reference.path is not None and t >= self._hold_s:
             reference.path_start_s = t
             phase = self.phase = SafeStopPhase.LOWER
         if phase is SafeStopPhase.LOWER and t >= reference.path_start_s + reference.path.duration_s:  # type: ignore[union-attr]

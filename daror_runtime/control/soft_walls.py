@@ -25,8 +25,9 @@ The walls:
   (``dS/dq_j = [w_j]x S`` for the shoulder rotation ``S`` in thorax coordinates and ``w_j`` joint
   ``j``'s axis there), computed only when an ISB wall is near:
 
-  - elevation: the upper limit; the lower limit only when it is above 0 (elevation is >= 0 by
-    definition: a wall at a lower limit of 0 would push a hanging arm up);
+  - elevation: the upper limit; the lower limit only when it is above the onset (elevation is >= 0
+    by definition, and a recorded range starts at the hanging arm, 0.001 deg: a wall there would push
+    an arm resting by the pilot's side up);
   - axial rotation: both limits, as angular distances (wrapping at +-180 deg); elbow: both limits;
   - horizontal rotation, limited only at or above ``e_free = horizontal_free_below_deg`` of
     elevation: the forbidden region ``{e >= e_free, h outside [h_lo, h_hi]}``. Its distance is
@@ -521,7 +522,10 @@ class SoftWalls:
         if isb is None:
             p[_ISB_ON] = 0.0
         else:
-            p[_E_LO_ON] = 1.0 if isb.elevation.lower_rad > 0.0 else 0.0
+            # A lower elevation limit within the onset of 0 is the hanging arm's (a recorded range starts at
+            # 0.001 deg): a wall there would push an arm resting by the pilot's side up. Only a limit clear of
+            # the pole (a shoulder that cannot hang straight) gets a wall.
+            p[_E_LO_ON] = 1.0 if isb.elevation.lower_rad > p[_ONSET] else 0.0
             p[_E_LO] = isb.elevation.lower_rad
             p[_E_HI] = isb.elevation.upper_rad
             a_lo, a_hi = isb.axial_rotation.lower_rad, isb.axial_rotation.upper_rad

@@ -1,0 +1,304 @@
+"""Fault reactions (issue 23): what they cost in the tick, and what each fault does to a limp arm.
+
+* The session's tick in compensation (the common path: no fault, the soft walls far away): the whole
+  ``ControlLoop.tick`` of a lock-step session with the simulated pilot, as the operator's session runs
+  it. The reactions must not make it dearer (docs/performance.md compares it with the code before).
+* ``Compensation.update`` with the soft walls: far from every wall (the common case) and inside an
+  ISB wall (the walls' gradient computed every tick); target 12 us, as compensation's.
+* ``SafeStop.update``: holding, and following a lowering path.
+* Per fault kind, in compensation, the pilot limp with his arm raised (40 deg forward, elbow 70 deg),
+  nothing under the arm: the reaction, the largest displacement of any joint in the 3 s after the
+  fault and its peak speed. The table of docs/safety.md ("Fault reactions, measured").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daror_runtime.bench import BenchFigure, time_calls
+from daror_runtime.control import Compensation, SeaTorqueController
+from daror_runtime.control.position import LinkBounds
+from daror_runtime.control.safe_stop import SafeStop
+from daror_runtime.control.soft_walls import SoftWalls
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.logs import configure_logging
+from daror_runtime.models.linear import APModel, fit_plf_plus
+from daror_runtime.runtime import Runtime
+from daror_runtime.safety.faults import FaultKind
+from daror_runtime.safety.lowering import plan_lowering
+from daror_runtime.session.settings import SessionSettings
+from hal.interface import DriveState, Sample
+from hal.isb import IsbLimits, default_shoulder
+from hal.robot import load_description
+from hal.sim.backend import SimHal
+from hal.sim.scenario import load_scenario
+from hal.sim.static_dataset import generate_stationary
+
+TICK_S = 1e-3
+POSE_ISB_DEG = (40.0, 60.0, 0.0, 70.0)
+
+
+def _plf_plus() -> Any:
+    description = load_description()
+    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
+    return fit_plf_plus(StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description).model
+
+
+def _samples_at(q0: np.ndarray, count: int = 1000) -> list[Sample]:
+    rng = np.random.default_rng(7)
+    out = []
+    for i in range(count):
+        q = q0 + rng.normal(0.0, 1e-3, 4)
+        tau = np.round(rng.normal(1.0, 0.05, 4) / 0.0289) * 0.0289
+        out.append(
+            Sample(i, i * TICK_S, q, rng.normal(0.0, 0.01, 4), q + tau / 289.0, tau, (False, False),
+                   (DriveState.ENABLED,) * 4)
+        )  # fmt: skip
+    return out
+
+
+def _time_update(controller: Any, samples: list[Sample], quick: bool) -> tuple[float, float, int]:
+    controller.reset(samples[0])
+    state = {"i": 0}
+
+    def one() -> None:
+        state["i"] = (state["i"] + 1) % len(samples)
+        controller.update(samples[state["i"]], TICK_S)
+
+    repeats = 20 if quick else 200
+    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    return median, p90, repeats
+
+
+def _compensation_with_walls(near: bool, quick: bool) -> BenchFigure:
+    description = load_description()
+    shoulder = default_shoulder()
+    walls = SoftWalls(description, shoulder)
+    walls.set_limits(IsbLimits())
+    # far: the middle of the range; near: the elbow 3 deg inside its recorded limit (5 deg), in its wall
+    isb = (30.0, 60.0, 0.0, 8.0 if near else 60.0)
+    q0 = shoulder.q_from_isb(np.deg2rad(isb))
+    controller = Compensation(SeaTorqueController(description.sea), _plf_plus(), 0.8, None, walls=walls)
+    samples = _samples_at(q0)
+    out = np.zeros(4)
+    assert walls.torque(samples[0].q_rad, samples[0].dq_rad_s, out) == near
+    median, p90, repeats = _time_update(controller, samples, quick)
+    where = "inside the elbow's wall (ISB gradient every tick)" if near else "far from every wall (the common case)"
+    return BenchFigure(f"Compensation(PLF+) with soft walls, {where}", median, p90, "us", repeats, 12.0)
+
+
+def bench_compensation_walls_far(quick: bool) -> BenchFigure:
+    return _compensation_with_walls(False, quick)
+
+
+def bench_compensation_walls_near(quick: bool) -> BenchFigure:
+    return _compensation_with_walls(True, quick)
+
+
+def _safe_stop(lowering: bool, quick: bool) -> BenchFigure:
+    description = load_description()
+    shoulder = default_shoulder()
+    a_priori = APModel.from_description(description, True, True)
+    stop = SafeStop(description, LinkBounds.from_description(description), TICK_S, a_priori, hold_s=0.0)
+    q0 = shoulder.q_from_isb(np.deg2rad(POSE_ISB_DEG))
+    samples = _samples_at(q0)
+    stop.arm(lowering, (), _plf_plus())
+    stop.reset(samples[0])
+    if lowering:
+        rest = shoulder.q_from_isb(np.deg2rad((0.0, 0.0, 0.0, 30.0)))
+        stop.install_path(plan_lowering(stop.hold_pose_rad, rest, shoulder))
+    state = {"i": 0}
+
+    def one() -> None:
+        state["i"] = (state["i"] + 1) % len(samples)
+        stop.update(samples[state["i"]], TICK_S)
+
+    repeats = 20 if quick else 200
+    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    what = "following a lowering path" if lowering else "holding the pose"
+    return BenchFigure(f"SafeStop.update, {what}", median, p90, "us", repeats, 20.0, note="PLF+ support along the path")
+
+
+def bench_safe_stop_hold(quick: bool) -> BenchFigure:
+    return _safe_stop(False, quick)
+
+
+def bench_safe_stop_lower(quick: bool) -> BenchFigure:
+    return _safe_stop(True, quick)
+
+
+def _session_in_compensation(directory: Path) -> tuple[Runtime, SimHal]:
+    """A lock-step session walked to compensation with a validated PLF+ model, the pilot limp, the arm raised."""
+    from daror_runtime.console.world import SimWorld
+    from daror_runtime.data.load import write_dataset
+    from daror_runtime.models.files import save_model, training_summary
+    from daror_runtime.models.registry import fit_model, installation_options
+
+    scenario = load_scenario("exo_dummy_arm")
+    points = generate_stationary(scenario, "training")
+    train = StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s)
+    held_out = generate_stationary(scenario, "validation")
+    validation = directory / "validation.csv"
+    write_dataset(validation, StationaryDataset(held_out.q_rad, held_out.tau_nm, held_out.direction, held_out.t_s))
+    model = directory / "plf_plus.json"
+    fitted = fit_model("plf+", train, scenario.description(), installation_options("plf+", dummy_arm=True))
+    save_model(model, fitted.model, training_summary(train, None), fitted.report)
+
+    hal = SimHal(scenario)
+    runtime = Runtime(hal, directory / "session", settings=SessionSettings(dummy_arm=True))
+    runtime.open()
+    world = SimWorld(hal.world)
+    runtime.run_ticks(1)
+    runtime.select_model(model, validation)
+    runtime.run_until(lambda: not runtime.busy, 2.0)
+
+    def press(button: str) -> None:
+        world.estop(button, True)
+        runtime.pass_time(0.05)
+        world.estop(button, False)
+        runtime.pass_time(0.2)
+
+    steps = {
+        "safety_check": lambda: (press("operator"), press("pilot")),
+        "settings": lambda: runtime.wait(runtime.confirm("settings")),
+        "pilot_installation": lambda: runtime.wait(runtime.confirm("installation")),
+        "safety_experience": lambda: (press("pilot"), runtime.wait(runtime.confirm("safety_experience"))),
+        "rom_limits": lambda: runtime.wait(runtime.set_isb_limits(IsbLimits())),
+        "operative_check": lambda: press("operator"),
+    }
+    while runtime.state_name != "compensation":
+        steps.get(runtime.state_name, lambda: runtime.run_until(lambda: runtime.at_rest, 5.0))()
+        runtime.wait(runtime.advance())
+        runtime.pass_time(0.3)
+    shoulder = default_shoulder()
+    end = world.pilot_move(shoulder.q_from_isb(np.deg2rad(POSE_ISB_DEG), seed=hal.truth().q_rad))
+    runtime.pass_time(end - hal.time_s + 1.0)
+    world.pilot_carries(0.0)
+    world.pilot_stiffness(0.0)
+    runtime.pass_time(2.0)
+    return runtime, hal
+
+
+def bench_session_tick_in_compensation(quick: bool) -> BenchFigure:
+    """The whole tick of a lock-step session in compensation (pilot limp, no fault, far from the walls)."""
+    configure_logging("critical")
+    with tempfile.TemporaryDirectory() as directory:
+        runtime, _ = _session_in_compensation(Path(directory))
+        tick = runtime._core.loop.tick
+        repeats = 10 if quick else 60
+        median, p90 = time_calls(tick, repeats=repeats, per_call=500, scale=1e6)
+        runtime.close()
+    return BenchFigure(
+        "session tick in compensation (ControlLoop.tick: HAL, monitor, FSM, Compensation with walls, pilot)",
+        median, p90, "us", repeats, note="lock-step; the simulated pilot's torque every tick",
+    )  # fmt: skip
+
+
+def _provoke(runtime: Runtime, hal: SimHal, kind: FaultKind) -> None:
+    """As tests/test_fault_reactions.py provokes each kind (a narrowed limit where the monitor must see a reading)."""
+    core = runtime._core
+    monitor = core.monitor
+    limits = monitor.limits
+    sample = runtime.last_sample
+    assert sample is not None
+    if kind == FaultKind.ESTOP:
+        hal.press_estop(0, True)
+    elif kind == FaultKind.STALE:
+        hal.inject_fault("stale", None, 5000)
+    elif kind == FaultKind.HAL:
+        hal.inject_fault("bus")
+    elif kind == FaultKind.DRIVE:
+        hal.inject_fault("drive_fault", 2)
+    elif kind == FaultKind.NOT_FINITE:
+        hal.inject_fault("nan", 3)
+    elif kind == FaultKind.JUMP:
+        hal.inject_fault("jump", 1, 0.1)
+    elif kind == FaultKind.TORQUE:
+        limit = np.array(limits.max_spring_torque_nm, dtype=float)
+        limit[1] = abs(float(sample.tau_nm[1])) * 0.5
+        monitor.set_limits(dataclasses.replace(limits, max_spring_torque_nm=limit))
+    elif kind == FaultKind.DEFLECTION:
+        deflection = np.sort(np.abs(np.asarray(sample.theta_rad) - np.asarray(sample.q_rad)))
+        monitor.set_limits(
+            dataclasses.replace(limits, max_deflection_rad=float(0.5 * (deflection[-2] + deflection[-1])))
+        )
+    elif kind == FaultKind.VELOCITY:
+        speed = np.array(limits.max_velocity_rad_s, dtype=float)
+        speed[3] = 1e-9
+        monitor.set_limits(dataclasses.replace(limits, max_velocity_rad_s=speed))
+    elif kind == FaultKind.JOINT_LIMIT:
+        upper = np.array(limits.joint_upper_rad, dtype=float)
+        upper[3] = float(sample.q_rad[3]) - 0.02
+        monitor.set_limits(dataclasses.replace(limits, joint_upper_rad=upper))
+    elif kind == FaultKind.ISB_LIMIT:
+        from hal.isb import AngleRange
+
+        elbow = float(np.degrees(sample.q_rad[3]))
+        monitor.set_limits(limits.with_isb(IsbLimits(elbow=AngleRange(lower_deg=elbow - 40, upper_deg=elbow - 2)), 0.0))
+    elif kind == FaultKind.OVERRUN:
+        core.loop._report([], FaultKind.OVERRUN, "the loop stalled (bench)")
+        core.supervisor.on_late_faults(sample, monitor.latched)
+    else:
+        controller = core.supervisor.controller
+
+        def update(sample: Any, dt_s: float) -> Any:
+            raise ZeroDivisionError("division by zero (bench)")
+
+        controller.update = update
+        runtime.run_ticks(1)
+        del controller.update
+
+
+def _drop(kind: FaultKind) -> BenchFigure:
+    with tempfile.TemporaryDirectory() as directory:
+        runtime, hal = _session_in_compensation(Path(directory))
+        q0 = hal.truth().q_rad
+        _provoke(runtime, hal, kind)
+        q, dq = [], []
+
+        def row(result: Any) -> bool:
+            truth = hal.truth()
+            q.append(truth.q_rad)
+            dq.append(truth.dq_rad_s)
+            return False
+
+        runtime.run_ticks(3000, stop=row)
+        plan = runtime._core.supervisor.reaction
+        runtime.close()
+    moved = np.degrees(np.abs(np.array(q) - q0).max(axis=0))
+    speed = np.abs(np.array(dq)).max(axis=0)
+    reaction = (
+        "none" if plan is None else f"{plan.reaction}" + (f", joint {plan.joints_off} off" if plan.joints_off else "")
+    )
+    note = (
+        f"{reaction}; per joint: moved {', '.join(f'{m:.1f}' for m in moved)} deg, peak "
+        f"{', '.join(f'{v:.2f}' for v in speed)} rad/s"
+    )
+    # Lock-step and seeded: one run is the figure (median and p90 alike); the peak speed is in the note.
+    largest = float(moved.max())
+    return BenchFigure(f"{kind.value}: largest move in 3 s (limp arm, nothing under it)", largest, largest, "deg", 1,
+                       note=note)  # fmt: skip
+
+
+def _drop_bench(kind: FaultKind) -> Any:
+    def bench(quick: bool) -> BenchFigure:
+        configure_logging("critical")
+        return _drop(kind)
+
+    bench.__name__ = f"bench_drop_{kind.value}"
+    return bench
+
+
+BENCHMARKS = [
+    bench_compensation_walls_far,
+    bench_compensation_walls_near,
+    bench_safe_stop_hold,
+    bench_safe_stop_lower,
+    bench_session_tick_in_compensation,
+    *(_drop_bench(kind) for kind in FaultKind),
+]
