@@ -432,7 +432,8 @@ def test_a_limp_arm_drifting_with_a_model_error_stops_before_the_pilot_s_limit(
     biased = tmp_path / "biased.json"
     _save_biased(models, biased, elbow_nm=-0.25)
     rig.select(biased, models.validation)
-    assert rig.core.signals.model is not None and rig.core.signals.model.validated
+    assert rig.core.signals.model is not None
+    assert rig.core.signals.model.validated
     rig.walk_to("compensation")
     rig.pose_then_limp((20.0, 60.0, 0.0, 30.0), limp_s=0.5, lap=False)
     trace = record(rig, 20.0)

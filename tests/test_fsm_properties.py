@@ -518,7 +518,8 @@ class FsmWithReactions(FsmInTheTick):
         if not self.supervisor.reaction_running:
             assert command.enable is False, (self.state, command, plan)
             return
-        assert plan is not None and plan.holds
+        assert plan is not None
+        assert plan.holds
         assert command.enable is True
         HELD.add((self.supervisor._reaction_state.name, command.joints_off))
         untrusted = {f.joint for f in self.monitor.latched if f.kind.value in ("drive", "not_finite")}
