@@ -6,18 +6,19 @@ docs/loop.md::
     faults = safety.check(sample)            # limits, plausibility, staleness, e-stop, drives
     controller = supervisor.on_tick(...)     # the FSM applies requests and faults here (issue 4)
     command = controller.update(sample, dt)  # the controllers never touch hardware
-    command = safety.filter(command)         # torque off while faulted or an e-stop is pressed
+    command = safety.filter(command)         # only the torque the fault's reaction permits
     recorder.push(sample, command); hal.write(command)
 
 Rules kept here: nothing inside the tick blocks (the recorder hands blocks to a writer thread);
-every fault removes torque in the tick it is found (the filter runs after the faults of this
-tick are latched, and a HAL or software error is itself a fault); errors are never swallowed:
+every fault is acted on in the tick it is found (the supervisor puts the reaction the spec
+declares in force and runs its controller in the same tick; the filter runs after the faults of
+this tick are latched; a HAL or software error is itself a fault); errors are never swallowed:
 an exception from the controller or the recorder is reported as a ``software`` fault with its
-message, logged, and the loop goes on with torque off.
+message, logged, and the loop goes on under that fault's reaction.
 
 The overrun watchdog counts missed deadlines, not late wake-ups: ``overrun_limit`` deadlines
 missed in a row, or one stall that missed more than ``max_stall_periods`` deadlines at once, is an
-``overrun`` fault in the tick that finds it (the first tick after the stall), with torque off.
+``overrun`` fault in the tick that finds it (the first tick after the stall), met by its reaction.
 """
 
 from __future__ import annotations

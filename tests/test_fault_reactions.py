@@ -23,6 +23,7 @@ elbow beyond its range), as tests/test_session_loop.py does.
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,7 +31,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from rich.console import Console
 
+from daror_runtime.console.commands import CommandError, ConsoleSession, QuitRequested
 from daror_runtime.console.world import SimWorld
 from daror_runtime.control.safe_stop import SafeStopPhase
 from daror_runtime.fsm.spec import load_fsm_spec
@@ -371,6 +374,13 @@ def test_with_nothing_under_the_rest_pose_the_arm_is_held_there_until_someone_ta
     refusal = rig.runtime.wait(rig.runtime.lower_arm())  # lowering again would not help: it says so
     assert not refusal.accepted
     assert "release it once someone holds the arm" in refusal.reason
+    # quitting would take the torque off under the arm: the console refuses it, 'quit now' is the operator's word
+    console = ConsoleSession(rig.runtime, Console(file=io.StringIO(), color_system=None), rig.world)
+    with pytest.raises(CommandError, match="'quit now' ends the session anyway"):
+        console.execute("quit")
+    with pytest.raises(QuitRequested):
+        console.execute("quit now")
+    assert rig.runtime.arm_held  # the refused line and the parsed 'quit now' changed nothing on the robot yet
     rig.world.pilot_hold_here()  # the pilot (a helper) holds the arm where it is
     rig.world.pilot_stiffness(1.0)
     rig.world.pilot_carries(1.0)

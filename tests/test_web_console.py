@@ -344,6 +344,12 @@ class Page:
         self.js(f"document.getElementById('{element_id}').click()")
         self.until(lambda: self.js("return window.daror.answers") > answers, f"the answer to #{element_id}", 30.0)
 
+    def click_line(self, line: str) -> None:
+        """Click the button that posts ``line``."""
+        answers = self.js("return window.daror.answers")
+        self.driver.execute_script("document.querySelector(`button[data-line='${arguments[0]}']`).click()", line)
+        self.until(lambda: self.js("return window.daror.answers") > answers, f"the answer to {line!r}", 30.0)
+
     def type(self, element_id: str, text: str) -> None:
         self.driver.execute_script(
             "const f = document.getElementById(arguments[0]); f.value = arguments[1];"
@@ -479,12 +485,31 @@ def test_a_session_from_startup_to_compensation_by_clicking(
     second = Page(driver, server, shots)
     second.wait_state("compensation")
     second.until(lambda: "compensation" in second.text("log"), "the shared log in the second page")
-    # losing the browsers changes nothing on the robot
+    # the pilot relaxes and a fault follows (one failed read of the bus): FAIL, and the page shows the
+    # reaction the spec declares; the robot holds the arm, lowers it to the rest pose, finds nothing
+    # there to carry it (no rest support: the arm moves as the torque ramps down) and takes it back,
+    # so the page offers release (someone holds the arm), not lower
+    assert second.js("return document.getElementById('release-arm').disabled")
+    second.click_line("sim pilot carry 0")
+    second.type("line", "sim fault bus")
+    second.click("send")
+    second.wait_state("FAIL")
+    second.until(lambda: "hold, lower to the rest, torque off" in second.text("reaction"), "the reaction shown")
+    phase = "const p = document.getElementById('reaction-phase'); return p ? p.textContent : ''"
+    second.until(lambda: second.js(phase) == "held", "the arm held at its rest pose", 120.0)
+    assert second.js("return document.getElementById('lower-arm').disabled")
+    assert "nothing carries it there" in second.text("reaction-why")
+    assert not second.js("return document.getElementById('release-arm').disabled")
+    second.shot("web_console_reaction")
+    # losing the browsers changes nothing on the robot: it still holds the arm at its rest pose
     driver.close()
     driver.switch_to.window(first)
     driver.quit()
     time.sleep(1.0)
     status = runtime.snapshot()
-    assert status.state == "compensation"
-    assert status.faults == [], status.faults
+    assert status.state == "FAIL"
+    assert [fault["kind"] for fault in status.faults] == ["hal"], status.faults
+    assert status.reaction is not None
+    assert status.reaction.arm_held
+    assert status.reaction.phase == "held"
     assert status.support_level == 0.5

@@ -201,6 +201,12 @@ class ConsoleSession:
                 self.say(f"  {key}: {value}")
 
     def _quit(self, args: tuple) -> None:  # type: ignore[type-arg]
+        # torque off drops an arm a fault's reaction holds: the operator hands it on first, or says he means it
+        if not args[0] and self.runtime.arm_held:
+            raise CommandError(
+                "a fault's reaction holds the pilot's arm: 'lower' it to its rest, or 'release' it once someone "
+                "holds it; 'quit now' ends the session anyway and the torque off drops the arm"
+            )
         raise QuitRequested
 
     # --- time -----------------------------------------------------------------------------

@@ -137,6 +137,13 @@ def _no_args(usage: str) -> Callable[[list[str], ParseContext], tuple[Any, ...]]
     return parse
 
 
+def _quit(args: list[str], context: ParseContext) -> tuple[Any, ...]:
+    if args == ["now"]:
+        return (True,)
+    _arity("quit [now]", args, 0)
+    return (False,)
+
+
 def _confirm(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     _arity("confirm CHECKLIST", args, 1)
     return (_one_of("confirm CHECKLIST", args[0], (c.value for c in Checklist)),)
@@ -407,10 +414,12 @@ COMMANDS: tuple[CommandSpec, ...] = (
     ),
     CommandSpec(
         "quit",
-        "quit",
+        "quit [now]",
         "end the session: torque off first, then the session is saved",
         GROUPS[6],
-        _no_args("quit"),
+        _quit,
+        "While a fault's reaction holds the pilot's arm, quit is refused: lower it to its rest or release it "
+        "once someone holds it; quit now ends the session anyway and the torque off drops the arm.",
         aliases=("exit",),
     ),
 )
@@ -518,7 +527,7 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "help": {s.name: None for s in COMMANDS},
         "wait": {"until": {"idle": None, "still": None, "model": None, "state": states}},
         "expect": {"state": states, "accepted": None, "refused": None},
-        "quit": None,
+        "quit": {"now": None},
     }
     if context.has_world:
         tree["sim"] = {

@@ -134,9 +134,8 @@ def _arm_released(status: RuntimeStatus, world: bool) -> Step:
             f"the robot is stopping the pilot's arm ({reaction.phase}): wait until it rests on its {reaction.rest}",
             ("wait 2",),
         )
-    at_rest = reaction.note.startswith("the arm moved")
     text = f"the robot holds the pilot's arm ({reaction.note})"
-    if at_rest:
+    if reaction.lowering_refused is not None:
         return Step(text + ": hold the arm yourself, then release it (the torque ramps to zero)", ("release",))
     return Step(
         text + f": lower it to its rest on the {reaction.rest}, or release it once someone holds it", ("lower",)

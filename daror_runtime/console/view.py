@@ -35,7 +35,7 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
     if status.number is None:
         lines.append(f"state {status.state}: {status.description}")
     else:
-        kind = "  (e-stop test state: a fault removes torque, no FAIL)" if status.estop_test_state else ""
+        kind = "  (e-stop test state: a fault is met by its reaction, no FAIL)" if status.estop_test_state else ""
         lines.append(f"state {status.number} {status.state} ({status.superstate}): {status.description}{kind}")
     lines.append(
         f"  mode {status.mode}, t = {status.t_s:.3f} s, session {status.session_id}"

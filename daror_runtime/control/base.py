@@ -12,7 +12,7 @@ from the robot's present state instead of from zero (no torque jump on a mode ch
 Errors: settings a person hands in (a support level, a gain) are refused with
 :class:`ControlSettingError` (an :class:`~daror_runtime.errors.InputError`); anything that goes
 wrong inside the tick (a non-finite reading or reference) raises :class:`ControlError`, which the
-loop turns into a fault that removes torque in the same tick.
+loop turns into a ``software`` fault met by its reaction in the same tick.
 """
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ def mermaid(spec: FsmSpec) -> str:
     lines += [
         f"    note right of {spec.first.name}",
         f"        reset from every state returns to {spec.first.number} {spec.first.name}",
-        f"        e-stop test states ({tests}): a fault removes torque and is recorded, no {fail.name}",
+        f"        e-stop test states ({tests}): a fault is met by its reaction and recorded, no {fail.name}",
         "    end note",
     ]
     return "\n".join(lines) + "\n"
@@ -143,7 +143,7 @@ def _notes(spec: FsmSpec) -> list[str]:
     tests = ", ".join(str(s.number) for s in spec.test_states) or "none"
     return [
         f"a fault in any state but the e-stop test states ({tests}) enters {fail}",
-        f"e-stop test states ({tests}): a fault removes torque and is recorded, no {fail}",
+        f"e-stop test states ({tests}): a fault is met by its reaction and recorded, no {fail}",
         f"reset from every state returns to {first.number} {first.name}",
     ]
 

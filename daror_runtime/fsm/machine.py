@@ -256,9 +256,7 @@ class SafetyMachine:
         if event == Event.REVERT:
             return f"{state.label} is the first state"
         if event == Event.FAIL:
-            return (
-                f"{state.label} is an e-stop test state: a fault there removes torque and is recorded, it does not fail"
-            )
+            return f"{state.label} is an e-stop test state: a fault there is met by its reaction and recorded, it does not fail"
         return (
             f"nothing to acknowledge in {state.label}: faults are acknowledged in {self.spec.fail.name} or a test state"
         )

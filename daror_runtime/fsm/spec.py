@@ -307,7 +307,7 @@ INVARIANTS: dict[str, Invariant] = {
         Invariant(
             "FAIL removes torque",
             "FAIL's mode applies no torque",
-            "FAIL is where every fault ends",
+            "FAIL's own mode holds nothing: what the arm gets in FAIL is the fault's reaction alone",
         ),
         Invariant(
             "FAIL left only when cleared and acknowledged",

@@ -345,19 +345,23 @@ class FsmSupervisor:
         """True while a reaction holds the arm (the safe stop controller commands torque)."""
         return self._reaction_running
 
-    def request_lowering(self) -> Response:
-        """The operator asks a held arm to be lowered to its rest (at a tick boundary)."""
+    def lowering_refused(self) -> str | None:
+        """Why the operator may not ask for a lowering now (None: he may)."""
         stop = self.safe_stop
         if not self._reaction_running or stop is None:
-            return Response("lower", False, self.state_name, "no fault reaction holds the arm")
+            return "no fault reaction holds the arm"
         if stop.phase not in (SafeStopPhase.HOLD, SafeStopPhase.HELD):
-            return Response("lower", False, self.state_name, f"the arm is already being stopped ({stop.phase.value})")
+            return f"the arm is already being stopped ({stop.phase.value})"
         if stop.phase is SafeStopPhase.HELD and stop.note.startswith("the arm moved"):
-            return Response(
-                "lower", False, self.state_name,
-                "the arm is at its rest pose and nothing carries it there: release it once someone holds the arm",
-            )  # fmt: skip
-        stop.lower_now()
+            return "the arm is at its rest pose and nothing carries it there: release it once someone holds the arm"
+        return None
+
+    def request_lowering(self) -> Response:
+        """The operator asks a held arm to be lowered to its rest (at a tick boundary)."""
+        refused = self.lowering_refused()
+        if refused is not None or self.safe_stop is None:
+            return Response("lower", False, self.state_name, refused or "no fault reaction holds the arm")
+        self.safe_stop.lower_now()
         log.warning("reaction: lowering asked by the operator", state=self.state_name, t_s=self._t_s)
         for listener in self.reaction_listeners:
             listener(self.reaction)  # type: ignore[arg-type]
@@ -571,7 +575,7 @@ class FsmSupervisor:
                 )
             else:
                 log.warning(
-                    "fault in an e-stop test state: torque off until acknowledged, no FAIL",
+                    "fault in an e-stop test state: met by its reaction until acknowledged, no FAIL",
                     state=self.state_name,
                     fault=fault.as_dict(),
                     t_s=self._t_s,

@@ -1,7 +1,8 @@
 """Faults: what the safety monitor found, in a form a person and the FSM can act on.
 
-Every fault removes torque in the tick it is found (the safety filter) and stays latched until
-it is cleared (issue 4: acknowledged, then a reset). A fault names its class, the joint (1-4)
+Every fault is acted on in the tick it is found, with the reaction the spec declares for its kind
+(safety/reactions.py: off, lower or hold; the faulted joint's torque off where it cannot be trusted),
+and stays latched until it is cleared (issue 4: acknowledged, then a reset). A fault names its class, the joint (1-4)
 where that applies, the measured value, the limit it broke and the robot time.
 """
 

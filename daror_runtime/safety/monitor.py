@@ -3,8 +3,8 @@
 Per tick (docs/loop.md)::
 
     faults = monitor.check(sample)          # new faults of this tick (also latched)
-    ...                                     # the FSM routes faults to FAIL (issue 4)
-    command = monitor.filter(command, ...)  # torque off while faulted or an e-stop is pressed
+    ...                                     # the FSM routes faults to FAIL and grants their reaction
+    command = monitor.filter(command, ...)  # only what the granted reaction commands while faulted
 
 The check is built for the 1 kHz tick: one vectorised bounds test over every checked signal
 (joint angles, velocities, spring torques, deflections, the jump since the last sample) decides

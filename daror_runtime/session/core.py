@@ -217,8 +217,8 @@ class SessionCore:
             off = f"; joint(s) {', '.join(map(str, plan.joints_off))} off" if plan.joints_off and plan.holds else ""
             return f"{', '.join(plan.causes)}: {what}{off}"
         if not self.supervisor.reaction_running and stop.finished:
-            return f"reaction ended: {stop.note}"
-        return f"reaction: {stop.phase.value}" + (f": {stop.note}" if stop.note else "")
+            return f"ended: {stop.note}"
+        return f"now {stop.phase.value}" + (f": {stop.note}" if stop.note else "")
 
     def _plan_the_lowering(self) -> None:
         """A job plans the lowering from where the safe stop holds the arm; a request hands it over at a tick boundary."""
@@ -290,7 +290,7 @@ class SessionCore:
     def state_changed(self, state: Any, outcome: Any) -> None:
         """In the tick (a transition): announce it, stop what belonged to the state left; never blocks."""
         if state.name == self.spec.fail.name:
-            text = f"{outcome.source} -> {state.name}: torque off ({outcome.event.value})"
+            text = f"{outcome.source} -> {state.name} ({outcome.event.value}): the fault's reaction commands the arm"
         else:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
         self.announcements.announce(AnnouncementKind.TRANSITION, text, self.t_s())

@@ -112,6 +112,7 @@ def _reaction_status(core: SessionCore) -> ReactionStatus | None:
         joints_off=plan.joints_off,
         support=plan.support,
         arm_held=running,
+        lowering_refused=supervisor.lowering_refused() if running else "no fault reaction holds the arm",
         phase=stop.phase.value if running or stop.finished else None,
         note=stop.note if running or stop.finished else "",
         since_t_s=supervisor.reaction_started_s,

@@ -69,6 +69,7 @@ class ReactionStatus:
     joints_off: tuple[int, ...]  # joints whose torque is off whatever the reaction
     support: str  # the gravity support a hold or lowering uses: model or a_priori
     arm_held: bool  # the robot holds or lowers the arm now (torque on, under the reaction)
+    lowering_refused: str | None  # why 'lower' would be refused now (None: the operator may ask for it)
     phase: str | None  # hold, lower, handoff, letting go, releasing, held, rested (None: off)
     note: str  # why the arm is held, or how the reaction ended
     since_t_s: float | None  # robot time it began
@@ -99,7 +100,7 @@ class RuntimeStatus:
     superstate: str | None
     mode: str
     description: str
-    estop_test_state: bool  # a fault here removes torque and is recorded, it does not fail
+    estop_test_state: bool  # a fault here is met by its reaction and recorded, it does not fail
     gates: dict[str, EventGate]
     faults: list[dict[str, Any]]
     estop_pressed: dict[str, bool]

@@ -14,6 +14,7 @@ const charts = {
 };
 const CHECKLIST = { settings: "settings", pilot_installation: "installation", safety_experience: "safety_experience", rom_limits: "a_priori_model" };
 const EVENT_LINE = { advance: "advance", revert: "revert", reset: "reset", acknowledge: "ack" };
+const REACTION_TEXT = { off: "torque off", lower: "hold, lower to the rest, torque off", hold: "hold" };
 let fsm = null;
 let sliderBusy = false;
 
@@ -91,6 +92,14 @@ function render(st) {
   $("identification").textContent = run ? `running: ${Math.min(100, 100 * run.elapsed_s / run.duration_s).toFixed(0)} % — ` + pairs(run) : (st.jobs_pending ? "work running outside the loop (saving data, training)…" : (st.last_identification ? "last run: " + pairs(st.last_identification) : "no run"));
   $("faults").innerHTML = st.faults.map((f) => `<li class="refused">${esc(f.kind || "")}: ${esc(f.reason || f.message || JSON.stringify(f))}</li>`).join("") || '<li class="small">none</li>';
   for (const note of st.notes || []) $("faults").innerHTML += `<li class="small">note: ${esc(note)}</li>`;
+  // the fault's reaction (docs/safety.md): what the robot does with the pilot's arm, and the operator's two choices
+  const rx = st.reaction;
+  $("reaction").innerHTML = rx ? `reaction: <b>${esc(REACTION_TEXT[rx.reaction] || rx.reaction)}</b> (category ${rx.category}; ${rx.causes.map(esc).join(", ")}${rx.joints_off.length ? "; joint(s) " + rx.joints_off.join(", ") + " off" : ""}; support ${esc(rx.support)})`
+    + (rx.phase ? `<br>now: <b id="reaction-phase">${esc(rx.phase)}</b>${rx.note ? ": " + esc(rx.note) : ""}` : "") : "no reaction";
+  $("reaction").className = rx && rx.arm_held ? "unmet" : "small";
+  $("lower-arm").disabled = !(rx && rx.arm_held && rx.lowering_refused === null);
+  $("release-arm").disabled = !(rx && rx.arm_held);
+  $("reaction-why").textContent = rx && rx.arm_held && rx.lowering_refused ? "lower: " + rx.lowering_refused : "";
 }
 
 function addLog(lines) {

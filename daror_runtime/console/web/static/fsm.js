@@ -109,7 +109,7 @@
     const lines = [label + where];
     if (state.description) lines.push(state.description);
     lines.push("mode: " + state.mode);
-    if (state.test) lines.push("e-stop test state: a fault removes torque and is recorded, no FAIL");
+    if (state.test) lines.push("e-stop test state: a fault is met by its reaction and recorded, no FAIL");
     title(g, lines.join("\n"));
     el("rect", { x: state.x, y: state.y, width: state.w, height: state.h, rx: 3 }, g);
     const tag = state.test ? "e-stop test" : "";
