@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -31,8 +32,7 @@ from daror_runtime.models.linear import APModel, fit_plf_plus
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.lowering import plan_lowering
-from daror_runtime.session.settings import SessionSettings
-from hal.interface import DriveState, Sample
+from hal.interface import CheckedSample, DriveState, Sample
 from hal.isb import IsbLimits, default_shoulder
 from hal.robot import load_description
 from hal.sim.backend import SimHal
@@ -40,7 +40,12 @@ from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
 
 TICK_S = 1e-3
-POSE_ISB_DEG = (40.0, 60.0, 0.0, 70.0)
+# the session walk is shared with compare_tick.py (a sibling module: `daror bench` loads scripts by path)
+sys.path.insert(0, str(Path(__file__).parent))
+import session_walk  # noqa: E402
+
+POSE_ISB_DEG = session_walk.POSE_ISB_DEG
+_session_in_compensation = session_walk.session_in_compensation
 
 
 def _plf_plus() -> Any:
@@ -55,8 +60,8 @@ def _samples_at(q0: np.ndarray, count: int = 1000) -> list[Sample]:
     for i in range(count):
         q = q0 + rng.normal(0.0, 1e-3, 4)
         tau = np.round(rng.normal(1.0, 0.05, 4) / 0.0289) * 0.0289
-        out.append(
-            Sample(i, i * TICK_S, q, rng.normal(0.0, 0.01, 4), q + tau / 289.0, tau, (False, False),
+        out.append(  # what the simulated and CAN backends hand the tick: a checked sample
+            CheckedSample(i, i * TICK_S, q, rng.normal(0.0, 0.01, 4), q + tau / 289.0, tau, (False, False),
                    (DriveState.ENABLED,) * 4)
         )  # fmt: skip
     return out
@@ -130,58 +135,6 @@ def bench_safe_stop_hold(quick: bool) -> BenchFigure:
 
 def bench_safe_stop_lower(quick: bool) -> BenchFigure:
     return _safe_stop(True, quick)
-
-
-def _session_in_compensation(directory: Path) -> tuple[Runtime, SimHal]:
-    """A lock-step session walked to compensation with a validated PLF+ model, the pilot limp, the arm raised."""
-    from daror_runtime.console.world import SimWorld
-    from daror_runtime.data.load import write_dataset
-    from daror_runtime.models.files import save_model, training_summary
-    from daror_runtime.models.registry import fit_model, installation_options
-
-    scenario = load_scenario("exo_dummy_arm")
-    points = generate_stationary(scenario, "training")
-    train = StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s)
-    held_out = generate_stationary(scenario, "validation")
-    validation = directory / "validation.csv"
-    write_dataset(validation, StationaryDataset(held_out.q_rad, held_out.tau_nm, held_out.direction, held_out.t_s))
-    model = directory / "plf_plus.json"
-    fitted = fit_model("plf+", train, scenario.description(), installation_options("plf+", dummy_arm=True))
-    save_model(model, fitted.model, training_summary(train, None), fitted.report)
-
-    hal = SimHal(scenario)
-    runtime = Runtime(hal, directory / "session", settings=SessionSettings(dummy_arm=True))
-    runtime.open()
-    world = SimWorld(hal.world)
-    runtime.run_ticks(1)
-    runtime.select_model(model, validation)
-    runtime.run_until(lambda: not runtime.busy, 2.0)
-
-    def press(button: str) -> None:
-        world.estop(button, True)
-        runtime.pass_time(0.05)
-        world.estop(button, False)
-        runtime.pass_time(0.2)
-
-    steps = {
-        "safety_check": lambda: (press("operator"), press("pilot")),
-        "settings": lambda: runtime.wait(runtime.confirm("settings")),
-        "pilot_installation": lambda: runtime.wait(runtime.confirm("installation")),
-        "safety_experience": lambda: (press("pilot"), runtime.wait(runtime.confirm("safety_experience"))),
-        "rom_limits": lambda: runtime.wait(runtime.set_isb_limits(IsbLimits())),
-        "operative_check": lambda: press("operator"),
-    }
-    while runtime.state_name != "compensation":
-        steps.get(runtime.state_name, lambda: runtime.run_until(lambda: runtime.at_rest, 5.0))()
-        runtime.wait(runtime.advance())
-        runtime.pass_time(0.3)
-    shoulder = default_shoulder()
-    end = world.pilot_move(shoulder.q_from_isb(np.deg2rad(POSE_ISB_DEG), seed=hal.truth().q_rad))
-    runtime.pass_time(end - hal.time_s + 1.0)
-    world.pilot_carries(0.0)
-    world.pilot_stiffness(0.0)
-    runtime.pass_time(2.0)
-    return runtime, hal
 
 
 def bench_session_tick_in_compensation(quick: bool) -> BenchFigure:

@@ -36,7 +36,7 @@ from daror_runtime.errors import ShapeError
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
-from hal.interface import Command
+from hal.interface import CheckedSample, Command, DriveState, Sample
 from hal.isb import AngleRange, IsbLimits, Shoulder, default_shoulder, monitor_isb_function
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 from hal.sim.backend import SimHal
@@ -707,3 +707,37 @@ def test_a_recorded_range_that_starts_at_the_hanging_arm_has_no_wall_under_it() 
     low = shoulder.q_from_isb(np.deg2rad([15.0, 60.0, 0.0, 30.0]))
     assert walls.torque(low, np.zeros(4), out)
     assert np.any(out != 0.0)
+
+
+def _sample(q: FloatArray, dq: FloatArray, checked: bool) -> Sample:
+    fields = (0, 0.0, q, dq, q.copy(), np.zeros(N_JOINTS), (False, False), (DriveState.ENABLED,) * N_JOINTS)
+    return CheckedSample(*fields) if checked else Sample(*fields)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    q=joint_box(DESCRIPTION, -math.radians(3.0)),
+    dq=st.lists(st.floats(-2.0, 2.0), min_size=N_JOINTS, max_size=N_JOINTS).map(np.array),
+    checked=st.booleans(),
+)
+def test_the_tick_s_call_gives_the_checked_call_s_torque(
+    walls_for: Callable[[str], SoftWalls], q: FloatArray, dq: FloatArray, checked: bool
+) -> None:
+    """torque_for (a CheckedSample through the kernel's entry point, or any sample) is torque(): None where no wall acts."""
+    walls = walls_for("tight")
+    expected = np.zeros(N_JOINTS)
+    acts = walls.torque(q, dq, expected)
+    got = walls.torque_for(_sample(q, dq, checked))
+    if not acts:
+        assert got is None
+    else:
+        assert got is not None
+        assert np.array_equal(got, expected)
+
+
+def test_the_tick_s_call_refuses_a_non_finite_reading(walls_for: Callable[[str], SoftWalls]) -> None:
+    bad = HOME_Q_RAD.copy()
+    bad[1] = np.inf
+    for checked in (True, False):
+        with pytest.raises(ControlError):
+            walls_for("default").torque_for(_sample(bad, np.zeros(N_JOINTS), checked))

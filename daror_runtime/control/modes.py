@@ -70,7 +70,6 @@ class MinimalImpedance:
         self._zero = np.zeros(torque.n_joints)
         self._zero.flags.writeable = False  # shared every tick; nobody may change it
         self._reference = np.zeros(torque.n_joints)
-        self._wall = np.zeros(torque.n_joints)
         self.last_reference_nm: FloatArray = self._zero
 
     def reset(self, sample: Sample) -> None:
@@ -93,9 +92,9 @@ class MinimalImpedance:
             self.handover.set_dt(dt_s)
             handover_reference(self._zero, sample.q_rad, self.handover.state, self._reference)
             reference = self._reference
-        walls = self.walls
-        if walls is not None and walls.torque(sample.q_rad, sample.dq_rad_s, self._wall):
-            reference = reference + self._wall  # a few degrees inside a limit: the wall pushes back
+        wall = self.walls.torque_for(sample) if self.walls is not None else None
+        if wall is not None:
+            reference = reference + wall  # a few degrees inside a limit: the wall pushes back
         command = Command(self.torque.motor_torque(reference, sample, dt_s), True)
         self.last_reference_nm = reference
         return command
@@ -165,7 +164,6 @@ class Compensation:
         self._support = np.zeros(torque.n_joints)
         self._reading_error: ReadingErrorTracker | None = None
         self.walls = walls
-        self._wall = np.zeros(torque.n_joints)
         self._damping = 0.0
         self._damping_weight = 1.0  # ramps in after a reset: the damping never steps the reference
         self._speed = np.zeros(torque.n_joints)  # the joints' speed, low-passed for the damping (rad/s)
@@ -266,9 +264,9 @@ class Compensation:
             self.handover.set_dt(dt_s)
             handover_reference(np.asarray(tau_ref, dtype=float), sample.q_rad, self.handover.state, self._support)
             tau_ref = self._support.copy()
-        walls = self.walls
-        if walls is not None and walls.torque(sample.q_rad, sample.dq_rad_s, self._wall):
-            tau_ref = tau_ref + self._wall  # a few degrees inside a limit: the wall pushes back
+        wall = self.walls.torque_for(sample) if self.walls is not None else None
+        if wall is not None:
+            tau_ref = tau_ref + wall  # a few degrees inside a limit: the wall pushes back
         if self._damping:
             # An arm that moves when the mode takes over (a pilot who lets go, torque back after an e-stop)
             # would make the damping a step in the reference: it comes in at the support ramp's rate.
