@@ -16,6 +16,7 @@ asserted in tests.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.models.linear import APModel, fit_plf_plus
 from daror_runtime.residual.diagnosis import diagnose
 from daror_runtime.residual.model import AugmentedModel, augmented_model
-from hal.interface import DriveState, Sample
+from hal.interface import CheckedSample, DriveState, Sample
 from hal.robot import load_description
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
@@ -43,32 +44,42 @@ from hal.sim.static_dataset import generate_stationary
 TICK_S = 1e-3
 
 
-def _samples(count: int = 1000) -> list[Sample]:
-    """Plausible readings near a pose, so the controllers do their ordinary work (no saturation)."""
+#: Where :func:`samples_near`'s readings are by default.
+Q0_RAD = np.deg2rad([0.0, 20.0, 0.0, 45.0])
+
+
+def samples_near(q0_rad: np.ndarray = Q0_RAD, count: int = 1000, checked: bool = False) -> list[Sample]:
+    """Plausible readings near a pose, so the controllers do their ordinary work (no saturation).
+
+    ``checked``: as the simulated and CAN backends hand them to the tick (a ``CheckedSample``).
+    """
     rng = np.random.default_rng(7)
-    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])
+    kind = CheckedSample if checked else Sample
     out = []
     for i in range(count):
-        q = q0 + rng.normal(0.0, 1e-3, 4)
+        q = q0_rad + rng.normal(0.0, 1e-3, 4)
         tau = np.round(rng.normal(1.0, 0.05, 4) / 0.0289) * 0.0289
         out.append(
-            Sample(
-                i,
-                i * TICK_S,
-                q,
-                rng.normal(0.0, 0.01, 4),
-                q + tau / 289.0,
-                tau,
-                (False, False),
-                (DriveState.ENABLED,) * 4,
-            )
-        )
+            kind(i, i * TICK_S, q, rng.normal(0.0, 0.01, 4), q + tau / 289.0, tau, (False, False),
+                 (DriveState.ENABLED,) * 4)
+        )  # fmt: skip
     return out
 
 
-def _time_update(controller: Controller, quick: bool) -> tuple[float, float, int]:
-    samples = _samples()
-    controller.reset(samples[0])
+def plf_plus() -> Any:
+    """PLF+ fitted on the training points of ``exo_dummy_arm``."""
+    description = load_description()
+    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
+    return fit_plf_plus(StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description).model
+
+
+def time_update(
+    controller: Any, quick: bool, samples: list[Sample] | None = None, reset: bool = True
+) -> tuple[float, float, int]:
+    """``controller.update`` over ``samples`` (default :func:`samples_near`), us: median, p90, repeats."""
+    samples = samples if samples is not None else samples_near()
+    if reset:
+        controller.reset(samples[0])
     state = {"i": 0}
 
     def one() -> None:
@@ -81,7 +92,7 @@ def _time_update(controller: Controller, quick: bool) -> tuple[float, float, int
 
 
 def _figure(name: str, build: Callable[[], Controller], quick: bool, target_us: float, note: str) -> BenchFigure:
-    median, p90, repeats = _time_update(build(), quick)
+    median, p90, repeats = time_update(build(), quick)
     return BenchFigure(name, median, p90, "us", repeats, target_us, None, note)
 
 
@@ -98,10 +109,7 @@ def bench_minimal_impedance_update(quick: bool) -> BenchFigure:
 
 def bench_compensation_update(quick: bool) -> BenchFigure:
     description = load_description()
-    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
-    model = fit_plf_plus(
-        StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description
-    ).model
+    model = plf_plus()
     return _figure(
         "Compensation(PLF+).update, 4 joints",
         lambda: Compensation(SeaTorqueController(description.sea), model, support_level=0.8, ramp_per_s=None),
@@ -139,7 +147,7 @@ def bench_compensation_hysteresis_update(quick: bool) -> BenchFigure:
 def bench_motor_position_update(quick: bool) -> BenchFigure:
     description = load_description()
     bounds = LinkBounds.from_description(description)
-    q0 = np.deg2rad([0.0, 20.0, 0.0, 45.0])  # where _samples() are
+    q0 = Q0_RAD  # where samples_near()'s readings are
     reference = build_trajectory(load_waypoints(), "validation").with_approach(q0, 2.0, 1.0)
     feedforward = APModel.from_description(description, dummy_arm=True, elbow_stiffness=True)
 

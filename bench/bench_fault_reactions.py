@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import tempfile
 from pathlib import Path
@@ -26,58 +25,26 @@ from daror_runtime.control import Compensation, SeaTorqueController
 from daror_runtime.control.position import LinkBounds
 from daror_runtime.control.safe_stop import SafeStop
 from daror_runtime.control.soft_walls import SoftWalls
-from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.logs import configure_logging
-from daror_runtime.models.linear import APModel, fit_plf_plus
+from daror_runtime.models.linear import APModel
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.lowering import plan_lowering
-from hal.interface import CheckedSample, DriveState, Sample
 from hal.isb import IsbLimits, default_shoulder
 from hal.robot import load_description
 from hal.sim.backend import SimHal
-from hal.sim.scenario import load_scenario
-from hal.sim.static_dataset import generate_stationary
 
 TICK_S = 1e-3
 # the session walk is shared with compare_tick.py (a sibling module: `daror bench` loads scripts by path)
 sys.path.insert(0, str(Path(__file__).parent))
 import session_walk  # noqa: E402
+from bench_control import plf_plus, samples_near, time_update  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parents[1]))  # the checkout: the tests' way of provoking a fault
+from tests.provoke import LIMIT_KINDS, PLANT_KINDS, inject_in_plant, narrowed_limits  # noqa: E402
 
 POSE_ISB_DEG = session_walk.POSE_ISB_DEG
 _session_in_compensation = session_walk.session_in_compensation
-
-
-def _plf_plus() -> Any:
-    description = load_description()
-    points = generate_stationary(load_scenario("exo_dummy_arm"), "training")
-    return fit_plf_plus(StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s), description).model
-
-
-def _samples_at(q0: np.ndarray, count: int = 1000) -> list[Sample]:
-    rng = np.random.default_rng(7)
-    out = []
-    for i in range(count):
-        q = q0 + rng.normal(0.0, 1e-3, 4)
-        tau = np.round(rng.normal(1.0, 0.05, 4) / 0.0289) * 0.0289
-        out.append(  # what the simulated and CAN backends hand the tick: a checked sample
-            CheckedSample(i, i * TICK_S, q, rng.normal(0.0, 0.01, 4), q + tau / 289.0, tau, (False, False),
-                   (DriveState.ENABLED,) * 4)
-        )  # fmt: skip
-    return out
-
-
-def _time_update(controller: Any, samples: list[Sample], quick: bool) -> tuple[float, float, int]:
-    controller.reset(samples[0])
-    state = {"i": 0}
-
-    def one() -> None:
-        state["i"] = (state["i"] + 1) % len(samples)
-        controller.update(samples[state["i"]], TICK_S)
-
-    repeats = 20 if quick else 200
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
-    return median, p90, repeats
 
 
 def _compensation_with_walls(near: bool, quick: bool) -> BenchFigure:
@@ -88,11 +55,11 @@ def _compensation_with_walls(near: bool, quick: bool) -> BenchFigure:
     # far: the middle of the range; near: the elbow 3 deg inside its recorded limit (5 deg), in its wall
     isb = (30.0, 60.0, 0.0, 8.0 if near else 60.0)
     q0 = shoulder.q_from_isb(np.deg2rad(isb))
-    controller = Compensation(SeaTorqueController(description.sea), _plf_plus(), 0.8, None, walls=walls)
-    samples = _samples_at(q0)
+    controller = Compensation(SeaTorqueController(description.sea), plf_plus(), 0.8, None, walls=walls)
+    samples = samples_near(q0, checked=True)
     out = np.zeros(4)
     assert walls.torque(samples[0].q_rad, samples[0].dq_rad_s, out) == near
-    median, p90, repeats = _time_update(controller, samples, quick)
+    median, p90, repeats = time_update(controller, quick, samples)
     where = "inside the elbow's wall (ISB gradient every tick)" if near else "far from every wall (the common case)"
     return BenchFigure(f"Compensation(PLF+) with soft walls, {where}", median, p90, "us", repeats, 12.0)
 
@@ -111,20 +78,13 @@ def _safe_stop(lowering: bool, quick: bool) -> BenchFigure:
     a_priori = APModel.from_description(description, True, True)
     stop = SafeStop(description, LinkBounds.from_description(description), TICK_S, a_priori, hold_s=0.0)
     q0 = shoulder.q_from_isb(np.deg2rad(POSE_ISB_DEG))
-    samples = _samples_at(q0)
-    stop.arm(lowering, (), _plf_plus())
+    samples = samples_near(q0, checked=True)
+    stop.arm(lowering, (), plf_plus())
     stop.reset(samples[0])
     if lowering:
         rest = shoulder.q_from_isb(np.deg2rad((0.0, 0.0, 0.0, 30.0)))
         stop.install_path(plan_lowering(stop.hold_pose_rad, rest, shoulder))
-    state = {"i": 0}
-
-    def one() -> None:
-        state["i"] = (state["i"] + 1) % len(samples)
-        stop.update(samples[state["i"]], TICK_S)
-
-    repeats = 20 if quick else 200
-    median, p90 = time_calls(one, repeats=repeats, per_call=1000, scale=1e6)
+    median, p90, repeats = time_update(stop, quick, samples, reset=False)
     what = "following a lowering path" if lowering else "holding the pose"
     return BenchFigure(f"SafeStop.update, {what}", median, p90, "us", repeats, 20.0, note="PLF+ support along the path")
 
@@ -161,38 +121,10 @@ def _provoke(runtime: Runtime, hal: SimHal, kind: FaultKind) -> None:
     assert sample is not None
     if kind == FaultKind.ESTOP:
         hal.press_estop(0, True)
-    elif kind == FaultKind.STALE:
-        hal.inject_fault("stale", None, 5000)
-    elif kind == FaultKind.HAL:
-        hal.inject_fault("bus")
-    elif kind == FaultKind.DRIVE:
-        hal.inject_fault("drive_fault", 2)
-    elif kind == FaultKind.NOT_FINITE:
-        hal.inject_fault("nan", 3)
-    elif kind == FaultKind.JUMP:
-        hal.inject_fault("jump", 1, 0.1)
-    elif kind == FaultKind.TORQUE:
-        limit = np.array(limits.max_spring_torque_nm, dtype=float)
-        limit[1] = abs(float(sample.tau_nm[1])) * 0.5
-        monitor.set_limits(dataclasses.replace(limits, max_spring_torque_nm=limit))
-    elif kind == FaultKind.DEFLECTION:
-        deflection = np.sort(np.abs(np.asarray(sample.theta_rad) - np.asarray(sample.q_rad)))
-        monitor.set_limits(
-            dataclasses.replace(limits, max_deflection_rad=float(0.5 * (deflection[-2] + deflection[-1])))
-        )
-    elif kind == FaultKind.VELOCITY:
-        speed = np.array(limits.max_velocity_rad_s, dtype=float)
-        speed[3] = 1e-9
-        monitor.set_limits(dataclasses.replace(limits, max_velocity_rad_s=speed))
-    elif kind == FaultKind.JOINT_LIMIT:
-        upper = np.array(limits.joint_upper_rad, dtype=float)
-        upper[3] = float(sample.q_rad[3]) - 0.02
-        monitor.set_limits(dataclasses.replace(limits, joint_upper_rad=upper))
-    elif kind == FaultKind.ISB_LIMIT:
-        from hal.isb import AngleRange
-
-        elbow = float(np.degrees(sample.q_rad[3]))
-        monitor.set_limits(limits.with_isb(IsbLimits(elbow=AngleRange(lower_deg=elbow - 40, upper_deg=elbow - 2)), 0.0))
+    elif kind in PLANT_KINDS:
+        inject_in_plant(hal, kind, stale_ticks=5000)
+    elif kind in LIMIT_KINDS:
+        monitor.set_limits(narrowed_limits(limits, sample, kind))
     elif kind == FaultKind.OVERRUN:
         core.loop._report([], FaultKind.OVERRUN, "the loop stalled (bench)")
         core.supervisor.on_late_faults(sample, monitor.latched)

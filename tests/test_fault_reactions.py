@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -40,10 +39,11 @@ from daror_runtime.fsm.spec import load_fsm_spec
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.session.settings import SessionSettings
-from hal.isb import AngleRange, IsbLimits, default_shoulder
+from hal.isb import IsbLimits, default_shoulder
 from hal.robot import FloatArray
 from hal.sim.backend import SimHal
 from tests.conftest import Models
+from tests.provoke import LIMIT_KINDS, PLANT_KINDS, inject_in_plant, narrowed_limits
 from tests.test_session_loop import OverrunClock
 from tests.test_session_safety import Session
 
@@ -132,48 +132,17 @@ def record(rig: Rig, seconds: float, until_released: bool = False, until_fault: 
 # --- provoking each kind of fault ------------------------------------------------------------------
 
 
-def _narrow(rig: Rig, **changes: Any) -> None:
-    monitor = rig.core.monitor
-    monitor.set_limits(dataclasses.replace(monitor.limits, **changes))
-
-
 def provoke(rig: Rig, kind: FaultKind) -> None:
     """Make the monitor find a fault of ``kind`` in the next tick (see the module's docstring)."""
     hal, world, monitor = rig.hal, rig.world, rig.core.monitor
     sample = rig.runtime.last_sample
     assert sample is not None
-    limits = monitor.limits
     if kind == FaultKind.ESTOP:
         world.estop("operator", True)
-    elif kind == FaultKind.STALE:
-        hal.inject_fault("stale", None, 2000)
-    elif kind == FaultKind.HAL:
-        hal.inject_fault("bus")
-    elif kind == FaultKind.DRIVE:
-        hal.inject_fault("drive_fault", 2)
-    elif kind == FaultKind.NOT_FINITE:
-        hal.inject_fault("nan", 3)
-    elif kind == FaultKind.JUMP:
-        hal.inject_fault("jump", 1, 0.1)
-    elif kind == FaultKind.TORQUE:  # joint 2's torque reading over its (narrowed) limit
-        limit = np.array(limits.max_spring_torque_nm, dtype=float)
-        limit[1] = abs(float(sample.tau_nm[1])) * 0.5
-        _narrow(rig, max_spring_torque_nm=limit)
-    elif kind == FaultKind.DEFLECTION:  # the most deflected spring, alone beyond a (narrowed) limit
-        deflection = np.sort(np.abs(np.asarray(sample.theta_rad) - np.asarray(sample.q_rad)))
-        _narrow(rig, max_deflection_rad=float(0.5 * (deflection[-2] + deflection[-1])))
-    elif kind == FaultKind.VELOCITY:  # the elbow's speed reading over a (narrowed) limit
-        speed = np.array(limits.max_velocity_rad_s, dtype=float)
-        speed[3] = 1e-9
-        _narrow(rig, max_velocity_rad_s=speed)
-    elif kind == FaultKind.JOINT_LIMIT:  # the elbow beyond a (narrowed) upper limit
-        upper = np.array(limits.joint_upper_rad, dtype=float)
-        upper[3] = float(sample.q_rad[3]) - 0.02
-        _narrow(rig, joint_upper_rad=upper)
-    elif kind == FaultKind.ISB_LIMIT:  # the elbow beyond the pilot's (narrowed) range
-        elbow = math.degrees(float(sample.q_rad[3]))
-        isb = IsbLimits(elbow=AngleRange(lower_deg=elbow - 40.0, upper_deg=elbow - 2.0))
-        monitor.set_limits(limits.with_isb(isb, 0.0))
+    elif kind in PLANT_KINDS:
+        inject_in_plant(hal, kind)
+    elif kind in LIMIT_KINDS:
+        monitor.set_limits(narrowed_limits(monitor.limits, sample, kind))
     elif kind == FaultKind.OVERRUN:
         rig.clock.overrunning = True
     else:

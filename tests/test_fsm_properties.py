@@ -494,11 +494,6 @@ class FsmWithReactions(FsmInTheTick):
         if not already:
             self.check_new_fault(source, "a fault")
 
-    @rule()
-    def fault_recurs(self) -> None:
-        self.faults_clear()
-        self.fault_appears("drive")
-
     @invariant()
     def torque_follows_the_state(self) -> None:
         result = self.last
