@@ -58,7 +58,7 @@ SCENARIO = "exo_dummy_arm"
 SPEC = load_fsm_spec()
 STATE_NAMES = [s.name for s in SPEC.states]
 FAIL = SPEC.fail.name
-TEST_STATE_WARNING = "fault in an e-stop test state: torque off until acknowledged, no FAIL"
+TEST_STATE_WARNING = "fault in an e-stop test state: met by its reaction until acknowledged, no FAIL"
 
 #: The smallest identification protocol that still trains a validated PLF+. Measured on this
 #: scenario with the default ISB limits: every stride tried (3, 6, 10-20; 20 is the settings'
