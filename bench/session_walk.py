@@ -36,6 +36,13 @@ def session_in_compensation(directory: Path) -> tuple[Runtime, SimHal]:
     held_out = generate_stationary(scenario, "validation")
     validation = directory / "validation.csv"
     write_dataset(validation, StationaryDataset(held_out.q_rad, held_out.tau_nm, held_out.direction, held_out.t_s))
+    try:  # since issue 24 a session validates only on a recording of its pilot (compare_tick also walks older trees)
+        from daror_runtime.data.provenance import simulated_pilot, simulated_robot, write_provenance
+    except ImportError:
+        pass
+    else:
+        robot = simulated_robot(scenario.description().name, scenario.name)
+        write_provenance(validation, "session", robot, simulated_pilot(scenario.name), "earlier", "validation")
     model = directory / "plf_plus.json"
     fitted = fit_model("plf+", train, scenario.description(), installation_options("plf+", dummy_arm=True))
     save_model(model, fitted.model, training_summary(train, None), fitted.report)

@@ -100,6 +100,7 @@ def _output_dir(out: Path | str, *inputs: Path | str | None) -> Path:
 
 def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.data.load import raw_log_path, write_dataset
+    from daror_runtime.data.provenance import simulated_pilot, simulated_robot, write_provenance
     from daror_runtime.data.schema import RawLog, StationaryDataset
     from hal.sim.quasi_static import QuasiStaticSettings, quasi_static_log
     from hal.sim.scenario import load_scenario
@@ -114,6 +115,8 @@ def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
     )
     dataset = StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s)
     write_dataset(args.out, dataset)
+    robot, pilot = simulated_robot(scenario.description().name, scenario.name), simulated_pilot(scenario.name)
+    write_provenance(args.out, "simulate", robot, pilot, run=args.trajectory, scenario=scenario.name)
     log.info(
         "dataset written", path=str(args.out), scenario=scenario.name, trajectory=args.trajectory, points=len(dataset)
     )
@@ -123,6 +126,7 @@ def cmd_simulate_static(args: argparse.Namespace, console: Console) -> int:
         raw = quasi_static_log(scenario, stops, stream(scenario.seed, STREAM_RAW_LOG), QuasiStaticSettings())
         raw_path = raw_log_path(args.out)
         write_dataset(raw_path, RawLog(raw.t_s, raw.q_rad, raw.dq_rad_s, raw.tau_nm, raw.theta_rad))
+        write_provenance(raw_path, "simulate", robot, pilot, run=args.trajectory, scenario=scenario.name)
         console.print(f"{raw_path}: raw log, {len(raw.t_s)} samples")
     return 0
 
@@ -141,6 +145,7 @@ def cmd_simulate_list(args: argparse.Namespace, console: Console) -> int:
 def cmd_identify(args: argparse.Namespace, console: Console) -> int:
 
     from daror_runtime.data.load import raw_log_path, write_dataset
+    from daror_runtime.data.provenance import simulated_pilot, simulated_robot, write_provenance
     from daror_runtime.identification.protocol import run_protocol
     from daror_runtime.models.files import load_model
     from daror_runtime.models.linear import APModel
@@ -191,6 +196,11 @@ def cmd_identify(args: argparse.Namespace, console: Console) -> int:
         console.print(f"writing {out} and the raw log {raw_path} ...")
         write_dataset(out, result.stationary)
         write_dataset(raw_path, result.raw)
+        for recorded in (out, raw_path):  # whose data: the simulated scenario's robot and pilot
+            write_provenance(
+                recorded, "identify", simulated_robot(hal.description.name, scenario.name),
+                simulated_pilot(scenario.name), run=label, scenario=scenario.name,
+            )  # fmt: skip
         recording.unlink(missing_ok=True)
     rms = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_rms_rad)
     worst = " ".join(f"{v * 1e3:.1f}" for v in result.tracking_max_rad)
@@ -808,8 +818,13 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
 
     if args.web:  # without the web extra: one line saying how to install it, exit 2
         from daror_runtime.console.web import require_web_extra
+        from daror_runtime.console.web.access import check_no_token
 
         require_web_extra()
+        if args.no_token:  # a console without a token: the loopback only, refused before anything is written
+            check_no_token(args.host)
+    elif args.no_token:
+        raise UsageError("--no-token goes with --web (the web console's token)")
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
     settings = load_session_settings(args.settings)
     hal = open_hal(_hal_config(args))  # a backend not built or not installed: one line, exit 2
@@ -843,8 +858,21 @@ def _console_session(
     typed: bool,
     clock: Any,
 ) -> int:
-    """The session itself, in ``out`` (checked and locked by :func:`cmd_console`), on ``clock``."""
-    from daror_runtime.console.run import history_path, make_session, run_interactive, run_piped, run_script
+    """The session itself, in ``out`` (checked and locked by :func:`cmd_console`), on ``clock``.
+
+    Returns the exit code: the mode's (0, 1, 2), or 128 + the signal's number when SIGINT (Ctrl-C,
+    130), SIGTERM (143) or SIGHUP (129) ended it, in any mode and state: torque off first, the
+    reason named in the audit log and ``session.json`` (D124).
+    """
+    from daror_runtime.console.run import (
+        announcing,
+        history_path,
+        make_session,
+        run_interactive,
+        run_piped,
+        run_script,
+        stop_signals,
+    )
     from daror_runtime.runtime import Runtime
 
     realtime = not clock.virtual
@@ -858,41 +886,61 @@ def _console_session(
     reason = "the session ended with an error"
     runtime.open()
     web = None
-    try:
-        session = make_session(runtime, console)
-        if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
-            from daror_runtime.console.web.serve import start_web
+    interrupt: KeyboardInterrupt | None = None
+    with stop_signals() as signals:  # SIGINT, SIGTERM, SIGHUP: raised here, in the main thread, once
+        try:
+            session = make_session(runtime, console)
+            if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
+                from daror_runtime.console.web.serve import start_web
 
-            web = start_web(runtime, session.world, args.host, args.port)
-            session.announcements = web.hub.terminal_reader()
-            console.print(f"web console: {web.address}" + (" (the token is required)" if web.token else ""))
-        if realtime and not typed:
-            runtime.start_background()
-        if checked is not None:
-            result = run_script(session, args.script, checked)
-            console.print(f"script done: {result.lines_run} lines, state {result.state}")
-            reason = "quit" if result.quit else "the script ended"
-        elif typed:
-            run_interactive(session, history_path(), start=runtime.start_background)
-            reason = "quit"
-        else:
-            if web is None:
-                code = run_piped(session, sys.stdin)
-                reason = "quit or the end of the input"
-            else:  # the page is the console: until Ctrl-C, or until the server is lost (nothing would control the robot)
-                reason = web.serve_until_interrupted()
-                console.print(f"web console: {reason}", soft_wrap=True)
-    except KeyboardInterrupt:
-        runtime.shutdown("interrupted by the operator (Ctrl-C)")
-        code = 130
-    finally:
-        ended = runtime.shutdown(reason)  # torque off first, whatever happened
-        if web is not None:
-            web.stop()
-        console.print(ended.sentence(), soft_wrap=True)
-        runtime.close()
-        console.print(f"session {runtime.session_id}: {out / 'session.json'}")
+                web = start_web(runtime, session.world, args.host, args.port, require_token=not args.no_token)
+                session.announcements = web.hub.terminal_reader()
+                console.print(f"web console: {web.address}" + ("" if web.token else _NO_TOKEN_NOTE), soft_wrap=True)
+            background = realtime and not typed  # the loop on its own thread: announcements printed as they come
+            if background:
+                runtime.start_background()
+            with announcing(session, enabled=background):
+                if checked is not None:
+                    result = run_script(session, args.script, checked)
+                    console.print(f"script done: {result.lines_run} lines, state {result.state}")
+                    reason = "quit" if result.quit else "the script ended"
+                elif typed:
+                    run_interactive(session, history_path(), start=runtime.start_background)
+                    reason = "quit"
+                elif web is None:
+                    code = run_piped(session, sys.stdin)
+                    reason = "quit or the end of the input"
+                else:  # the page is the console: until a signal, or until the server is lost (nothing would control the robot)
+                    reason = web.serve_until_interrupted()
+                    console.print(f"web console: {reason}", soft_wrap=True)
+        except KeyboardInterrupt as exc:  # Ctrl-C typed at the prompt (a key), or a stop signal
+            interrupt = exc
+        finally:
+            signals.hold()  # from here on a signal is noted, never raised: nothing interrupts the torque off
+            stop = signals.stop(interrupt)
+            if stop is not None:  # also a signal that came as the session was ending by itself (a hang-up's EOF)
+                reason, code = stop.reason, stop.exit_code
+            ended = runtime.shutdown(reason)  # torque off first, whatever happened
+            if web is not None:
+                web.stop()
+            _tell(console, ended.sentence())
+            runtime.close()
+            _tell(console, f"session {runtime.session_id}: {out / 'session.json'}")
+            if len(signals.received) > 1:
+                log.warning("signals while the session ended, ignored", signals=signals.received[1:])
     return code
+
+
+#: Said after the web console's address when it asks no token (``--no-token``, loopback only).
+_NO_TOKEN_NOTE = " (no token: any program on this computer can drive the robot)"
+
+
+def _tell(console: Console, text: str) -> None:
+    """Print one line at the end of a session; a terminal that is gone (a hang-up) does not stop the ending."""
+    try:
+        console.print(text, soft_wrap=True)
+    except OSError:  # the audit log and session.json have it
+        return
 
 
 # --- hil ------------------------------------------------------------------------------
@@ -1353,7 +1401,12 @@ def build_parser() -> argparse.ArgumentParser:
     con.add_argument("--web", action="store_true", help="also serve the console in a browser (real time; web extra)")
     con.add_argument("--port", type=int, default=8765, help="with --web: the port (default 8765)")
     con.add_argument(
-        "--host", default="127.0.0.1", help="with --web: the address (default 127.0.0.1; others need the printed token)"
+        "--host", default="127.0.0.1", help="with --web: the address (default 127.0.0.1; the printed URL has the token)"
+    )
+    con.add_argument(
+        "--no-token",
+        action="store_true",
+        help="with --web on the loopback only: ask no token (any program on this computer can then drive the robot)",
     )
     con.set_defaults(handler=cmd_console)
 

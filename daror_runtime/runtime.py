@@ -545,9 +545,15 @@ class Runtime:
         """Train ``kind`` (default: the session's) on this session's data, as a job (:func:`daror_runtime.session.requests.train`)."""
         requests.train(self._core, kind)
 
-    def select_model(self, path: Path | str, validation: Path | str | None = None) -> None:
-        """Use a model file once validated on held-out data (:func:`daror_runtime.session.requests.select_model`)."""
-        requests.select_model(self._core, path, validation)
+    def select_model(
+        self, path: Path | str, validation: Path | str | None = None, accept_nonconservative: bool = False
+    ) -> None:
+        """Use a model file once validated on held-out data of this pilot (:func:`daror_runtime.session.requests.select_model`).
+
+        ``accept_nonconservative``: the operator confirms a model the closed-path test finds not
+        conservative, after he saw its energy figure.
+        """
+        requests.select_model(self._core, path, validation, accept_nonconservative)
 
     # --- what the operator sees -----------------------------------------------------------
 

@@ -79,6 +79,11 @@ class SimulatedWorld(Protocol):
         ...
 
     @property
+    def scenario(self) -> str:
+        """The name of the simulated scenario (its robot and pilot: whose data a recording holds)."""
+        ...
+
+    @property
     def pilot_seated(self) -> bool:
         """True once :meth:`seat_pilot` was called."""
         ...

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import settings
 
 from daror_runtime.data.load import write_dataset
+from daror_runtime.data.provenance import simulated_pilot, simulated_robot, write_provenance
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.logs import configure_logging, flush_logs
 from daror_runtime.models.files import save_model, training_summary
@@ -99,6 +100,13 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
 
     write_dataset(files.training, dataset(points))
     write_dataset(files.validation, dataset(generate_stationary(exo_dummy_arm, "validation")))
+    # as an earlier session of the scenario's simulated pilot would have recorded them: a session validates a
+    # model only on data recorded from its pilot on its robot (issue 24)
+    robot = simulated_robot(exo_dummy_arm.description().name, exo_dummy_arm.name)
+    for path, run in ((files.training, "training"), (files.validation, "validation")):
+        write_provenance(
+            path, "session", robot, simulated_pilot(exo_dummy_arm.name), "earlier-session", run, exo_dummy_arm.name
+        )
     for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
         data = dataset(points, scale)
         result = fit_model("plf+", data, exo_dummy_arm.description(), installation_options("plf+", dummy_arm=True))

@@ -11,6 +11,7 @@ on its own line.
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -91,6 +92,7 @@ class ConsoleSession:
             runtime.spec, runtime.description, world.fault_kinds if world is not None else None
         )
         self.tally = _Tally()
+        self._announcing = threading.Lock()  # a printer thread drains too: one drain-and-print at a time, in order
         self._line = ""  # the line being run (echoed by world acts)
         self._run: dict[str, Callable[[tuple], None]] = {  # type: ignore[type-arg]
             "advance": lambda a: self._answer(runtime.advance()),
@@ -146,9 +148,10 @@ class ConsoleSession:
             self.show_announcements()
 
     def show_announcements(self) -> None:
-        """Print what the runtime announced since the last call, one line each."""
-        for item in self.announcements():
-            self.say(announcement_line(item))
+        """Print what the runtime announced since the last call, one line each (any thread)."""
+        with self._announcing:
+            for item in self.announcements():
+                self.say(announcement_line(item))
 
     def say(self, text: str) -> None:
         self.out.print(escape(text), soft_wrap=True)
@@ -178,7 +181,7 @@ class ConsoleSession:
         self.say("training queued (outside the loop); 'wait until idle' waits for it")
 
     def _model(self, args: tuple) -> None:  # type: ignore[type-arg]
-        self.runtime.select_model(args[0], args[1])
+        self.runtime.select_model(args[0], args[1], accept_nonconservative=args[2])
         self.say("model validation queued (outside the loop); 'wait until idle' waits for it")
 
     def _status(self, args: tuple) -> None:  # type: ignore[type-arg]

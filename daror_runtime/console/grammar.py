@@ -186,7 +186,10 @@ def _train(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 
 
 def _model(args: list[str], context: ParseContext) -> tuple[Any, ...]:
-    _arity("model FILE [VALIDATION_FILE]", args, (1, 2))
+    nonconservative = bool(args) and args[-1] == "nonconservative"
+    if nonconservative:
+        args = args[:-1]
+    _arity("model FILE [VALIDATION_FILE] [nonconservative]", args, (1, 2))
     path = _readable_file("model FILE", args[0], MODEL_MAX_BYTES)
     from daror_runtime.models.files import load_model  # the model kinds import lazily
 
@@ -197,7 +200,7 @@ def _model(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     if context.description is not None and document.robot.geometry != context.description.geometry:
         raise CommandError(f"model: {path}: fitted for another robot geometry than this session's")
     validation = _readable_file("model VALIDATION_FILE", args[1]) if len(args) == 2 else None
-    return (path, validation)
+    return (path, validation, nonconservative)
 
 
 def _status(args: list[str], context: ParseContext) -> tuple[Any, ...]:
@@ -372,12 +375,14 @@ COMMANDS: tuple[CommandSpec, ...] = (
     ),
     CommandSpec(
         "model",
-        "model FILE [VALIDATION_FILE]",
-        "use a model file, once it passes validation on held-out data",
+        "model FILE [VALIDATION_FILE] [nonconservative]",
+        "use a model file, once it passes validation on held-out data of this pilot",
         GROUPS[1],
         _model,
-        "Without VALIDATION_FILE the session's own validation run is used. A model that fails validation is "
-        "refused and never drives the arm.",
+        "Without VALIDATION_FILE the session's own validation run is used; a VALIDATION_FILE must be a recording "
+        "of this pilot on this robot (its provenance file says so: an earlier session's run). A model that fails "
+        "validation is refused and never drives the arm. A model the closed-path test finds not conservative is "
+        "refused with its energy figure; add 'nonconservative' to use it anyway.",
     ),
     CommandSpec("status", "status [json]", "what the robot is doing, and what to do next", GROUPS[2], _status),
     CommandSpec("settings", "settings", "the session settings", GROUPS[2], _no_args("settings")),

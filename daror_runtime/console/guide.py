@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from daror_runtime.fsm.guards import GUARDS
 from daror_runtime.session.status import RuntimeStatus
@@ -87,6 +88,14 @@ def _model_approved(status: RuntimeStatus, world: bool) -> Step:
     )
 
 
+def _refused_data(refused: dict[str, Any], kind: str) -> str | None:
+    """The training or validation file a refused model was trained or validated on (None: not this session's)."""
+    if kind == "training":
+        return refused.get("training_data")
+    origin = refused.get("validation_data")
+    return origin.get("path") if isinstance(origin, dict) else None
+
+
 def _identification(status: RuntimeStatus, world: bool) -> Step:
     if status.identification_running is not None:
         running = status.identification_running
@@ -103,7 +112,7 @@ def _identification(status: RuntimeStatus, world: bool) -> Step:
                 f"run the {kind} protocol: the pilot relaxes completely and the robot moves the arm (minutes)",
                 (*relax, f"identify {kind}", "wait until idle"),
             )
-        if refused.get(f"{kind}_data") == saved:
+        if _refused_data(refused, kind) == saved:
             return Step(
                 f"the model trained on this session's data failed validation: run the {kind} protocol again, "
                 "with the pilot relaxed completely (no effort, no stiffness)",

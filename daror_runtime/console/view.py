@@ -84,15 +84,28 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
             f"model: {model.name} ({model.kind}), validated: RMSE {model.validation_rmse_nm:.3f} Nm on held-out data "
             f"(limit {model.max_validation_rmse_nm:g} Nm)"
         )
+        if model.validation_data is not None:
+            lines.append(f"  validation data: {model.validation_data}")
+        if model.nonconservative_confirmed and model.closed_path_energy_j:
+            lines.append(
+                f"  NOT conservative: {model.closed_path_energy_j[-1]:.3g} J over the closed path; used because the "
+                "operator confirmed it"
+            )
     else:
         arm = "with the Dummy Arm" if model.includes_dummy_arm else "robot only, without the pilot's arm"
         lines.append(f"model: {model.name} ({model.kind}, {arm}), approved by the operator, not validated")
     if status.model_refused is not None:
         refused = status.model_refused
-        lines.append(
-            f"  refused: {refused['name']} failed validation (RMSE {refused['validation_rmse_nm']:.3f} Nm > "
-            f"{refused['max_validation_rmse_nm']:g} Nm); it never drives the arm"
-        )
+        if refused["validated"]:  # validated, but the closed-path test found it not conservative
+            lines.append(
+                f"  refused: {refused['name']} is not conservative ({refused['closed_path_energy_j'][-1]:.3g} J over "
+                "the closed path); 'model FILE VALIDATION nonconservative' uses it anyway"
+            )
+        else:
+            lines.append(
+                f"  refused: {refused['name']} failed validation (RMSE {refused['validation_rmse_nm']:.3f} Nm > "
+                f"{refused['max_validation_rmse_nm']:g} Nm); it never drives the arm"
+            )
     handover = max(abs(v) for v in status.handover_nm) if status.mode == "compensation" else 0.0
     lines.append(
         f"support level: {status.support_level:.2f} (delivered {status.delivered_support_level:.2f}"

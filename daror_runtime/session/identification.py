@@ -187,6 +187,7 @@ class RunSummary:
 
     kind: str
     dataset_path: Path
+    raw_path: Path  # the raw log beside it (every tick of the run)
     points: int
     tracking_rms_rad: FloatArray
     tracking_max_rad: FloatArray
@@ -200,7 +201,8 @@ def finish_run(run: IdentificationRun) -> RunSummary:
         DataError: the recording cannot be read back.
     """
     data = finish_recording(run)
-    write_dataset(raw_log_path(run.dataset_path, RAW_LOG_SUFFIX), data.raw)
+    raw_path = raw_log_path(run.dataset_path, RAW_LOG_SUFFIX)
+    write_dataset(raw_path, data.raw)
     write_dataset(run.dataset_path, data.stationary)
     run.recorder.path.unlink(missing_ok=True)
     log.info(
@@ -210,7 +212,9 @@ def finish_run(run: IdentificationRun) -> RunSummary:
         points=len(data.stationary),
         tracking_rms_mrad=[round(v * 1e3, 2) for v in data.tracking_rms_rad],
     )
-    return RunSummary(run.kind, run.dataset_path, len(data.stationary), data.tracking_rms_rad, data.tracking_max_rad)
+    return RunSummary(
+        run.kind, run.dataset_path, raw_path, len(data.stationary), data.tracking_rms_rad, data.tracking_max_rad
+    )
 
 
 def abandon_run(run: IdentificationRun, reason: str) -> None:

@@ -25,10 +25,12 @@ from daror_runtime.fsm.signals import Checklist
 from daror_runtime.fsm.spec import StateSpec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
 from daror_runtime.identification.protocol import IdentificationRun, let_the_writer_catch_up
+from daror_runtime.models.compare import cvf_models
 from daror_runtime.models.registry import kind_entry, kind_names
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import AnnouncementKind
 from daror_runtime.session.identification import abandon_run, finish_run, prepare_run, session_waypoints
+from daror_runtime.session.provenance import ValidationOrigin, record_provenance, validation_origin
 from daror_runtime.session.rom import RomEnvelope
 from daror_runtime.session.training import TrainedModel, read_model_candidate, train_model, validate_candidate
 from hal.isb import IsbLimits
@@ -337,6 +339,8 @@ def _collect(core: SessionCore, run: IdentificationRun) -> Response:
     def job() -> None:
         try:
             data = finish_run(run)
+            for recorded in (data.dataset_path, data.raw_path):
+                record_provenance(core, recorded, data.kind)  # whose data: what validates a model on it
         except DarorError as exc:
             core.progress.last_error = f"identification {run.kind}: {exc}"
             log.error("identification data not saved", kind=run.kind, reason=str(exc))
@@ -387,6 +391,7 @@ def train(core: SessionCore, kind: str | None = None) -> None:
     if missing:
         raise RequestRefusedError(f"no {' or '.join(missing)} data saved in this session yet: run the protocol first")
     training, validation = saved["training"], saved["validation"]
+    origin = validation_origin(core, validation)  # this session's own run
     log.info("request", request=f"train {kind}", origin="operator", training=str(training), validation=str(validation))
 
     def job() -> None:
@@ -398,19 +403,24 @@ def train(core: SessionCore, kind: str | None = None) -> None:
         except DarorError as exc:
             core.progress.last_error = f"train {kind}: {exc}"
             raise
-        post_model(core, trained, f"train {kind}", {"training_data": str(training), "validation_data": str(validation)})
+        post_model(core, trained, f"train {kind}", origin, data={"training_data": str(training)})
 
     core.jobs.submit(f"train {kind}", job)
 
 
-def select_model(core: SessionCore, path: Path | str, validation: Path | str | None = None) -> None:
-    """Use an existing model file once it is validated on held-out data (default: this session's validation run).
+def select_model(
+    core: SessionCore, path: Path | str, validation: Path | str | None = None, accept_nonconservative: bool = False
+) -> None:
+    """Use an existing model file once it is validated on held-out data of this pilot (default: this session's validation run).
 
-    The files are read and checked now (in the caller's thread); the validation runs as a job,
-    and the model reaches compensation only if it passes.
+    The files are read and checked now (in the caller's thread); the validation and the
+    closed-path test run as a job, and the model reaches compensation only if it passes both (a
+    model the closed-path test finds not conservative only with ``accept_nonconservative``, the
+    operator's explicit confirmation after he saw the energy figure).
 
     Raises:
-        RequestRefusedError: no validation data named and none recorded in this session.
+        RequestRefusedError: no validation data named and none recorded in this session, or data
+            not recorded from this pilot on this robot (:func:`validation_origin`).
         ModelFileError, DataError, NotHeldOutError: a file that cannot be used (named in the message).
     """
     validation_path = (
@@ -421,22 +431,37 @@ def select_model(core: SessionCore, path: Path | str, validation: Path | str | N
             "a model is validated on held-out data of this pilot: name a validation file or run the validation "
             "protocol first"
         )
+    origin = validation_origin(core, validation_path)
     candidate = read_model_candidate(Path(path), validation_path, core.description)
-    log.info("request", request="select model", origin="operator", model=str(path), validation=str(validation_path))
+    log.info(
+        "request", request="select model", origin="operator", model=str(path), validation=str(validation_path),
+        validation_origin=origin.description, accept_nonconservative=accept_nonconservative,
+    )  # fmt: skip
 
     def job() -> None:
         trained = validate_candidate(candidate, core.settings.max_validation_rmse_nm)
-        post_model(core, trained, "select model")
+        post_model(core, trained, "select model", origin, accept_nonconservative)
 
     core.jobs.submit("select model", job)
 
 
-def post_model(core: SessionCore, trained: TrainedModel, request: str, data: dict[str, str] | None = None) -> None:
+def post_model(
+    core: SessionCore,
+    trained: TrainedModel,
+    request: str,
+    origin: ValidationOrigin,
+    accept_nonconservative: bool = False,
+    data: dict[str, str] | None = None,
+) -> None:
     """From a job: hand a validated model to compensation at a tick boundary; refuse one that failed.
 
-    Never while a compensation state delivers support (a model swap there is a torque step).
+    Refused: a model that failed validation; one the closed-path test finds not conservative,
+    unless the operator confirmed it (``accept_nonconservative``). Never while a compensation
+    state delivers support (a model swap there is a torque step).
     """
     selected = trained.selected
+    closed_path = cvf_models([trained.model])[0].result  # the thesis's test (Table IV), outside the tick
+    energy_j = closed_path.steps[-1].energy_j
     summary = {
         "name": selected.name,
         "kind": selected.kind,
@@ -445,18 +470,32 @@ def post_model(core: SessionCore, trained: TrainedModel, request: str, data: dic
         "validation_rmse_per_joint_nm": list(trained.validation.rmse_per_joint_nm),
         "validated": selected.validated,
         "max_validation_rmse_nm": selected.max_rmse_nm,
+        "validation_data": origin.as_dict(),
+        "conservative": closed_path.conservative,
+        "closed_path_energy_j": [step.energy_j for step in closed_path.steps],
+        "nonconservative_confirmed": accept_nonconservative and not closed_path.conservative,
         **(data or {}),
     }
 
     def apply(supervisor: FsmSupervisor) -> Response:
+        reason = None
         if not selected.validated:
-            core.progress.last_model_refused = summary
             in_use = core.progress.last_model
             reason = (
                 f"{selected.name} failed validation: RMSE {trained.validation.rmse_nm:.3g} Nm on held-out data, "
                 f"above the session's limit of {selected.max_rmse_nm:g} Nm; it never drives the arm "
                 f"(in use: {in_use['name'] if in_use else 'no model'})"
             )
+        elif not closed_path.conservative and not accept_nonconservative:
+            energies = ", ".join(f"{step.energy_j:.3g}" for step in closed_path.steps)
+            reason = (
+                f"{selected.name} is not conservative: the closed-path test leaves {energy_j:.3g} J at its finest step "
+                f"({energies} J from the coarsest step to the finest: it does not shrink), so along a closed path "
+                f"it can put energy into the pilot's arm; to use it anyway, confirm: model {selected.path} "
+                f"{origin.path} nonconservative"
+            )
+        if reason is not None:
+            core.progress.last_model_refused = summary
             core.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", core.t_s())
             return core.refuse(request, reason)
         if supervisor.state.mode == "compensation":
@@ -465,14 +504,19 @@ def post_model(core: SessionCore, trained: TrainedModel, request: str, data: dic
             return core.refuse(request, reason)
         core.modes.compensation.model = trained.model
         core.modes.compensation.damping_nms_per_rad = 0.0  # validated on this pilot's data: transparent
+        confirmed = (
+            f"; NOT conservative ({energy_j:.3g} J over the closed path), used as the operator confirmed"
+            if summary["nonconservative_confirmed"]
+            else ""
+        )
         core.announcements.announce(
             AnnouncementKind.MODEL,
             f"{request} done: {selected.name} ({selected.kind}) validated, RMSE {trained.validation.rmse_nm:.3g} Nm "
-            f"<= {selected.max_rmse_nm:g} Nm on held-out data; it is the compensation model now",
+            f"<= {selected.max_rmse_nm:g} Nm on {origin.description}{confirmed}; it is the compensation model now",
             core.t_s(),
         )
         supervisor.signals.model = selected
-        core.progress.last_model = {**summary, "approved_by": "validation on held-out data"}
+        core.progress.last_model = {**summary, "approved_by": "validation on held-out data of this pilot"}
         log.info("model in use", **core.progress.last_model, state=supervisor.state_name, t_s=core.t_s())
         return Response(request, True, supervisor.state_name, detail=selected)
 

@@ -114,6 +114,12 @@ class SafeStopSettings(_Strict):
 class SessionSettings(_Strict):
     """Settings of one session; units in the names."""
 
+    pilot: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$",
+        description="the pilot's code in the lab's records (e.g. P-007; a code, never a name): a model is validated "
+        "only on data recorded from this pilot",
+    )
     dummy_arm: Flag = Field(False, description="the Dummy Arm is installed (the A Priori model includes it)")
     support_level: Number = Field(1.0, ge=0.0, le=1.0, description="fraction of the model torque delivered")
     support_ramp_per_s: Number = Field(

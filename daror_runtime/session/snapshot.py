@@ -150,4 +150,8 @@ def _model_status(core: SessionCore) -> ModelStatus | None:
         validation_rmse_per_joint_nm=None if per_joint is None else tuple(per_joint),
         max_validation_rmse_nm=summary.get("max_validation_rmse_nm"),
         includes_dummy_arm=summary.get("includes_dummy_arm"),
+        validation_data=summary["validation_data"]["description"] if "validation_data" in summary else None,
+        conservative=summary.get("conservative"),
+        closed_path_energy_j=tuple(summary["closed_path_energy_j"]) if "closed_path_energy_j" in summary else None,
+        nonconservative_confirmed=bool(summary.get("nonconservative_confirmed", False)),
     )

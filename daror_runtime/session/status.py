@@ -57,6 +57,10 @@ class ModelStatus:
     validation_rmse_per_joint_nm: tuple[float, ...] | None = None
     max_validation_rmse_nm: float | None = None
     includes_dummy_arm: bool | None = None  # the A Priori model only
+    validation_data: str | None = None  # where the validation data came from (this session's run, an earlier one)
+    conservative: bool | None = None  # the closed-path test's verdict (None: not tested, the A Priori model)
+    closed_path_energy_j: tuple[float, ...] | None = None  # its energy per step size, coarse to fine, J
+    nonconservative_confirmed: bool = False  # not conservative, used because the operator confirmed it
 
 
 @dataclass(frozen=True)

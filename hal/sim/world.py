@@ -51,6 +51,10 @@ class PlantWorld:
         return self.hal.scenario.dummy_arm is not None
 
     @property
+    def scenario(self) -> str:
+        return self.hal.scenario.name
+
+    @property
     def pilot(self) -> SimulatedPilot:
         """The seated pilot (tests and tools).
 

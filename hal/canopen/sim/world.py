@@ -39,6 +39,10 @@ class CanSimWorld:
         return self._plant.carries_dummy_arm
 
     @property
+    def scenario(self) -> str:
+        return self._plant.scenario
+
+    @property
     def pilot_seated(self) -> bool:
         return self._plant.pilot_seated
 
