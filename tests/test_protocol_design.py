@@ -31,12 +31,20 @@ from daror_runtime.identification.design_route import RouteTimes, improve_tour, 
 from daror_runtime.identification.protocol import run_protocol
 from daror_runtime.identification.protocol_file import (
     DesignedProtocol,
+    IsbPose,
     ProtocolFileError,
+    Visit,
     load_protocol,
     protocol_text,
     write_protocol,
 )
 from daror_runtime.identification.settings import IdentificationSettings
+from daror_runtime.identification.trajectory_planning import (
+    APPROACH_SLACK_DEG,
+    TrajectoryError,
+    approach_limits,
+    check_approach,
+)
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.linear import APModel
 from daror_runtime.models.registry import fit_model, installation_options
@@ -167,6 +175,18 @@ def test_a_designed_protocol_never_leaves_the_recorded_isb_limits(
     assert np.all(limits.contains(shoulder.isb_from_q(q)))
     assert np.all((q >= shoulder.lower_rad - 1e-9) & (q <= shoulder.upper_rad + 1e-9))
     assert np.min(shoulder.sigma_min(q)) >= protocol.trajectory.min_sigma
+    # the run as daror identify makes it, the approach from the robot's home included (issue 24): the
+    # arm enters the limits once, before the trajectory starts, and stays in; on its way in it goes no
+    # further out than where it started
+    home = shoulder.q_from_isb(HOME.isb_rad)
+    run = trajectory.with_approach(home, protocol.prediction.approach_s, protocol.prediction.settle_s)
+    assert run.duration_s == pytest.approx(protocol.prediction.robot_time_s, abs=1e-9)
+    isb = shoulder.isb_from_q(run.sample(np.arange(0.0, run.duration_s, 0.001))[0])
+    inside = np.asarray(limits.contains(isb))
+    entry = int(np.argmax(inside))
+    assert inside[entry:].all()
+    assert entry * 0.001 <= run.time_offset_s
+    assert np.all(approach_limits(limits, isb[0]).contains(isb[:entry]))
 
 
 def test_limits_that_cannot_identify_the_elbow_polynomial_are_refused_in_one_sentence(
@@ -357,6 +377,114 @@ def test_the_study_refuses_bad_options_before_any_run(
     assert message in err
     assert err.count("\n") == 1
     assert not out.exists()
+
+
+# --- issue 24: limits the robot's home pose lies outside ------------------------------------------------
+
+#: A pilot who cannot let the arm hang: the robot's home (elevation 0) is outside these limits.
+ABOVE_HOME = (
+    "elevation: {lower_deg: 10.0, upper_deg: 70.0}\n"
+    "horizontal_rotation: {lower_deg: 0.0, upper_deg: 120.0}\n"
+    "axial_rotation: {lower_deg: -40.0, upper_deg: 40.0}\n"
+    "elbow: {lower_deg: 20.0, upper_deg: 100.0}\n"
+)
+
+
+def test_a_protocol_designed_for_limits_that_exclude_the_home_pose_runs_with_those_limits_enforced(
+    tmp_path: Path, description: RobotDescription
+) -> None:
+    """Before: ``daror identify`` stopped at t = 0.001 s, "isb_limit: elevation 0.0 deg beyond the
+    pilot's limit 10.0 deg": the robot starts at its home, which the design itself was told is out."""
+    limits_file = tmp_path / "pilot_isb.yaml"
+    limits_file.write_text(ABOVE_HOME)
+    protocol_file, out = tmp_path / "short.yaml", tmp_path / "B_short.npz"
+    design = ["protocol", "design", "--budget-s", "60", "--limits", str(limits_file), "--out", str(protocol_file)]
+    assert main(design) == 0
+    identify = ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--protocol", str(protocol_file)]
+    assert main([*identify, "--isb-limits", str(limits_file), "--out", str(out)]) == 0
+    protocol, _ = load_protocol(protocol_file)
+    assert len(load_stationary(out)) == 3 * protocol.prediction.data_stops  # the whole protocol ran
+    raw = load_dataset(tmp_path / "B_short.raw.npz")
+    limits = IsbLimits.model_validate(yaml.safe_load(ABOVE_HOME))
+    isb = Shoulder.from_description(description).isb_from_q(raw.q_rad)  # the arm as measured, every tick
+    inside = np.asarray(limits.contains(isb))
+    assert not inside[0]  # it started at home, below the pilot's lowest elevation
+    assert np.degrees(isb[0, 0]) < 1.0
+    entry = int(np.argmax(inside))
+    assert inside[entry:].all()  # once in, never out: what the monitor enforced from then on
+    entered_s = raw.t_s[entry] - raw.t_s[0]
+    assert entered_s <= protocol.prediction.approach_s  # in, before the approach's end
+    assert np.degrees(isb[:entry, 0]).min() >= -APPROACH_SLACK_DEG  # no further out on the way in than home
+
+
+def test_an_approach_that_would_leave_the_limits_is_refused_before_anything_moves(
+    tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]
+) -> None:
+    limits_file = tmp_path / "pilot_isb.yaml"
+    limits_file.write_text(ABOVE_HOME)
+    limits = IsbLimits.model_validate(yaml.safe_load(ABOVE_HOME))
+    designed = design_protocol(60.0, limits, description).protocol
+    # a first pose whose straight joint approach from home enters the limits, then leaves them (horizontal
+    # rotation beyond 120 deg on the way) before it comes back in
+    first = IsbPose(elevation_deg=42.4, horizontal_rotation_deg=114.3, axial_rotation_deg=15.6, elbow_deg=63.4)
+    then = first.model_copy(update={"elbow_deg": 70.0})
+    visits = [first.model_dump() | {"stop_s": 1.0, "pose": 1}, then.model_dump() | {"stop_s": 1.0, "pose": 2}]
+    protocol_file, out = tmp_path / "p.yaml", tmp_path / "B.npz"
+    write_protocol(protocol_file, designed.model_copy(update={"visits": [Visit(**v) for v in visits]}))
+    identify = ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--protocol", str(protocol_file)]
+    capsys.readouterr()
+    assert main([*identify, "--isb-limits", str(limits_file), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith(
+        "daror identify: error: the approach from where the robot stands leaves the pilot's ISB limits at "
+    )
+    assert "horizontal rotation" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.yaml", "pilot_isb.yaml"]  # nothing written
+
+
+def test_the_approach_check_names_where_an_approach_leaves_or_strays(description: RobotDescription) -> None:
+    shoulder = Shoulder.from_description(description)
+    limits = IsbLimits.model_validate(yaml.safe_load(ABOVE_HOME))
+    home = shoulder.q_from_isb(HOME.isb_rad)
+    first = shoulder.q_from_isb(np.radians([22.6, 83.6, -14.4, 27.5]))
+    check = check_approach(shoulder, limits, home, first)  # in through the elevation, then inside
+    assert check.outside == ("elevation 0.0 deg outside [10, 70] deg",)
+    assert 0.3 < check.entry_fraction < 0.6
+    assert check.on_the_way.elevation.lower_deg == pytest.approx(np.degrees(shoulder.isb_from_q(home)[0]) - 1.0)
+    assert check.on_the_way.ranges[1:] == limits.ranges[1:]  # only the side the start lies beyond moves
+    inside = check_approach(shoulder, limits, first, shoulder.q_from_isb(np.radians([40.0, 60.0, 0.0, 50.0])))
+    assert inside.starts_inside
+    assert inside.entry_fraction == 0.0
+    assert inside.on_the_way is limits
+    with pytest.raises(TrajectoryError, match=r"^the approach ends outside the pilot's ISB limits: elevation 0\.0"):
+        check_approach(shoulder, limits, first, home)
+    # from an axial rotation of 41 deg (limit 40) towards a pose inside, the path first turns further out
+    start = shoulder.q_from_isb(np.radians([30.0, 90.0, 41.0, 50.0]))
+    with pytest.raises(TrajectoryError, match=r"goes further out on its way in, at \d+% of the way: axial rotation 42"):
+        check_approach(shoulder, limits, start, shoulder.q_from_isb(np.radians([64.0, 40.0, 37.0, 36.0])))
+    bent = shoulder.q_from_isb(np.radians([42.4, 114.3, 15.6, 63.4]))
+    with pytest.raises(TrajectoryError, match=r"leaves the pilot's ISB limits at \d+% of the way after it was inside"):
+        check_approach(shoulder, limits, home, bent)
+
+
+def test_a_design_from_a_start_outside_the_limits_enters_them_and_stays_in(description: RobotDescription) -> None:
+    """A start pose beyond the axial limit: the approach aims for the start brought inside the limits."""
+    shoulder = Shoulder.from_description(description)
+    limits = IsbLimits.model_validate(yaml.safe_load(ABOVE_HOME))
+    start = IsbPose(elevation_deg=30.0, horizontal_rotation_deg=90.0, axial_rotation_deg=45.0, elbow_deg=50.0)
+    result = design_protocol(60.0, limits, description, start=start)
+    protocol = result.protocol
+    assert protocol.start == start
+    start_q = shoulder.q_from_isb(start.isb_rad)
+    run = result.trajectory.with_approach(start_q, protocol.prediction.approach_s, protocol.prediction.settle_s)
+    assert run.duration_s == pytest.approx(protocol.prediction.robot_time_s, abs=1e-9)
+    isb = shoulder.isb_from_q(run.sample(np.arange(0.0, run.duration_s, 0.001))[0])
+    inside = np.asarray(limits.contains(isb))
+    entry = int(np.argmax(inside))
+    assert entry > 0
+    assert inside[entry:].all()
+    assert np.degrees(isb[:entry, 2]).max() <= 45.0 + APPROACH_SLACK_DEG
 
 
 # --- where it runs -----------------------------------------------------------------------------------

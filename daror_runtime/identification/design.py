@@ -17,8 +17,11 @@ module chooses them, for a budget of robot time, inside the pilot's recorded ISB
 4. **Realisation**: the visits are built by the trajectory generator itself
    (:func:`~daror_runtime.identification.trajectory_planning.build_visit_trajectory`, every tick
    checked); a move that would leave the limits gets a via at the ISB midpoint, or its pose is
-   dropped; the built trajectory's robot time (approach and settle included) must fit the
-   budget, or the pose that costs the least information per second is dropped.
+   dropped; the approach from the start pose (which may lie outside the limits: a pilot who
+   cannot reach the robot's home) must enter them once and stay in, through the start pose
+   brought inside the limits if the direct way does not (D135), or the first pose is dropped;
+   the built trajectory's robot time (approach and settle included) must fit the budget, or the
+   pose that costs the least information per second is dropped.
 5. **Checks and predictions**: the condition number of the information matrix (unit diagonal)
    must stay below ``max_condition``, or the design is refused naming the weakest combination;
    the protocol carries the predicted standard errors and validation error.
@@ -61,8 +64,13 @@ from daror_runtime.identification.protocol_file import (
 )
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory import ReferenceTrajectory
-from daror_runtime.identification.trajectory_planning import MoveError, build_visit_trajectory
-from hal.isb import IsbLimits, Shoulder, UnreachablePoseError
+from daror_runtime.identification.trajectory_planning import (
+    MoveError,
+    TrajectoryError,
+    build_visit_trajectory,
+    check_approach,
+)
+from hal.isb import ISB_NAMES, IsbLimits, Shoulder, UnreachablePoseError
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 
 __all__ = ["HOME", "DesignError", "DesignResult", "DesignSettings", "design_protocol"]
@@ -361,8 +369,9 @@ def _bridge(
 
 def _realise(
     problem: DesignProblem, tour: list[int], shoulder: Shoulder, limits: IsbLimits, settings: DesignSettings
-) -> tuple[list[tuple[FloatArray, float, int]], int | None]:
-    """The visits (q, stop, pose number from 1) of a tour, with bridges; or the tour index of a pose to drop."""
+) -> tuple[list[tuple[FloatArray, float, int]], int | None, str | None]:
+    """The visits (q, stop, pose number from 1) of a tour, with bridges; or the tour index of a pose
+    to drop, and why when it is the approach from the start pose that fails."""
     visits: list[tuple[FloatArray, float, int]] = []
     check_limits = _inner(limits)
     for k, c in enumerate(tour):
@@ -372,10 +381,48 @@ def _realise(
                 shoulder, check_limits, settings.trajectory.min_sigma, visits[-1][0], own[0][0], _SPLIT_DEPTH
             )
             if bridge is None:
-                return visits, k
+                return visits, k, None
             visits.extend((q, 0.0, k + 1) for q in bridge)
+        else:
+            entry, why = _entry(problem.start_q, own[0][0], shoulder, limits, settings)
+            if entry is None:
+                return visits, k, why
+            visits.extend((q, 0.0, k + 1) for q in entry)
         visits.extend((q, stop, k + 1) for q, stop in own)
-    return visits, None
+    return visits, None, None
+
+
+def _entry(
+    start_q: FloatArray, first_q: FloatArray, shoulder: Shoulder, limits: IsbLimits, settings: DesignSettings
+) -> tuple[list[FloatArray] | None, str]:
+    """Via poses (possibly none) that let the approach from ``start_q`` reach ``first_q`` inside the limits.
+
+    The approach is a straight joint move (:func:`check_approach`): from a start outside the
+    limits it must enter them once and stay in. When the direct approach does not, it aims for the
+    start pose brought ``margin_deg`` inside the limits (the nearest way in), and the generator's
+    move goes on from there. Returns (None, why) when neither works.
+    """
+    try:
+        check_approach(shoulder, limits, start_q, first_q)
+        return [], ""
+    except TrajectoryError as exc:
+        why = str(exc)
+    inside = shrunk(limits, settings.margin_deg)
+    start_isb = inside.for_box_check(shoulder.isb_from_q(start_q))
+    try:
+        entry = shoulder.q_from_isb(np.clip(start_isb, inside.lower_rad, inside.upper_rad), seed=start_q)
+    except UnreachablePoseError as exc:
+        return None, f"{why}; the nearest pose inside the limits is out of the robot's reach ({exc})"
+    if entry[1] <= 0.0 or shoulder.sigma_min(entry) < settings.min_sigma:
+        return None, f"{why}; the nearest pose inside the limits is too near the shoulder's singularity"
+    try:
+        check_approach(shoulder, limits, start_q, entry)
+    except TrajectoryError as exc:
+        return None, str(exc)
+    bridge = _bridge(shoulder, _inner(limits), settings.trajectory.min_sigma, entry, first_q, _SPLIT_DEPTH)
+    if bridge is None:
+        return None, f"{why}; from the nearest pose inside the limits no move stays inside them"
+    return [entry, *bridge], ""
 
 
 def _inner(limits: IsbLimits) -> IsbLimits:
@@ -479,11 +526,14 @@ def _fit_to_budget(
     """Build the tour with the trajectory generator; drop poses until it is valid and fits the budget."""
     traj = settings.trajectory.settings(settings.stop_s)
     ident = settings.identification
+    approach_failed = ""  # why the last pose dropped for the approach from the start pose was dropped
     while selection.tour:
-        visits, bad = _realise(problem, selection.tour, shoulder, limits, settings)
+        visits, bad, why = _realise(problem, selection.tour, shoulder, limits, settings)
         if bad is not None:
+            approach_failed = why or ""
             selection.remove(selection.tour[bad])
             continue
+        approach_failed = ""
         poses = [IsbPose.from_rad(shoulder.isb_from_q(q)) for q, _, _ in visits]
         record = _provisional(poses, [s for _, s, _ in visits], limits, settings)
         try:
@@ -496,6 +546,13 @@ def _fit_to_budget(
         if total <= budget_s:
             return trajectory, visits
         selection.drop_least_useful()
+    if approach_failed:
+        start_deg = np.degrees(shoulder.isb_from_q(problem.start_q))
+        start = "; ".join(f"{name} {v:.1f} deg" for name, v in zip(ISB_NAMES, start_deg, strict=True))
+        raise DesignError(
+            f"no approach from the start pose ({start}) enters the pilot's ISB limits and stays inside them "
+            f"({approach_failed}): record limits the arm can be brought into from there"
+        )
     raise DesignError(
         f"a budget of {budget_s:g} s of robot time holds no pose of the design inside the pilot's ISB limits: "
         "raise --budget-s"

@@ -20,7 +20,8 @@ simulated plant alone (:func:`run_protocol`, no FSM, so never on hardware). Both
 Safety: the run stops on the first fault (torque is already off: the safety filter did that in
 the same tick) and :class:`ProtocolAbortedError` names the fault. The pilot's ISB limits, when
 given, are enforced every tick by the safety monitor, so a trajectory that would leave them is
-stopped automatically (an automatic stop that makes the pilot safer, docs/safety.md).
+stopped automatically (an automatic stop that makes the pilot safer, docs/safety.md). A robot that
+starts outside them enters them on the approach (checked before it moves; D135).
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.errors import DarorError, UsageError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory import ReferenceTrajectory
-from daror_runtime.loop import ControlLoop, FixedSupervisor
+from daror_runtime.identification.trajectory_planning import check_approach
+from daror_runtime.loop import ControlLoop, FixedSupervisor, TickResult
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.safety.faults import Fault
 from daror_runtime.safety.limits import SafetyLimits
@@ -215,7 +217,11 @@ def run_protocol(
         trajectory: the training or validation trajectory.
         recording_path: where the tick recording is streamed (must not exist; kept afterwards).
         dataset_path: where the caller will write the stationary dataset (not written here).
-        isb_limits: the pilot's ISB limits, enforced every tick (None: device limits only).
+        isb_limits: the pilot's ISB limits, enforced every tick (None: device limits only). A robot
+            that starts outside them (its home pose below the pilot's lowest elevation) enters them
+            on the approach, held meanwhile to no further out than its start (:func:`check_approach`);
+            from the tick the arm is inside, or at the latest when the approach and settle hold end,
+            they are enforced.
         settings: how the run is carried out (default :class:`IdentificationSettings`).
         progress: called with (robot seconds done, robot seconds total) every
             ``progress_every_ticks`` ticks.
@@ -223,6 +229,8 @@ def run_protocol(
 
     Raises:
         UsageError: ``hal`` drives hardware (not on virtual time).
+        TrajectoryError: the approach from where the robot stands would leave the pilot's limits
+            once inside them, or stray further out on its way in (before anything moved).
         ProtocolAbortedError: a fault stopped the run (its message says which), or its recording
             is unusable.
         DarorError: the recording could not be read back or reduced.
@@ -237,13 +245,21 @@ def run_protocol(
     description = hal.description
     period = 1.0 / hal.rate_hz
     first = hal.read()
+    shoulder = Shoulder.from_description(description)
+    approach = None
+    if isb_limits is not None:  # before anything is planned or recorded: a refusal leaves nothing behind
+        approach = check_approach(
+            shoulder, isb_limits, first.q_rad, trajectory.start_q_rad, "the approach from where the robot stands"
+        )
     run = plan_run(trajectory, description, first.q_rad, settings, feedforward, period, recording_path, dataset_path)
     run.controller.reset(first)
-    limits = SafetyLimits.from_description(description)
-    isb_function = None
-    if isb_limits is not None:
-        isb_function = monitor_isb_function(Shoulder.from_description(description), isb_limits)
-        limits = limits.with_isb(isb_limits)
+    device = SafetyLimits.from_description(description)
+    limits, isb_function = device, None
+    if approach is not None:
+        # The arm may start outside the pilot's limits (a pilot who cannot reach the robot's home pose):
+        # until it has entered them it is held to the approach's own limits, no further out than its start.
+        limits = device.with_isb(approach.on_the_way)
+        isb_function = monitor_isb_function(shoulder, approach.on_the_way)
     monitor = SafetyMonitor(limits, isb_angles=isb_function)
     reference = run.reference
     ticks = math.ceil(reference.duration_s / period) + 1
@@ -254,7 +270,10 @@ def run_protocol(
     log.info("identification started", trajectory=trajectory.kind, robot_s=round(reference.duration_s, 1), ticks=ticks)
     wall_start = time.perf_counter()
     try:
-        while done < ticks:  # chunks: progress between them, nothing extra inside the tick
+        if approach is not None and isb_limits is not None and not approach.starts_inside:
+            done = _enter_the_limits(loop, monitor, shoulder, isb_limits, math.ceil(reference.time_offset_s / period))
+            faults.extend(monitor.latched)
+        while done < ticks and not faults:  # chunks: progress between them, nothing extra inside the tick
             chunk = min(every, ticks - done)
             last = loop.run(chunk, stop_on_fault=True)
             done += chunk
@@ -288,6 +307,34 @@ def run_protocol(
         ticks=loop.clock.ticks,
         dropped_rows=loop.dropped_rows,
     )
+
+
+def _enter_the_limits(
+    loop: ControlLoop, monitor: SafetyMonitor, shoulder: Shoulder, isb_limits: IsbLimits, deadline_ticks: int
+) -> int:
+    """Tick until the measured arm is inside the pilot's ISB limits, then enforce them; the ticks run.
+
+    Before that the monitor holds the arm to the approach's limits (:func:`check_approach`). At
+    ``deadline_ticks`` (the end of the approach and the settle hold) the pilot's limits are enforced
+    whether or not the arm entered them: an arm still outside then faults at the next tick.
+    """
+    angles = monitor_isb_function(shoulder, isb_limits)
+    lower, upper = isb_limits.lower_rad, isb_limits.upper_rad
+
+    def entered(result: TickResult) -> bool:
+        sample = result.sample
+        if sample is None:
+            return False
+        isb = angles(sample.q_rad)
+        return bool(np.all((isb >= lower) & (isb <= upper)))
+
+    last = loop.run(max(deadline_ticks, 1), stop=entered, stop_on_fault=True)
+    monitor.set_limits(
+        monitor.limits.with_isb(isb_limits), monitor_isb_function(shoulder, isb_limits)
+    )  # from the next tick on
+    if last is not None and last.sample is not None:
+        log.info("the arm entered the pilot's ISB limits", t_s=round(last.sample.t_s, 3), inside=entered(last))
+    return loop.clock.ticks
 
 
 def let_the_writer_catch_up(recorder: Recorder, timeout_s: float = 10.0) -> None:

@@ -45,16 +45,20 @@ from numba import njit
 from daror_runtime.errors import InputError
 from daror_runtime.identification.trajectory import ReferenceTrajectory, Stop, TrajectoryKind
 from daror_runtime.identification.waypoints import WaypointSet
-from hal.isb import IsbLimits, Shoulder, UnreachablePoseError, default_shoulder, shoulder_fk_kernel
+from hal.isb import AngleRange, IsbLimits, Shoulder, UnreachablePoseError, default_shoulder, shoulder_fk_kernel
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 
 __all__ = [
+    "APPROACH_SLACK_DEG",
     "MIN_JERK_PEAK",
+    "ApproachCheck",
     "MoveError",
     "TrajectoryError",
     "TrajectorySettings",
+    "approach_limits",
     "build_trajectory",
     "build_visit_trajectory",
+    "check_approach",
     "hermite_pieces",
     "integrate_move",
     "minimum_jerk",
@@ -409,6 +413,103 @@ def prepend_approach(
     )
     combined.time_offset_s = trajectory.time_offset_s + offset
     return combined
+
+
+# --- the approach and the pilot's limits ---------------------------------------------------------
+
+#: How far beyond its start pose an approach from outside the pilot's ISB limits may go before it
+#: has entered them, degrees: the arm at rest reads a little noise and sags in the position
+#: control's first ticks (the monitor holds the approach to this, :func:`check_approach`).
+APPROACH_SLACK_DEG = 1.0
+#: The approach's straight joint path is checked at joint steps no longer than this, rad.
+_APPROACH_STEP_RAD = 1e-3
+
+
+@dataclass(frozen=True)
+class ApproachCheck:
+    """How the approach from where the robot stands meets the pilot's ISB limits (:func:`check_approach`).
+
+    Attributes:
+        entry_fraction: share of the approach's path (0 to 1) from which on every pose is inside the
+            limits; 0 when it starts inside.
+        outside: what the start pose violates, one phrase per angle; empty when it starts inside.
+        on_the_way: the limits the approach is held to until the arm has entered the pilot's: theirs,
+            widened on each side the start pose lies beyond to that pose plus :data:`APPROACH_SLACK_DEG`;
+            the pilot's own when it starts inside.
+    """
+
+    entry_fraction: float
+    outside: tuple[str, ...]
+    on_the_way: IsbLimits
+
+    @property
+    def starts_inside(self) -> bool:
+        return not self.outside
+
+
+def approach_limits(limits: IsbLimits, start_isb_rad: FloatArray) -> IsbLimits:
+    """``limits`` widened just enough to hold a start pose (4,) rad outside them, plus :data:`APPROACH_SLACK_DEG`.
+
+    Only the sides the start pose lies beyond move; a start inside gives ``limits`` back.
+    """
+    boxed = np.degrees(limits.for_box_check(np.asarray(start_isb_rad, dtype=float)))
+    ranges = []
+    for value, r in zip(boxed, limits.ranges, strict=True):
+        lower = max(value - APPROACH_SLACK_DEG, -180.0) if value < r.lower_deg else r.lower_deg
+        upper = min(value + APPROACH_SLACK_DEG, 180.0) if value > r.upper_deg else r.upper_deg
+        ranges.append(AngleRange(lower_deg=lower, upper_deg=upper))
+    if all(a == b for a, b in zip(ranges, limits.ranges, strict=True)):
+        return limits
+    return IsbLimits(
+        elevation=ranges[0],
+        horizontal_rotation=ranges[1],
+        axial_rotation=ranges[2],
+        elbow=ranges[3],
+        horizontal_free_below_deg=limits.horizontal_free_below_deg,
+    )
+
+
+def check_approach(
+    shoulder: Shoulder, limits: IsbLimits, q_from_rad: FloatArray, q_to_rad: FloatArray, what: str = "the approach"
+) -> ApproachCheck:
+    """Check the approach (the straight joint path of :func:`prepend_approach`) against the pilot's ISB limits.
+
+    An approach that starts inside the limits must stay inside. One that starts outside (a pilot who
+    cannot reach the robot's home pose) must enter them once and for all: outside them only on its
+    way in, and there inside :attr:`ApproachCheck.on_the_way`; from the first pose inside, inside to
+    the end. Angles in rad; the path is checked at joint steps of at most 1 mrad.
+
+    Raises:
+        TrajectoryError: the approach ends outside the limits, leaves them after it was inside, or
+            strays further out than its start on the way in (one line naming where and what).
+    """
+    q_from = np.asarray(q_from_rad, dtype=float)
+    q_to = np.asarray(q_to_rad, dtype=float)
+    start_isb = shoulder.isb_from_q(q_from)
+    outside = tuple(limits.violations(start_isb))
+    on_the_way = approach_limits(limits, start_isb) if outside else limits
+    steps = max(math.ceil(float(np.abs(q_to - q_from).max()) / _APPROACH_STEP_RAD), 1)
+    fraction = np.arange(steps + 1) / steps
+    isb = shoulder.isb_from_q(q_from + fraction[:, None] * (q_to - q_from))
+    inside = np.asarray(limits.contains(isb))
+    if not inside[-1]:
+        raise TrajectoryError(f"{what} ends outside the pilot's ISB limits: " + "; ".join(limits.violations(isb[-1])))
+    entry = int(np.argmax(inside))
+    if not inside[entry:].all():
+        n = entry + int(np.argmin(inside[entry:]))
+        raise TrajectoryError(
+            f"{what} leaves the pilot's ISB limits at {100.0 * fraction[n]:.0f}% of the way after it was inside them: "
+            + "; ".join(limits.violations(isb[n]))
+        )
+    if outside:
+        strayed = np.flatnonzero(~np.asarray(on_the_way.contains(isb[:entry])))
+        if strayed.size:
+            n = int(strayed[0])
+            raise TrajectoryError(
+                f"{what} from outside the pilot's ISB limits ({'; '.join(outside)}) goes further out on its way in, "
+                f"at {100.0 * fraction[n]:.0f}% of the way: " + "; ".join(on_the_way.violations(isb[n]))
+            )
+    return ApproachCheck(float(fraction[entry]), outside, on_the_way)
 
 
 # --- building a trajectory -----------------------------------------------------------------
