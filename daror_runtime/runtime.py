@@ -61,7 +61,7 @@ from daror_runtime.util.atomic import write_text_atomic
 from hal.capabilities import SimulatedWorld
 from hal.errors import HalError
 from hal.interface import Command, DriveState, Hal, Sample
-from hal.isb import IsbLimits
+from hal.isb import IsbLimits, Shoulder
 from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
@@ -157,6 +157,11 @@ class Runtime:
     def description(self) -> RobotDescription:
         """The robot this session drives (the backend's description)."""
         return self._core.description
+
+    @property
+    def shoulder(self) -> Shoulder:
+        """The shoulder's kinematics of this robot (ISB angles and joint angles, both ways)."""
+        return self._core.shoulder
 
     @property
     def rate_hz(self) -> float:

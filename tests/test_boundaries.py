@@ -441,7 +441,7 @@ def test_the_session_never_imports_the_console_or_the_runtime() -> None:
 #: The facade: the operator's requests, the typed status, the loop's lifecycle, read-only facts.
 FACADE = {
     # what the session is
-    "session_id", "session_dir", "settings", "spec", "description", "rate_hz", "lock_step", "world",
+    "session_id", "session_dir", "settings", "spec", "description", "shoulder", "rate_hz", "lock_step", "world",
     "state_name", "last_sample", "torque_reference_nm", "model_in_use", "drain_announcements", "on_transition",
     "add_publisher", "remove_publisher",  # displays fed from the service thread (the web console)
     # lifecycle and driving the loop

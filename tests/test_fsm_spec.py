@@ -883,10 +883,30 @@ def _isb_dropped(text: str) -> tuple[str, list[Expect]]:
     ]
 
 
+@case("enforced ISB limits entered with the arm outside")
+def _isb_entered_outside(text: str) -> tuple[str, list[Expect]]:
+    i = IDX["rom_limits"]
+    bad = edit(text, i, "isb_limits_recorded, arm_inside_isb_limits,", "isb_limits_recorded,")
+    return bad, [
+        Expect(
+            line(bad, "advance:", i),
+            f"states.{i}.guards.advance",
+            "the advance from 6 rom_limits enters 7 operative_check, which enforces the ISB limits from its first "
+            "tick: its guards need arm_inside_isb_limits",
+            "ISB limits entered with the arm inside",
+        )
+    ]
+
+
 @case("advance into compensation without a model approval")
 def _unapproved_advance(text: str) -> tuple[str, list[Expect]]:
     i = IDX["rom_limits"]
-    bad = edit(text, i, "advance: [isb_limits_recorded, compensation_model_approved,", "advance: [isb_limits_recorded,")
+    bad = edit(
+        text,
+        i,
+        "advance: [isb_limits_recorded, arm_inside_isb_limits, compensation_model_approved,",
+        "advance: [isb_limits_recorded, arm_inside_isb_limits,",
+    )
     return bad, [
         Expect(
             line(bad, "advance:", i),

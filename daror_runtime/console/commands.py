@@ -15,6 +15,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 from rich.console import Console
 from rich.markup import escape
 
@@ -27,6 +28,7 @@ from daror_runtime.fsm.spec import FsmSpec
 from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.events import Announcement
+from hal.isb import UnreachablePoseError
 from hal.robot import RobotDescription
 
 __all__ = ["CommandError", "ConsoleSession", "QuitRequested", "ScriptCheckError", "parse_context"]
@@ -215,17 +217,51 @@ class ConsoleSession:
     # --- time -----------------------------------------------------------------------------
 
     def _wait(self, args: tuple) -> None:  # type: ignore[type-arg]
+        """``wait SECONDS`` / ``wait until ...``; a wait begun outside FAIL ends at the tick the robot enters FAIL.
+
+        Raises:
+            ScriptCheckError: ``wait until`` timed out, or ended early in FAIL without its condition.
+        """
         runtime = self.runtime
+        fail = runtime.spec.fail.name
+        # Waiting on in FAIL would only pass robot time while the reaction holds the arm; a wait begun
+        # in FAIL is the operator's own (for the reaction, the release) and runs its course.
+        watch = runtime.state_name != fail
+
+        def failed() -> bool:
+            return watch and runtime.state_name == fail
+
+        def shown() -> float | None:
+            """Print what happened meanwhile (before the wait's own line: robot time's order); its latest time."""
+            items = self.announcements()
+            for item in items:
+                self.say(announcement_line(item))
+            return max((item.t_s for item in items if item.t_s is not None), default=None)
+
+        def ended_early(latest_s: float | None) -> None:  # a tick whose reading failed has no sample of its own
+            t_s = self._t()
+            self.say(f"{stamp(t_s if t_s is not None else latest_s)} wait ended early: the robot is in {fail}")
+
         if args[0] == "seconds":
-            runtime.pass_time(args[1])
+            if watch and args[1] > 0:
+                runtime.run_until(failed, args[1])
+            else:
+                runtime.pass_time(args[1])
+            latest = shown()
+            if failed():
+                ended_early(latest)
             return
         _, what, name, timeout_s = args
+        awaited = f"{what}{' ' + name if name else ''}"
         condition = self._condition(what, name)
-        if not runtime.run_until(condition, timeout_s) and not condition():
-            raise ScriptCheckError(
-                f"'wait until {what}{' ' + name if name else ''}' did not happen within {timeout_s:g} s"
-            )
-        self.say(f"{stamp(self._t())} {what}{' ' + name if name else ''}")
+        runtime.run_until(lambda: condition() or failed(), timeout_s)
+        latest = shown()
+        if not condition():
+            if failed():
+                ended_early(latest)
+                raise ScriptCheckError(f"'wait until {awaited}' ended early: the robot entered {fail}")
+            raise ScriptCheckError(f"'wait until {awaited}' did not happen within {timeout_s:g} s")
+        self.say(f"{stamp(self._t())} {awaited}")
 
     def _condition(self, what: str, name: str | None) -> Callable[[], bool]:
         runtime = self.runtime
@@ -296,6 +332,15 @@ class ConsoleSession:
             world.pilot_hold_here()
         elif what == "stop":
             world.pilot_stop()
+        elif what == "move":
+            try:
+                sample = self.runtime.last_sample
+                seed = sample.q_rad if sample is not None else None
+                q_rad = self.runtime.shoulder.q_from_isb(np.deg2rad(args[1]), seed=seed)
+            except UnreachablePoseError as exc:
+                raise CommandError(f"sim pilot move: {exc}") from None
+            end = world.pilot_move(q_rad, args[2])
+            self.say(f"  the pilot moves the arm to that pose until t = {end:.1f} s")
         else:
             end = world.pilot_sweep(self.runtime.settings.identification, args[1])
             self.say(f"  the pilot moves through the session's waypoints until t = {end:.1f} s")

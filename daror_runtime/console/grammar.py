@@ -254,8 +254,10 @@ def _expect(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 
 SIM_USAGE = (
     "sim estop operator|pilot on|off | sim fault KIND [JOINT] [VALUE] | sim clear | "
-    "sim pilot carry SHARE|stiffness SCALE|hold|stop|sweep [SECONDS_PER_MOVE] | sim rest here|off"
+    "sim pilot carry SHARE|stiffness SCALE|hold|stop|sweep [SECONDS_PER_MOVE]|move ELEVATION HORIZONTAL AXIAL "
+    "ELBOW [SECONDS] | sim rest here|off"
 )
+_ISB_WORDS = ("ELEVATION", "HORIZONTAL", "AXIAL", "ELBOW")
 
 
 def _sim(args: list[str], context: ParseContext) -> tuple[Any, ...]:
@@ -282,6 +284,13 @@ def _sim(args: list[str], context: ParseContext) -> tuple[Any, ...]:
             return ("pilot", "stiffness", number("sim pilot stiffness SCALE", rest[0], 0.0, 2.0))
         if what in ("hold", "stop") and not rest:
             return ("pilot", what)
+        if what == "move" and len(rest) in (4, 5):
+            pose = tuple(
+                number(f"sim pilot move {name}", text, -180.0, 180.0)
+                for name, text in zip(_ISB_WORDS, rest[:4], strict=True)
+            )
+            seconds = number("sim pilot move SECONDS", rest[4], 0.2, 60.0) if len(rest) == 5 else None
+            return ("pilot", "move", pose, seconds)
         if what == "sweep" and len(rest) <= 1:
             return ("pilot", "sweep", number("sim pilot sweep SECONDS_PER_MOVE", rest[0], 0.2, 60.0) if rest else None)
     raise CommandError(f"usage: {SIM_USAGE}")
@@ -412,7 +421,8 @@ COMMANDS: tuple[CommandSpec, ...] = (
         "sim estop operator|pilot on|off presses or releases an e-stop. sim pilot carry SHARE: how much of the "
         "arm's unsupported weight the pilot carries (1 all, 0 relaxed); stiffness SCALE (0 limp, 1 calm); "
         "hold (keep the arm where it is); stop (stop moving); sweep (move through the session's waypoints at "
-        "the pilot's own pace, or SECONDS_PER_MOVE). sim fault KIND injects a fault, sim clear removes it. "
+        "the pilot's own pace, or SECONDS_PER_MOVE); move ELEVATION HORIZONTAL AXIAL ELBOW [SECONDS] (to that ISB "
+        "pose, deg, at his own pace or in SECONDS). sim fault KIND injects a fault, sim clear removes it. "
         "sim rest here: the pilot's arm lies on something where it is now (his lap, an armrest), what a fault's "
         "lowering hands it to; sim rest off takes it away.",
         world=True,
@@ -540,6 +550,6 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
             "fault": {kind: None for kind in context.fault_kinds},
             "clear": None,
             "rest": {"here": None, "off": None},
-            "pilot": {"carry": None, "stiffness": None, "hold": None, "stop": None, "sweep": None},
+            "pilot": {"carry": None, "stiffness": None, "hold": None, "stop": None, "sweep": None, "move": None},
         }
     return tree

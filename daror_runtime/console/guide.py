@@ -88,6 +88,18 @@ def _model_approved(status: RuntimeStatus, world: bool) -> Step:
     )
 
 
+def _arm_inside_isb_limits(status: RuntimeStatus, world: bool) -> Step:
+    gate = status.gates.get("advance")
+    why = next((g.why for g in gate.unmet if g.name == "arm_inside_isb_limits"), None) if gate else None
+    move = ("sim pilot hold",) if world else ()
+    return Step(
+        f"the pilot's arm is outside his recorded ISB limits ({why or 'see the status'}): the next state enforces "
+        "them from its first tick, so move the arm inside them, with the pilot, before you advance (or record the "
+        "limits again, rom start, if they are too narrow for the pose he rests in)",
+        move,
+    )
+
+
 def _refused_data(refused: dict[str, Any], kind: str) -> str | None:
     """The training or validation file a refused model was trained or validated on (None: not this session's)."""
     if kind == "training":
@@ -173,6 +185,7 @@ STEPS: dict[str, StepFor] = {
         "once the pilot has felt the safety limits and tried the e-stop, confirm", ("confirm safety_experience",)
     ),
     "isb_limits_recorded": _isb_limits,
+    "arm_inside_isb_limits": _arm_inside_isb_limits,
     "compensation_model_approved": _model_approved,
     "identification_data_or_model": _identification,
     "model_trained_and_validated": _model_trained,

@@ -117,7 +117,10 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
         ranges = ", ".join(
             f"{name.replace('_', ' ')} {lo:.0f}..{hi:.0f}" for name, (lo, hi) in status.isb_limits_deg.items()
         )
-        lines.append(f"ISB limits, deg: {ranges}")
+        lines.append(
+            f"ISB limits, deg: {ranges} (where they are enforced, the monitor allows {status.isb_margin_deg:g} deg "
+            "beyond each: isb_margin_deg)"
+        )
     run = status.identification_running
     saved = ", ".join(f"{kind} saved" for kind in status.identification_saved) or "nothing saved"
     if run is not None:

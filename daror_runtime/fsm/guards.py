@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from daror_runtime.fsm.signals import Checklist, EstopButton, SessionSignals
+from daror_runtime.safety.monitor import isb_excess
 from hal.interface import DriveState
 
 GuardFunction = Callable[[SessionSignals], bool]
@@ -37,6 +38,25 @@ class Guard:
     checklist: Checklist | None = None
     estop_test: bool = False  # satisfied by pressing an e-stop in the state (a test state's evidence)
     approves_model: bool = False  # holds only when the compensation model in use is approved for the pilot
+    explain: Callable[[SessionSignals], str | None] | None = None  # why it does not hold now, in figures
+
+
+class BoundGuard:
+    """A guard bound to the session's signals: call it for whether it holds, :meth:`why` for why not."""
+
+    __slots__ = ("_guard", "_signals")
+
+    def __init__(self, guard: Guard, signals: SessionSignals) -> None:
+        self._guard = guard
+        self._signals = signals
+
+    def __call__(self) -> bool:
+        return bool(self._guard.read(self._signals))
+
+    def why(self) -> str | None:
+        """What exactly is missing now (None: nothing more to say than the description)."""
+        explain = self._guard.explain
+        return explain(self._signals) if explain is not None else None
 
 
 class GuardRegistry(Mapping[str, Guard]):
@@ -53,11 +73,12 @@ class GuardRegistry(Mapping[str, Guard]):
         checklist: Checklist | None = None,
         estop_test: bool = False,
         approves_model: bool = False,
+        explain: Callable[[SessionSignals], str | None] | None = None,
     ) -> Callable[[GuardFunction], GuardFunction]:
         def add(read: GuardFunction) -> GuardFunction:
             if name in self._guards:
                 raise ValueError(f"guard {name!r} registered twice")
-            self._guards[name] = Guard(name, description, read, checklist, estop_test, approves_model)
+            self._guards[name] = Guard(name, description, read, checklist, estop_test, approves_model, explain)
             return read
 
         return add
@@ -72,12 +93,8 @@ class GuardRegistry(Mapping[str, Guard]):
         return len(self._guards)
 
     def bind(self, signals: SessionSignals) -> dict[str, Callable[[], bool]]:
-        """Zero-argument predicates over ``signals``, by name (what the machine evaluates)."""
-        return {name: _bound(guard.read, signals) for name, guard in self._guards.items()}
-
-
-def _bound(read: GuardFunction, signals: SessionSignals) -> Callable[[], bool]:
-    return lambda: bool(read(signals))
+        """Zero-argument predicates over ``signals``, by name (what the machine evaluates; :class:`BoundGuard`)."""
+        return {name: BoundGuard(guard, signals) for name, guard in self._guards.items()}
 
 
 GUARDS = GuardRegistry()
@@ -183,6 +200,25 @@ def _safety_experience_confirmed(s: SessionSignals) -> bool:
 @guard("isb_limits_recorded", "the pilot's ISB limits are recorded")
 def _isb_limits_recorded(s: SessionSignals) -> bool:
     return s.isb_limits is not None
+
+
+def _isb_excess(s: SessionSignals) -> str | None:
+    """How far the arm is outside the recorded ISB limits plus the margin (the worst angle); None: inside."""
+    if s.isb_limits is None or s.isb_angles is None:
+        return None
+    if s.sample is None:
+        return "no reading of the arm yet"
+    return isb_excess(s.isb_angles(s.isb_limits)(s.sample.q_rad), s.isb_limits, s.isb_margin_rad)
+
+
+@guard(
+    "arm_inside_isb_limits",
+    "the pilot's arm is inside his recorded ISB limits (with the margin the monitor allows): the next state "
+    "enforces them from its first tick",
+    explain=_isb_excess,
+)
+def _arm_inside_isb_limits(s: SessionSignals) -> bool:
+    return _isb_excess(s) is None
 
 
 @guard(

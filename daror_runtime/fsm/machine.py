@@ -206,6 +206,14 @@ class SafetyMachine:
         """The state as ``transitions`` holds it (``superstate.state``); equal to :attr:`state_name` by path."""
         return self._model.state
 
+    def _unmet_text(self, name: str) -> str:
+        """``name (description: why, in figures)`` of a guard that does not hold."""
+        if name not in GUARDS:
+            return name
+        why = getattr(self._guards[name], "why", None)
+        detail = why() if why is not None else None
+        return f"{name} ({GUARDS[name].description}" + (f": {detail})" if detail else ")")
+
     def unmet(self, event: Event) -> tuple[str, ...] | None:
         """Guards of ``event`` that do not hold now; None when there is no such transition."""
         transition = self.table.get((self._name, event))
@@ -226,7 +234,7 @@ class SafetyMachine:
         guards = self._guards
         unmet = tuple(g for g in transition.guards if not guards[g]())
         if unmet:
-            described = "; ".join(f"{g} ({GUARDS[g].description})" if g in GUARDS else g for g in unmet)
+            described = "; ".join(self._unmet_text(g) for g in unmet)
             return Outcome(event, False, source, None, unmet, f"unmet: {described}")
         outcome = Outcome(event, True, source, transition.dest, (), "")
         self._pending = outcome

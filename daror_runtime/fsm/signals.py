@@ -22,9 +22,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from daror_runtime.safety.monitor import SafetyMonitor
     from hal.interface import Sample
     from hal.isb import IsbLimits
+    from hal.robot import FloatArray
 
 
 class EstopButton(StrEnum):
@@ -73,6 +76,9 @@ class SessionSignals:
     confirmed: set[Checklist] = field(default_factory=set)
     # session
     isb_limits: IsbLimits | None = None
+    # the monitor's ISB function for a set of limits (the shoulder's kinematics), and the margin it allows
+    isb_angles: Callable[[IsbLimits], Callable[[FloatArray], FloatArray]] | None = None
+    isb_margin_rad: float = 0.0
     identification_saved: dict[str, Path] = field(default_factory=dict)  # "training"/"validation" -> dataset file
     model: SelectedModel | None = None
     fault_acknowledged: bool = False

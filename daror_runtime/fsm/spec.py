@@ -325,6 +325,13 @@ INVARIANTS: dict[str, Invariant] = {
             "enforcing limits nobody recorded enforces the placeholder defaults, not the pilot's range",
         ),
         Invariant(
+            "ISB limits entered with the arm inside",
+            "a transition from a state that does not enforce the ISB limits into one that does requires "
+            "arm_inside_isb_limits",
+            "the state enforces them from its first tick: an arm outside them is an ISB fault the moment it is "
+            "entered (issue 24, defect 3)",
+        ),
+        Invariant(
             "ISB limits stay enforced",
             "after the advance that requires isb_limits_recorded, every state that applies torque enforces the ISB limits",
             "once the pilot's range is known, no torque may move the arm outside it",
@@ -568,6 +575,7 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
             )
         if "isb_limits_recorded" in state.guards.advance:
             isb_recorded_before = True
+    yield from _isb_entry_problems(spec)
     yield from _model_approval_problems(spec)
     yield from _reaction_problems(spec)
     fail_mode = MODES.get(spec.fail.mode)
@@ -795,6 +803,35 @@ def _order_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
 
 def _approves_model(guards: list[str]) -> bool:
     return any(g in GUARDS and GUARDS[g].approves_model for g in guards)
+
+
+def _isb_entry_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Advances and reverts that enter enforced ISB limits without ``arm_inside_isb_limits``.
+
+    Only where the other ISB invariants hold: a state that enforces the limits before they are
+    recorded, or one that applies torque after without enforcing them, is reported by those; the
+    transitions around it would only repeat the same mistake.
+    """
+    states = spec.states
+    recorded_at = next((k for k, s in enumerate(states) if "isb_limits_recorded" in s.guards.advance), None)
+    if recorded_at is None:
+        return
+    for i, state in enumerate(states):
+        mode = MODES.get(state.mode)
+        if state.enforce_isb or (i > recorded_at and (mode is None or mode.applies_torque)):
+            continue
+        for event, j in (("advance", i + 1), ("revert", i - 1)):
+            if not recorded_at < j < len(states) or not states[j].enforce_isb:
+                continue
+            if "arm_inside_isb_limits" not in getattr(state.guards, event):
+                yield (
+                    ("states", i, "guards", event),
+                    _violates(
+                        "ISB limits entered with the arm inside",
+                        f"the {event} from {state.label} enters {states[j].label}, which enforces the ISB limits from "
+                        "its first tick: its guards need arm_inside_isb_limits",
+                    ),
+                )
 
 
 def _model_approval_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:

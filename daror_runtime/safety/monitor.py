@@ -36,6 +36,7 @@ from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.kernels import command_status, signals_in_bounds
 from daror_runtime.safety.limits import SafetyLimits
 from hal.interface import TORQUE_OFF, CheckedCommand, CheckedSample, Command, DriveState, Sample
+from hal.isb import IsbLimits
 from hal.kernels import SAMPLE_VECTOR, entry_point
 from hal.robot import N_JOINTS, FloatArray
 
@@ -412,7 +413,7 @@ class SafetyMonitor:
         angles = self._isb_angles(sample.q_rad)  # type: ignore[misc]
         if np.all((angles >= self._isb_lower) & (angles <= self._isb_upper)):
             return
-        names = ("elevation", "horizontal rotation", "axial rotation", "elbow")
+        names = ISB_ANGLE_NAMES
         for j in range(N_JOINTS):
             value = float(angles[j])
             if not self._isb_lower[j] <= value <= self._isb_upper[j]:
@@ -420,11 +421,38 @@ class SafetyMonitor:
                 found[(FaultKind.ISB_LIMIT, j + 1)] = Fault(
                     FaultKind.ISB_LIMIT,
                     sample.t_s,
-                    f"{names[j]} {np.degrees(value):.1f} deg beyond the pilot's limit {np.degrees(limit):.1f} deg",
+                    isb_excess_text(names[j], value, self.limits.isb, self.limits.isb_margin_rad, j),  # type: ignore[arg-type]
                     joint=4 if j == 3 else None,
                     value=value,
                     limit=limit,
                 )
+
+
+ISB_ANGLE_NAMES = ("elevation", "horizontal rotation", "axial rotation", "elbow")
+
+
+def isb_excess(angles_rad: FloatArray, isb: IsbLimits, margin_rad: float) -> str | None:
+    """The angle farthest outside ``isb`` plus ``margin_rad``, as :func:`isb_excess_text`; None when all are inside."""
+    lower, upper = isb.lower_rad - margin_rad, isb.upper_rad + margin_rad
+    beyond = np.maximum(lower - angles_rad, angles_rad - upper)
+    worst = int(np.argmax(beyond))
+    if beyond[worst] <= 0.0:
+        return None
+    return isb_excess_text(ISB_ANGLE_NAMES[worst], float(angles_rad[worst]), isb, margin_rad, worst)
+
+
+def isb_excess_text(name: str, value_rad: float, isb: IsbLimits, margin_rad: float, index: int) -> str:
+    """How far an ISB angle is outside the pilot's recorded range, with the range and the margin named.
+
+    ``index``: 0-3, elevation, horizontal rotation, axial rotation, elbow.
+    """
+    lower, upper = float(isb.lower_rad[index]), float(isb.upper_rad[index])
+    outside = lower - value_rad if value_rad < lower else value_rad - upper
+    return (
+        f"{name} {np.degrees(value_rad):.1f} deg is {np.degrees(outside):.1f} deg outside the pilot's recorded range "
+        f"{np.degrees(lower):.1f}..{np.degrees(upper):.1f} deg (the monitor allows {np.degrees(margin_rad):.1f} deg "
+        "beyond it: isb_margin_deg)"
+    )
 
 
 def faults_text(faults: Iterable[Fault]) -> str:

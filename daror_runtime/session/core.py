@@ -13,6 +13,7 @@ jobs (:mod:`.jobs`) hand their results back through such requests. Nothing here 
 from __future__ import annotations
 
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,8 +43,8 @@ from daror_runtime.session.jobs import Jobs
 from daror_runtime.session.rom import RomEnvelope
 from daror_runtime.session.settings import SessionSettings, SessionSettingsError
 from hal.interface import DriveReaction, Hal
-from hal.isb import Shoulder, UnreachablePoseError, monitor_isb_function
-from hal.robot import RobotDescription
+from hal.isb import IsbLimits, Shoulder, UnreachablePoseError, monitor_isb_function
+from hal.robot import FloatArray, RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -143,15 +144,22 @@ class SessionCore:
         self._warm_up_the_safe_stop()
         device = SafetyLimits.from_description(description)
         self.monitor = SafetyMonitor(device.for_state(0.0, float(device.max_velocity_rad_s.max())))
-        self.signals = SessionSignals(at_rest_rad_s=self.settings.at_rest_rad_s)
+
+        def isb_function(limits: IsbLimits) -> Callable[[FloatArray], FloatArray]:
+            return monitor_isb_function(self.shoulder, limits)
+
+        isb_margin_rad = float(np.deg2rad(self.settings.isb_margin_deg))
+        self.signals = SessionSignals(
+            at_rest_rad_s=self.settings.at_rest_rad_s, isb_angles=isb_function, isb_margin_rad=isb_margin_rad
+        )
         self.supervisor = FsmSupervisor(
             self.spec,
             self.monitor,
             device,
             self.modes.by_mode(),
             self.signals,
-            isb_function=lambda limits: monitor_isb_function(self.shoulder, limits),
-            isb_margin_rad=float(np.deg2rad(self.settings.isb_margin_deg)),
+            isb_function=isb_function,
+            isb_margin_rad=isb_margin_rad,
             on_fault_acknowledged=hal.request_fault_reset,
             safe_stop=self.safe_stop,
             estop_wiring=description.estop.wiring,
@@ -293,7 +301,10 @@ class SessionCore:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): the fault's reaction commands the arm"
         else:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
-        self.announcements.announce(AnnouncementKind.TRANSITION, text, self.t_s())
+        t_s = self.t_s()
+        if t_s is None and self.monitor.recent:  # a tick whose reading failed: the time of the fault it raised
+            t_s = self.monitor.recent[-1].t_s
+        self.announcements.announce(AnnouncementKind.TRANSITION, text, t_s)
         run = self.modes.identification.run
         if run is not None and state.mode != "identification":
             self.abandon_run(f"{outcome.event.value} to {state.name}")

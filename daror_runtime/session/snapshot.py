@@ -11,7 +11,7 @@ import numpy as np
 
 from daror_runtime.fsm.guards import GUARDS
 from daror_runtime.fsm.machine import OPERATOR_EVENTS
-from daror_runtime.fsm.signals import ESTOP_BUTTONS
+from daror_runtime.fsm.signals import ESTOP_BUTTONS, SessionSignals
 from daror_runtime.fsm.spec import StateSpec
 from daror_runtime.session.core import SessionCore
 from daror_runtime.session.status import (
@@ -40,7 +40,7 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
         if transition is None:
             gates[event.value] = EventGate(event.value, False, why_not=machine.why_not(event))
             continue
-        guards = tuple(GuardState(g, GUARDS[g].description, bool(GUARDS[g].read(signals))) for g in transition.guards)
+        guards = tuple(_guard_state(g, signals) for g in transition.guards)
         gates[event.value] = EventGate(event.value, True, guards)
     run = core.modes.identification.run
     compensation = core.modes.compensation
@@ -73,6 +73,7 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
         if compensation.handover.active
         else (0.0,) * 4,
         isb_limits_deg=None if signals.isb_limits is None else _isb_degrees(signals.isb_limits),
+        isb_margin_deg=float(core.settings.isb_margin_deg),
         rom_recording=core.rom is not None,
         identification_running=None
         if run is None or sample is None
@@ -133,6 +134,13 @@ def _joint_readings(sample: Sample, last_command: Command) -> JointReadings:
         motor_command_nm=tuple(float(v) for v in last_command.motor_torque_nm),
         drives=tuple(d.name.lower() for d in sample.drives),
     )
+
+
+def _guard_state(name: str, signals: SessionSignals) -> GuardState:
+    guard = GUARDS[name]
+    holds = bool(guard.read(signals))
+    why = guard.explain(signals) if not holds and guard.explain is not None else None
+    return GuardState(name, guard.description, holds, why)
 
 
 def _model_status(core: SessionCore) -> ModelStatus | None:

@@ -17,6 +17,7 @@ class GuardState:
     name: str
     description: str
     holds: bool
+    why: str | None = None  # when it does not hold: what exactly is missing, in figures (some guards say)
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,7 @@ class RuntimeStatus:
     delivered_support_level: float
     handover_nm: tuple[float, ...]  # what the entry's handover still adds to the model's support
     isb_limits_deg: dict[str, tuple[float, float]] | None
+    isb_margin_deg: float  # how far beyond the recorded limits the monitor lets the arm go (the settings')
     rom_recording: bool
     identification_running: dict[str, Any] | None
     identification_saved: dict[str, str]
