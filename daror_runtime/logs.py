@@ -21,13 +21,14 @@ import logging
 import queue
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
 import structlog
 
 _configured = False
-_json_handle: TextIO | None = None
+_json_handles: list[TextIO] = []
 _session_id: str | None = None
 
 
@@ -104,39 +105,44 @@ def _add_session_id(logger: Any, method: str, event_dict: dict[str, Any]) -> dic
 
 def configure_logging(
     console_level: str = "warning",
-    json_path: Path | str | None = None,
+    json_path: Path | str | Sequence[Path | str] | None = None,
     json_level: str = "info",
     stream: TextIO | None = None,
 ) -> None:
     """Readable lines at ``console_level`` and up to ``stream`` (stderr); JSON lines to ``json_path``.
 
-    Calling it again replaces the previous configuration (tests and the CLI rely on this).
+    ``json_path`` may name several files (a session's own ``audit.jsonl`` and the one ``--log-json``
+    names): every JSON line goes to each, appended. Calling it again replaces the previous
+    configuration (tests and the CLI rely on this).
     """
-    global _configured, _json_handle
+    global _configured
     flush_logs()
-    if _json_handle is not None:
-        _json_handle.close()
-        _json_handle = None
+    for handle in _json_handles:
+        handle.close()
+    _json_handles.clear()
     console_threshold = _level(console_level)
     json_threshold = _level(json_level)
-    if json_path is not None:
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        _json_handle = open(json_path, "a", encoding="utf-8")  # noqa: SIM115 - lives as long as the config
-    json_handle = _json_handle
+    paths = [json_path] if isinstance(json_path, (str, Path)) else list(json_path or ())
+    for path in dict.fromkeys(Path(p).resolve() for p in paths):  # one handle per file, however named
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _json_handles.append(open(path, "a", encoding="utf-8"))  # noqa: SIM115 - lives as long as the config
+    json_handles = tuple(_json_handles)
     console_stream = stream if stream is not None else sys.stderr
     console = structlog.dev.ConsoleRenderer(colors=False)
     json_renderer = structlog.processors.JSONRenderer()
 
     def route(logger: Any, method: str, event_dict: dict[str, Any]) -> str:
         level = _level(event_dict.get("level", method))
-        if json_handle is not None and level >= json_threshold:
+        if json_handles and level >= json_threshold:
             document = structlog.processors.format_exc_info(logger, method, dict(event_dict))
-            _writer.put(json_handle, json_renderer(logger, method, document) + "\n")
+            line = json_renderer(logger, method, document) + "\n"
+            for handle in json_handles:
+                _writer.put(handle, line)
         if level >= console_threshold:
             _writer.put(console_stream, console(logger, method, event_dict) + "\n")
         raise structlog.DropEvent  # written by the writer thread, never by the caller
 
-    floor = min(console_threshold, json_threshold) if json_handle is not None else console_threshold
+    floor = min(console_threshold, json_threshold) if json_handles else console_threshold
     structlog.configure(
         processors=[
             structlog.contextvars.merge_contextvars,
