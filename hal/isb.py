@@ -84,6 +84,8 @@ __all__ = [
 
 #: Names of the four ISB angles, in the order of every (4,) or (N, 4) ISB array.
 ISB_NAMES = ("elevation", "horizontal rotation", "axial rotation", "elbow")
+#: The same angles as the limits file names them (:class:`IsbLimits`' fields).
+ISB_FIELDS = ("elevation", "horizontal_rotation", "axial_rotation", "elbow")
 
 #: Thorax axes in world coordinates (columns: forward, up, lateral = world +z, +y, -x).
 THORAX_IN_WORLD = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
@@ -188,6 +190,18 @@ class IsbLimits(_Strict):
             if not rng.lower_deg <= deg <= rng.upper_deg:
                 found.append(f"{name} {deg:.1f} deg outside [{rng.lower_deg:g}, {rng.upper_deg:g}] deg")
         return found
+
+
+def isb_limits_yaml(limits: IsbLimits, comment: str = "") -> str:
+    """``limits`` as the YAML text :func:`load_isb_limits` reads (degrees, every field written out).
+
+    ``comment``: lines put first as ``#`` comments (whose limits, when and how they were recorded).
+    """
+    lines = [f"# {line}" for line in comment.splitlines()]
+    for name, angle in zip(ISB_FIELDS, limits.ranges, strict=True):
+        lines.append(f"{name}: {{lower_deg: {angle.lower_deg:.1f}, upper_deg: {angle.upper_deg:.1f}}}")
+    lines.append(f"horizontal_free_below_deg: {limits.horizontal_free_below_deg:.1f}")
+    return "\n".join(lines) + "\n"
 
 
 def load_isb_limits(path: Path | str) -> IsbLimits:

@@ -30,10 +30,17 @@ from daror_runtime.models.registry import kind_entry, kind_names
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import AnnouncementKind
 from daror_runtime.session.identification import abandon_run, finish_run, prepare_run, session_waypoints
-from daror_runtime.session.provenance import ValidationOrigin, record_provenance, validation_origin
+from daror_runtime.session.provenance import (
+    ValidationOrigin,
+    record_provenance,
+    session_pilot,
+    session_robot,
+    validation_origin,
+)
 from daror_runtime.session.rom import RomEnvelope
 from daror_runtime.session.training import TrainedModel, read_model_candidate, train_model, validate_candidate
-from hal.isb import IsbLimits
+from daror_runtime.util.atomic import write_text_atomic
+from hal.isb import IsbLimits, isb_limits_yaml
 
 log = structlog.get_logger(__name__)
 
@@ -213,7 +220,24 @@ def _set_isb_limits(core: SessionCore, supervisor: FsmSupervisor, limits: IsbLim
         for name, r in zip(("elevation", "horizontal", "axial", "elbow"), limits.ranges, strict=True)
     }
     log.info("ISB limits recorded", source=source, limits_deg=ranges, state=supervisor.state_name, t_s=core.t_s())
+    _keep_isb_limits(core, limits, source)
     return Response("isb limits", True, supervisor.state_name, detail=limits)
+
+
+def _keep_isb_limits(core: SessionCore, limits: IsbLimits, source: str) -> None:
+    """A job writes the limits the session uses to ``SESSION/isb_limits.yaml`` (``rom load`` reads it next time)."""
+    path = core.session_dir / "isb_limits.yaml"
+    pilot = session_pilot(core) or "(no pilot named)"
+    comment = (
+        f"ISB limits of pilot {pilot}, session {core.session_id}, robot {session_robot(core)}: {source}\n"
+        "degrees; the monitor allows isb_margin_deg (session settings) beyond each (docs/isb_limits.md)"
+    )
+
+    def job() -> None:
+        write_text_atomic(path, isb_limits_yaml(limits, comment))
+        log.info("ISB limits saved", path=str(path))
+
+    core.jobs.submit("save isb limits", job)
 
 
 # --- a fault's reaction ---------------------------------------------------------------------
