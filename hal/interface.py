@@ -356,6 +356,8 @@ BACKENDS: dict[str, str] = {
 }
 #: Import name -> the package that provides it (what a message tells a person to install).
 PACKAGES: dict[str, str] = {"can": "python-can", "canopen": "canopen"}
+#: Import name -> the optional extra of daror-runtime that installs it (pyproject.toml).
+EXTRAS: dict[str, str] = {"can": "can", "canopen": "can"}
 
 
 def register_backend(kind: str, target: str) -> str | None:
@@ -397,10 +399,12 @@ def hal_class(kind: str) -> type[Hal]:
                 f"HAL backend {kind!r} is not built yet: this installation has no module {module_name}"
             ) from None
         if missing:
-            package = PACKAGES.get(missing.split(".")[0], missing.split(".")[0])
+            top = missing.split(".")[0]
+            package = PACKAGES.get(top, top)
+            extra = EXTRAS.get(top)
+            how = f"pip install 'daror-runtime[{extra}]'" if extra is not None else f"pip install {package}"
             raise BackendUnavailableError(
-                f"HAL backend {kind!r} needs the Python package {package!r}, which is not installed "
-                f"(pip install {package})"
+                f"HAL backend {kind!r} needs the Python package {package!r}, which is not installed ({how})"
             ) from None
         raise HalError(f"HAL backend {kind!r} cannot be loaded: {exc}") from None
     except ImportError as exc:

@@ -266,7 +266,8 @@ def test_the_can_backend_says_so_when_canopen_is_missing(monkeypatch: pytest.Mon
     with pytest.raises(BackendUnavailableError) as caught:
         open_hal(hal_config("can-sim"))
     assert str(caught.value) == (
-        "HAL backend 'can-sim' needs the Python package 'canopen', which is not installed (pip install canopen)"
+        "HAL backend 'can-sim' needs the Python package 'canopen', which is not installed "
+        "(pip install 'daror-runtime[can]')"
     )
 
 
@@ -276,7 +277,8 @@ def test_the_can_backends_say_which_package_a_core_install_lacks(backend: str, m
     with pytest.raises(BackendUnavailableError) as caught:
         open_hal(hal_config(backend))
     assert str(caught.value) == (
-        f"HAL backend {backend!r} needs the Python package 'python-can', which is not installed (pip install python-can)"
+        f"HAL backend {backend!r} needs the Python package 'python-can', which is not installed "
+        "(pip install 'daror-runtime[can]')"
     )
 
 
@@ -302,7 +304,7 @@ def test_console_on_a_backend_without_its_package_exits_2_with_one_line(
     assert code == 2
     assert one_line(err) == (
         "daror console: error: HAL backend 'can' needs the Python package 'python-can', which is not installed "
-        "(pip install python-can)"
+        "(pip install 'daror-runtime[can]')"
     )
     assert not out.exists()
 
