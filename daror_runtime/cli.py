@@ -857,8 +857,12 @@ def _console_session(
     checked: Any,
     typed: bool,
     clock: Any,
+    after_script: Callable[[Any, Any], None] | None = None,
 ) -> int:
     """The session itself, in ``out`` (checked and locked by :func:`cmd_console`), on ``clock``.
+
+    ``after_script(runtime, session)`` runs when a script has ended or failed, before the session
+    ends (``daror hil``: a fault's reaction under way plays out).
 
     Returns the exit code: the mode's (0, 1, 2), or 128 + the signal's number when SIGINT (Ctrl-C,
     130), SIGTERM (143) or SIGHUP (129) ended it, in any mode and state: torque off first, the
@@ -901,7 +905,14 @@ def _console_session(
                 runtime.start_background()
             with announcing(session, enabled=background):
                 if checked is not None:
-                    result = run_script(session, args.script, checked)
+                    try:
+                        result = run_script(session, args.script, checked)
+                    except DarorError:
+                        if after_script is not None:
+                            after_script(runtime, session)
+                        raise
+                    if after_script is not None:
+                        after_script(runtime, session)
                     console.print(f"script done: {result.lines_run} lines, state {result.state}")
                     reason = "quit" if result.quit else "the script ended"
                 elif typed:
@@ -967,12 +978,24 @@ def _parse_fault(text: str, node_ids: list[int], kinds: tuple[str, ...]) -> tupl
 
 
 def cmd_hil(args: argparse.Namespace, console: Console) -> int:
-    """A console script over simulated CANopen drives, lock-step: the session, the audit log and the bus log."""
+    """A console script over simulated CANopen drives, lock-step: the session, the audit log and the bus log.
+
+    Once the run has started, its files are written whatever the session or the script did:
+    ``hil.json`` says which faults were injected, when, and how the robot reacted
+    (:mod:`daror_runtime.hil`), and a failed script still exits 1 after it.
+    """
     from daror_runtime.clocks import LockStepClock
     from daror_runtime.console.commands import parse_context
     from daror_runtime.console.grammar import check_lines
     from daror_runtime.console.run import read_script
     from daror_runtime.fsm.spec import load_fsm_spec
+    from daror_runtime.hil import (
+        ScheduledFault,
+        fault_lines,
+        fault_summaries,
+        let_the_reaction_play_out,
+        read_audit,
+    )
     from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.atomic import write_text_atomic
     from daror_runtime.util.outputs import output_lock
@@ -983,8 +1006,8 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     spec = load_fsm_spec(args.spec)
     settings = load_session_settings(args.settings)
     out = _output_dir(args.out, args.script)
-    traffic = out / "can.log"
-    for name in (traffic, out / "hil.json"):
+    traffic = out / "can.log.gz"  # compressed as it is written (D137): zcat can.log.gz | canplayer
+    for name in (traffic, out / "can.log", out / "hil.json"):
         if name.exists():
             raise UsageError(f"{name}: exists; a HIL run writes a new one: expected another --out")
     config = hal_config(
@@ -1001,16 +1024,37 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     for kind, joint, at_s in faults:
         world.schedule_fault(kind, joint, at_s)
     clock = LockStepClock(1.0 / hal.rate_hz)
+    scheduled = [ScheduledFault(k, config.node_ids[j - 1], j, t) for k, j, t in faults]
     with output_lock(out):
-        code = _console_session(args, console, hal, out, spec, settings, checked, False, clock)
-        report = {
-            "script": str(args.script),
-            "faults": [{"kind": k, "node": config.node_ids[j - 1], "joint": j, "at_s": t} for k, j, t in faults],
-            "bus": hal.bus_report(),
-            "exit_code": code,
-        }
-        write_text_atomic(out / "hil.json", json.dumps(report, indent=2) + "\n")
-    console.print(f"bus log: {traffic} ({report['bus'].get('frames_sent', 0)} frames sent)")  # type: ignore[union-attr]
+        code, error = 1, None
+        try:
+            code = _console_session(
+                args, console, hal, out, spec, settings, checked, False, clock,
+                after_script=lambda runtime, session: let_the_reaction_play_out(
+                    runtime, session.say, session.show_announcements
+                ),
+            )  # fmt: skip
+        except DarorError as exc:  # a failed script or session: its files are written all the same, then exit 1
+            code, error = (2 if isinstance(exc, InputError) else 1), str(exc)
+            raise
+        finally:  # the session is closed (torque off, session.json, the bus log): what it did, in hil.json
+            audit_path = out / "audit.jsonl"  # the session's own; else where --log-json sent its lines
+            audit = read_audit(audit_path if audit_path.exists() or args.log_json is None else args.log_json)
+            summaries = fault_summaries(
+                scheduled, world.drive_events(), audit, spec, list(config.node_ids), hal.rate_hz
+            )
+            report = {
+                "script": str(args.script),
+                "exit_code": code,
+                "error": error,
+                "faults": summaries,
+                "bus": hal.bus_report(),
+            }
+            write_text_atomic(out / "hil.json", json.dumps(report, indent=2, default=str) + "\n")
+            for line in fault_lines(summaries):
+                console.print(line, soft_wrap=True)
+            frames = report["bus"].get("frames_sent", 0)  # type: ignore[union-attr]
+            console.print(f"hil.json: {out / 'hil.json'}; bus log: {traffic} ({frames} frames sent)")
     return code
 
 

@@ -269,6 +269,12 @@ class FaultSchedule(Protocol):
         """
         ...
 
+    def drive_events(self) -> list[tuple[float, int, str]]:
+        """What happened to the drives so far, oldest first: ``(robot time s, joint 1-4, what)`` with what
+        ``injected KIND``, ``power stage on`` or ``power stage off`` (from that tick on it applies torque,
+        or no longer)."""
+        ...
+
 
 @runtime_checkable
 class BusStatistics(Protocol):

@@ -110,7 +110,7 @@ class _CanFields(_Config):
             this long faults by itself, torque off (0: off); None: five SYNC periods (10 ms at 500 Hz).
         eds: the drives' EDS file (object dictionary); None: the backend's own.
         traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
-            not exist yet); None: no log.
+            not exist yet; a name ending in ``.gz`` is written gzip-compressed); None: no log.
     """
 
     interface: Text

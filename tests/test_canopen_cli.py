@@ -1,12 +1,13 @@
 """``daror hil`` and the CAN configurations at the command line: what a user types, what comes out.
 
 A scheduled fault happens at its robot time and is in ``hil.json``; bad input is one line, exit 2,
-nothing written (no ``can.log``, no ``hil.json``); an existing log is never overwritten; a rate
+nothing written (no ``can.log.gz``, no ``hil.json``); an existing log is never overwritten; a rate
 over the bus-load budget is refused with the numbers.
 """
 
 from __future__ import annotations
 
+import gzip
 import json
 import time
 from pathlib import Path
@@ -41,7 +42,10 @@ def test_a_scheduled_fault_happens_at_its_robot_time_and_is_reported(tmp_path: P
     code = main(["hil", "--script", str(_script(tmp_path)), "--out", str(out), "--fault", "drive_fault:3@1.5"])
     assert code == 0  # the script ran to its end (its advance was refused in FAIL, as it should be)
     report = json.loads((out / "hil.json").read_text())
-    assert report["faults"] == [{"kind": "drive_fault", "node": 3, "joint": 3, "at_s": 1.5}]
+    (fault,) = report["faults"]
+    assert (fault["kind"], fault["node"], fault["joint"], fault["scheduled_at_s"]) == ("drive_fault", 3, 3, 1.5)
+    assert fault["injected_s"] == 1.5  # a SYNC falls on 1.5 s at 500 Hz
+    assert (fault["state_before"], fault["state_after"]) == ("startup", "FAIL")
     assert report["bus"]["rate_hz"] == 500.0
     events = [json.loads(line) for line in (out / "audit.jsonl").read_text().splitlines()]
     fail = next(e for e in events if e.get("event") == "transition" and e["dest"] == "FAIL")
@@ -50,7 +54,8 @@ def test_a_scheduled_fault_happens_at_its_robot_time_and_is_reported(tmp_path: P
     assert 1.5 - 0.002 - 1e-9 <= fail["t_s"] <= 1.5 + 3 * 0.002
     assert any("drive 3: EMCY 0x2310" in e.get("message", "") for e in events if e.get("event") == "fault")
     epoch = report["bus"]["traffic_log_epoch_s"]
-    emcy = [line for line in (out / "can.log").read_text().splitlines() if " 083#" in line]
+    with gzip.open(out / "can.log.gz", "rt") as log:
+        emcy = [line for line in log.read().splitlines() if " 083#" in line]
     assert emcy, "no EMCY of node 3 on the bus"
     assert float(emcy[0][1 : emcy[0].index(")")]) - epoch == pytest.approx(1.5, abs=0.003)
 
@@ -74,17 +79,21 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
     code = main(["hil", "--script", str(_script(tmp_path)), "--out", str(out), *args])
     assert code == 2
     assert fragment in _one_line_error(capsys)
-    assert not (out / "can.log").exists()
+    assert not (out / "can.log.gz").exists()
     assert not (out / "hil.json").exists()
 
 
-def test_an_existing_bus_log_is_never_overwritten(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("name", ["can.log.gz", "can.log"])  # this run's log, and an earlier version's
+def test_an_existing_bus_log_is_never_overwritten(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:
     out = tmp_path / "run"
     out.mkdir()
-    (out / "can.log").write_text("an earlier run's log\n")
+    (out / name).write_text("an earlier run's log\n")
     assert main(["hil", "--script", str(_script(tmp_path)), "--out", str(out)]) == 2
-    assert "can.log: exists" in _one_line_error(capsys)
-    assert (out / "can.log").read_text() == "an earlier run's log\n"
+    assert f"{name}: exists" in _one_line_error(capsys)
+    assert (out / name).read_text() == "an earlier run's log\n"
+    assert sorted(p.name for p in out.iterdir()) == [name]
 
 
 def test_a_can_sim_configuration_on_a_real_interface_is_refused(
@@ -119,7 +128,9 @@ def test_a_can_backend_refuses_lock_step_and_says_which_interface_is_missing(
 def _robot_time_log(out: Path) -> list[str]:
     epoch = json.loads((out / "hil.json").read_text())["bus"]["traffic_log_epoch_s"]
     lines = []
-    for line in (out / "can.log").read_text().splitlines():
+    with gzip.open(out / "can.log.gz", "rt") as log:
+        text = log.read()
+    for line in text.splitlines():
         stamp, rest = line[1:].split(")", 1)
         lines.append(f"{float(stamp) - epoch:.6f}{rest}")
     return lines

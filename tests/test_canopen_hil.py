@@ -1,7 +1,7 @@
 """Hardware-in-the-loop over a simulated CAN bus (issue 12): ``daror hil`` end to end.
 
 One run of the demo's session script over ``can-sim`` (lock-step, 500 Hz, four simulated CiA 402
-drives on python-can's virtual bus, the bus logged to ``can.log``) reaches compensation; then each
+drives on python-can's virtual bus, the bus logged to ``can.log.gz``) reaches compensation; then each
 bus fault in turn is injected into the drive of joint 2 (node 2) in compensation, the robot fails,
 the operator acknowledges and resets, and a new session reaches compensation again. Checked on
 what an engineer would check: the session's states (audit log), the frames on the bus (the
@@ -11,6 +11,7 @@ backend's on the same script, and the log read by an independent tool (can-utils
 
 from __future__ import annotations
 
+import gzip
 import itertools
 import json
 import re
@@ -38,7 +39,7 @@ LINE = re.compile(r"^\((\d+\.\d+)\) (\S+) ([0-9A-F]{3})#([0-9A-F]*) ([TR])$")
 
 @dataclass
 class BusLog:
-    """What the tests need of a long ``can.log``, read in one pass (the whole log is millions of lines).
+    """What the tests need of a long ``can.log.gz``, read in one pass (the whole log is millions of lines).
 
     Times are robot time (the log's timestamp minus the run's epoch).
     """
@@ -58,7 +59,7 @@ WINDOW_IDS = {f"{0x200 + n:03X}" for n in NODES} | {"080", "082", "702", "182"}
 
 def _read_log(log: Path, epoch_s: int, fail_times: list[float], before_s: float = 0.6, after_s: float = 0.2) -> BusLog:
     found = BusLog(near_fails={n: [] for n in range(len(fail_times))}, nmt=[], sdo_to_2=[])
-    with open(log) as lines:
+    with gzip.open(log, "rt") as lines:
         for index, line in enumerate(lines):
             stamp, _, rest = line.partition(" ")
             frame, direction = rest.rsplit(" ", 1)
@@ -113,7 +114,7 @@ def hil(tmp_path_factory: pytest.TempPathFactory) -> HilRun:
     report = json.loads((out / "hil.json").read_text())
     events = _events(out / "audit.jsonl")
     fails = [e["t_s"] for e in events if e.get("event") == "transition" and e["dest"] == "FAIL"]
-    log = _read_log(out / "can.log", report["bus"]["traffic_log_epoch_s"], fails)
+    log = _read_log(out / "can.log.gz", report["bus"]["traffic_log_epoch_s"], fails)
     return HilRun(out, code, events, report, json.loads((out / "session.json").read_text()), log)
 
 
@@ -235,9 +236,12 @@ def test_can_utils_log2asc_reads_the_bus_log(hil: HilRun, tmp_path: Path) -> Non
     if log2asc is None:
         pytest.skip("can-utils is not installed (the Makefile installs it with apt-get for make test)")
     asc = tmp_path / "can.asc"
-    done = subprocess.run(
-        [log2asc, "-I", str(hil.out / "can.log"), "-O", str(asc), "daror"], capture_output=True, text=True, timeout=300
-    )
+    # the log is gzip-compressed: decompressed into log2asc's standard input, as docs/canopen.md says
+    with subprocess.Popen(["zcat", str(hil.out / "can.log.gz")], stdout=subprocess.PIPE) as zcat:
+        done = subprocess.run(
+            [log2asc, "-O", str(asc), "daror"], stdin=zcat.stdout, capture_output=True, text=True, timeout=300
+        )
+    assert zcat.returncode == 0
     assert done.returncode == 0, done.stderr
     assert hil.log.first is not None
     assert hil.log.first_sync is not None

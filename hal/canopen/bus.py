@@ -20,6 +20,7 @@ standard tools read a log whose first second is not 0).
 
 from __future__ import annotations
 
+import gzip
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -146,8 +147,14 @@ class TrafficLog:
     :data:`WRITE_EVERY_S`. A write that fails is latched (:attr:`error`): the backend raises it as a
     fault at the next read, as the recorder's failure is one (the audit trail is part of the run).
 
+    A path ending in ``.gz`` is written gzip-compressed by the same thread (level
+    :data:`GZIP_LEVEL`, each write flushed to the OS as a whole deflate block, so a crash loses
+    no more than a plain log does): ``zcat can.log.gz | canplayer -I -`` and ``log2asc`` read it
+    from their standard input, Python's ``gzip.open`` directly (docs/canopen.md, D137). A log
+    opened again with ``append`` gets a second gzip member, which every reader concatenates.
+
     Args:
-        path: the log file; it must not exist (a log is never overwritten) unless ``append``.
+        path: the log file (``.gz``: compressed); it must not exist (a log is never overwritten) unless ``append``.
         epoch_s: whole seconds added to robot time in the log (the session's start, Unix time).
         channel: the interface name written on every line.
         append: continue an existing log (the same backend opened again).
@@ -158,6 +165,8 @@ class TrafficLog:
 
     #: How often the writer thread writes what the tick queued, s.
     WRITE_EVERY_S = 0.02
+    #: zlib's level for a ``.gz`` log (docs/performance.md: size and time of levels 1 and 6).
+    GZIP_LEVEL = 6
 
     def __init__(self, path: Path, epoch_s: int, channel: str = "can0", append: bool = False) -> None:
         self.path = Path(path)
@@ -171,7 +180,12 @@ class TrafficLog:
             except OSError as exc:
                 raise HalError(f"{self.path}: cannot be created ({exc.strerror})") from None
         try:
-            self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
+            if self.path.suffix == ".gz":
+                # closed with the writer (stop(), from close()): it lives as long as the log
+                stream = gzip.open(self.path, "at", compresslevel=self.GZIP_LEVEL, encoding="ascii", newline="")  # noqa: SIM115
+                self._writer = can.CanutilsLogWriter(stream, channel=channel)
+            else:
+                self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
         except OSError as exc:
             raise HalError(f"{self.path}: cannot be opened ({exc.strerror})") from None
         self._channel = channel

@@ -39,6 +39,7 @@ import can
 import numpy as np
 
 from hal.canopen.cia301.nmt import SDO_REQUEST_BASE, SYNC_COB_ID
+from hal.canopen.cia402.statemachine import PowerState
 from hal.canopen.dictionary import DriveDictionary
 from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
 from hal.capabilities import BUS_FAULT_KINDS
@@ -48,6 +49,9 @@ from hal.robot import N_JOINTS
 from hal.sim.backend import SimHal
 
 __all__ = ["SimulatedDriveSet"]
+
+#: The power states in which a drive's power stage applies torque: commanded, or ramping by itself.
+_STAGE_ON = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
 
 
 class SimulatedDriveSet:
@@ -80,6 +84,11 @@ class SimulatedDriveSet:
         self._by_node = {d.node_id: d for d in self.drives}
         self._torques = np.zeros(N_JOINTS)
         self._scheduled: list[tuple[float, str, int, float | None]] = []
+        #: What happened to the drives, for a HIL run's report: (robot time s, joint 1-4, what), what
+        #: ``injected KIND`` (a fault injected into its drive) or ``power stage on``/``off`` (from that
+        #: plant tick on the drive applies torque, in OPERATION ENABLED or a stop ramp, or no longer).
+        self.events: list[tuple[float, int, str]] = []
+        self._stage_on = [False] * len(self.drives)
         self.syncs = 0
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
@@ -254,9 +263,14 @@ class SimulatedDriveSet:
         """
         torques = self._torques
         enable = False
+        stage_on = self._stage_on
         for j, drive in enumerate(self.drives):
             torques[j] = drive.applied_torque_nm
             enable = enable or torques[j] != 0.0
+            on = drive.power_state in _STAGE_ON and not drive.power_cut
+            if on is not stage_on[j]:  # a change: a handful a session, for the HIL report
+                stage_on[j] = on
+                self.events.append((self.t_s, j + 1, "power stage on" if on else "power stage off"))
         plant = self.plant
         try:
             plant.write(Command(torques.copy(), enable))
@@ -279,7 +293,9 @@ class SimulatedDriveSet:
             InputError: an unknown kind, a joint not 1-4, or a duration that is not positive.
         """
         drive = self._drive_of(kind, joint, duration_s)
-        drive.inject(kind, self.t_s, (duration_s or DEFAULT_DROP_S) if kind == "drop_frames" else None)
+        now = self.t_s
+        drive.inject(kind, now, (duration_s or DEFAULT_DROP_S) if kind == "drop_frames" else None)
+        self.events.append((now, joint, f"injected {kind}"))
 
     def schedule(self, kind: str, joint: int, at_s: float, duration_s: float | None = None) -> None:
         """Inject ``kind`` into the drive of ``joint`` at the first SYNC at or after robot time ``at_s``.

@@ -79,6 +79,10 @@ class CanSimWorld:
     def clear_faults(self) -> None:
         self._drives.clear_faults()
 
+    def drive_events(self) -> list[tuple[float, int, str]]:
+        """What happened to the drives so far: faults injected, power stages on and off (a copy)."""
+        return list(self._drives.events)
+
     def seat_pilot(self) -> None:
         self._plant.seat_pilot()
 
