@@ -24,7 +24,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from daror_runtime.errors import DarorError
+from daror_runtime.errors import DarorError, UsageError
 from daror_runtime.util.atomic import write_text_atomic
 
 
@@ -213,23 +213,54 @@ def bench_directory() -> Path:
 Benchmark = Callable[[bool], "BenchFigure | list[BenchFigure]"]
 
 
-def discover(directory: Path) -> list[Benchmark]:
-    benchmarks: list[Benchmark] = []
+def discover_by_script(directory: Path) -> dict[str, list[Benchmark]]:
+    """The ``BENCHMARKS`` of every ``bench_*.py`` in ``directory``, by script name (``canopen`` for ``bench_canopen.py``).
+
+    Raises:
+        DarorError: a script cannot be loaded.
+    """
+    by_script: dict[str, list[Benchmark]] = {}
     for script in sorted(directory.glob("bench_*.py")):
         spec = importlib.util.spec_from_file_location(f"daror_bench_{script.stem}", script)
         if spec is None or spec.loader is None:
             raise DarorError(f"{script}: cannot load benchmark script")
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
-        benchmarks.extend(getattr(module, "BENCHMARKS", []))
-    return benchmarks
+        by_script[script.stem.removeprefix("bench_")] = list(getattr(module, "BENCHMARKS", []))
+    return by_script
+
+
+def discover(directory: Path) -> list[Benchmark]:
+    """Every benchmark of the scripts in ``directory``, in script order (see :func:`discover_by_script`)."""
+    return [b for benchmarks in discover_by_script(directory).values() for b in benchmarks]
+
+
+def benchmark_list() -> str:
+    """The benchmarks by script, one line each: the names ``daror bench --only`` matches a part of.
+
+    Raises:
+        DarorError: ``bench/`` is not there (an installed package) or a script cannot be loaded.
+    """
+    by_script = discover_by_script(bench_directory())
+    return "\n".join(f"  {script}: {', '.join(b.__name__ for b in found)}" for script, found in by_script.items())
 
 
 def run_benchmarks(
     console: Console, json_path: Path | None = None, quick: bool = False, only: str | None = None
 ) -> int:
-    """Run every benchmark (or those whose function name contains ``only``) and report."""
-    selected: Sequence[Benchmark] = [b for b in discover(bench_directory()) if only is None or only in b.__name__]
+    """Run every benchmark (or those whose function name contains ``only``) and report.
+
+    Raises:
+        UsageError: ``only`` is part of no benchmark's name (the message lists them; nothing runs).
+        DarorError: the benchmark scripts cannot be found or loaded.
+    """
+    found = discover(bench_directory())
+    selected: Sequence[Benchmark] = [b for b in found if only is None or only in b.__name__]
+    if not selected:
+        raise UsageError(
+            f"--only {only!r} is part of no benchmark's name; expected part of one of: "
+            + ", ".join(b.__name__ for b in found)
+        )
     info = machine()
     console.print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, {info['date_utc']}")
     figures: list[BenchFigure] = []

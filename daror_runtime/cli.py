@@ -776,11 +776,35 @@ def cmd_demo(args: argparse.Namespace, console: Console) -> int:
 
 
 def cmd_bench(args: argparse.Namespace, console: Console) -> int:
-    from daror_runtime.bench import run_benchmarks
+    from daror_runtime.bench import benchmark_list, run_benchmarks
 
+    if args.list:
+        console.print(
+            f"benchmarks by script (--only runs those whose name contains its text):\n{benchmark_list()}",
+            soft_wrap=True,
+        )
+        return 0
     if args.json is not None:
         _output_file(args.json)
     return run_benchmarks(console, json_path=args.json, quick=args.quick, only=args.only)
+
+
+class _BenchHelp(argparse.Action):
+    """``daror bench --help``: the usual help, then the benchmarks' names (their scripts are loaded only then)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        from daror_runtime.bench import benchmark_list
+
+        try:
+            names = benchmark_list()
+        except DarorError as exc:
+            names = f"  {exc}"
+        parser.epilog = f"benchmarks by script (--only runs those whose name contains its text):\n{names}"
+        parser.print_help()
+        parser.exit()
 
 
 # --- console --------------------------------------------------------------------------
@@ -1484,10 +1508,17 @@ def build_parser() -> argparse.ArgumentParser:
     schema.add_argument("--out", type=Path, help="write here instead of standard output")
     schema.set_defaults(handler=cmd_fsm_schema)
 
-    bench = commands.add_parser("bench", help="run the benchmarks of docs/performance.md")
+    bench = commands.add_parser(
+        "bench",
+        help="run the benchmarks of docs/performance.md",
+        add_help=False,  # its -h lists the benchmarks, loaded only then
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    bench.add_argument("-h", "--help", action=_BenchHelp, help="show this help and the benchmarks' names, and exit")
     bench.add_argument("--json", type=Path, help="write the figures as JSON here")
     bench.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
-    bench.add_argument("--only", help="run only benchmarks whose name contains this")
+    bench.add_argument("--only", help="run only benchmarks whose name contains this (see --list)")
+    bench.add_argument("--list", action="store_true", help="list the benchmarks by script and exit")
     bench.set_defaults(handler=cmd_bench)
     return parser
 
