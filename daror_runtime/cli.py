@@ -344,15 +344,16 @@ def cmd_fit(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
-def _load_models(paths: Sequence[Path]) -> list[Any]:
+def _load_models(paths: Sequence[Path]) -> tuple[list[Any], list[Any]]:
+    """The models of ``paths`` and their files' training summaries; models of one name labelled apart by their paths."""
+    from daror_runtime.models.compare import distinct_labels
     from daror_runtime.models.files import load_model
 
-    models = [load_model(p)[0] for p in paths]
-    names = [m.name for m in models]
-    for model, path in zip(models, paths, strict=True):
-        if names.count(model.name) > 1:
-            model.name = f"{model.name} ({path.name})"
-    return models
+    loaded = [load_model(p) for p in paths]
+    models = [model for model, _ in loaded]
+    for model, label in zip(models, distinct_labels([m.name for m in models], paths), strict=True):
+        model.name = label
+    return models, [contents.training for _, contents in loaded]
 
 
 def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
@@ -363,10 +364,19 @@ def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
         _output_file(args.json, args.data, *args.models)
     from daror_runtime.residual.data import prediction_signal
 
-    models = _load_models(args.models)
+    models, training = _load_models(args.models)
     data = load_stationary(args.data)
-    evaluations = evaluate_models(models, data, [prediction_signal(m, data, args.data) for m in models])
+    signals = [prediction_signal(m, data, args.data) for m in models]
+    evaluations = evaluate_models(models, data, signals, training)
     console.print(evaluation_table(evaluations, f"Errors on {args.data} ({len(data)} points), Eq. 4.31-4.32"))
+    for e in evaluations:
+        x = e.extrapolation
+        if x is not None and x.n_outside and x.rmse_outside_nm is not None:
+            inside = "none inside" if x.rmse_inside_nm is None else f"{x.rmse_inside_nm:.3g} Nm inside"
+            console.print(
+                f"{e.name}: {x.n_outside} of {x.n_points} points outside its training range, extrapolated: "
+                f"RMSE {x.rmse_outside_nm:.3g} Nm there, {inside}"
+            )
     if args.json is not None:
         _write_json(args.json, evaluation_document(evaluations))
         console.print(f"{args.json}: written")
@@ -379,7 +389,7 @@ def cmd_cvf(args: argparse.Namespace, console: Console) -> int:
 
     if args.json is not None:
         _output_file(args.json, *args.models)
-    models = _load_models(args.models)
+    models, _ = _load_models(args.models)
     steps = THESIS_STEPS_RAD[: args.refinements + 1]
     evaluations = cvf_models(models, args.start, steps)
     console.print(cvf_table(evaluations))
@@ -428,6 +438,7 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     from rich.table import Table
 
     from daror_runtime.residual.pipeline import parse_families, run_residual
+    from daror_runtime.residual.report import effect_rmse_nm, rmse_change
     from daror_runtime.util.outputs import output_lock
     from hal.robot import load_description
 
@@ -464,9 +475,9 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
     if not run.diagnosis.found:
         console.print("no effect found: nothing was added")
     for i, found in enumerate(run.diagnosis.found):
-        gain = run.closure.rmse_gain_nm(i)
-        held = "" if gain >= 0 else ": did not hold on the validation data"
-        console.print(f"found: {found.sentence} (validation RMSE {-gain:+.4f} Nm{held})")
+        rmse_before, rmse_after = effect_rmse_nm(run.closure, i)
+        held = "" if rmse_after <= rmse_before else ": did not hold on the validation data"
+        console.print(f"found: {found.sentence} ({rmse_change(rmse_before, rmse_after)}{held})")
     if run.travel is not None:
         chosen = "the hysteresis" if run.travel.hysteresis else "the direction offset"
         path = "the raw logs" if run.travel.from_raw_log else "the points in order (no raw log)"
@@ -680,12 +691,14 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.data.load import load_stationary
     from daror_runtime.models.registry import ExtraNotInstalledError
     from daror_runtime.util.outputs import output_lock
+    from hal.robot import load_description
 
     try:
         from daror_runtime.neural.hpsearch.executors import require_ray
         from daror_runtime.neural.hpsearch.grid import grid_from_argument
         from daror_runtime.neural.hpsearch.report import OUTPUT_NAMES, ranking, write_outputs
         from daror_runtime.neural.hpsearch.search import check_data, run_search
+        from daror_runtime.neural.hpsearch.winner import fit_winners
         from daror_runtime.neural.hpsearch.work import default_cache_dir
     except ImportError as exc:
         if (exc.name or "").split(".")[0] not in _NN_MODULES:
@@ -742,21 +755,32 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
                 one_xla_thread=True,  # always: the same numbers whatever the number of workers
                 on_progress=lambda done, total, work: bar.update(task, completed=work, networks=f"{done}/{total}"),
             )
-        paths = write_outputs(run, out, machine())
+        ranked = ranking(run.rows)
+        best = {  # each model's first configuration, PENN first (the order of the files)
+            model: next(c.best for c in ranked if c.best.model == model)
+            for model in ("penn", "nnn")
+            if model in grid.models
+        }
+        with console.status(f"fitting the best {' and '.join(m.upper() for m in best)} as daror fit does"):
+            winners = fit_winners(best, grid, data, args.train, out, load_description(None))
+        paths = write_outputs(run, out, machine(), winners)
     n = len(run.rows)
     console.print(
         f"{n} networks ({len(run.results)} shapes) in {run.wall_s:.1f} s, {n / run.wall_s:.2f} networks/s; "
         f"{grid.training.loss} loss"
     )
-    ranked = ranking(run.rows)
-    for model in grid.models:
-        configs = [c for c in ranked if c.best.model == model]
-        best = configs[0].best
+    for winner in winners:
+        configs = [c for c in ranked if c.best.model == winner.model]
+        row = winner.best
         console.print(
-            f"  best {model.upper()}: {best.layers} x {best.width} {best.activation}, {best.inputs} inputs, "
-            f"lambda {best.l1:g}: MVL {best.mvl:.5g}, validation RMSE {best.val_rmse_nm:.4f} Nm; "
+            f"  best {winner.model.upper()}: {row.layers} x {row.width} {row.activation}, {row.inputs} inputs, "
+            f"lambda {row.l1:g}: MVL {row.mvl:.5g}, validation RMSE {row.val_rmse_nm:.4f} Nm; "
             f"{sum(c.best.collapsed for c in configs)} of {len(configs)} configurations collapsed"
         )
+        written = f"{out / winner.file_name}" if winner.file_name is not None else f"no model file ({winner.problem})"
+        console.print(f"    model: {written}; reproduce: {winner.command}", soft_wrap=True)
+        for difference in winner.differences:
+            console.print(f"    differs from the search: {difference}")
     console.print(f"{out}: {', '.join(p.name for p in paths)} written")
     log.info("hpsearch written", out=str(out), networks=n, wall_s=round(run.wall_s, 3))
     return 0
@@ -1428,7 +1452,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         required=True,
         metavar="DIR",
-        help="folder: networks.csv, ranking.csv, ranking.md, summary.json",
+        help="folder: networks.csv, ranking.csv, ranking.md, summary.json, best_penn.json, best_nnn.json",
     )
     hp.add_argument(
         "--grid",

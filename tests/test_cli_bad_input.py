@@ -334,7 +334,7 @@ def test_fit_then_evaluate_writes_the_documented_json(
     assert set(document) == {"models"}
     assert len(document["models"]) == 1
     entry = document["models"][0]
-    assert set(entry) == {"name", "kind", "rmse", "nrmse", "rmse_per_joint"}
+    assert set(entry) == {"name", "kind", "rmse", "nrmse", "rmse_per_joint", "training_range"}
     assert entry["name"] == "PLF"
     assert entry["kind"] == "plf"
     assert _is_number(entry["rmse"])
@@ -351,6 +351,18 @@ def test_fit_then_evaluate_writes_the_documented_json(
     np.testing.assert_allclose(entry["nrmse"], np.sqrt(np.sum((error / peak) ** 2) / len(validation)), rtol=1e-12)
     assert entry["rmse"] ** 2 == pytest.approx(np.mean(np.square(entry["rmse_per_joint"])), rel=1e-12)
     assert 0.3 < entry["rmse"] < 3.0  # dataset B: the thesis reports 1.24 Nm for PLF
+    # issue 24: the points outside the training data's range (beyond 1e-3 rad), and the RMSE on each side
+    q_train = load_stationary(files.train).q_rad
+    low, high = q_train.min(axis=0), q_train.max(axis=0)
+    outside = ((validation.q_rad < low - 1e-3) | (validation.q_rad > high + 1e-3)).any(axis=1)
+    extrapolated = entry["training_range"]
+    assert extrapolated["points"] == len(validation)
+    assert extrapolated["outside"] == int(outside.sum())
+    assert extrapolated["q_min"] == low.tolist()
+    assert extrapolated["q_max"] == high.tolist()
+    for side, points in (("rmse_inside", ~outside), ("rmse_outside", outside)):
+        expected = np.sqrt(np.mean(error[points] ** 2)) if points.any() else None
+        assert extrapolated[side] == (None if expected is None else pytest.approx(expected, rel=1e-12)), side
 
 
 def test_evaluate_two_models_keeps_their_order(files: Files, tmp_path: Path) -> None:

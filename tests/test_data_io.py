@@ -225,7 +225,7 @@ def _fail_midway(writer_name: str):
     return fail
 
 
-_WRITERS = {".csv": (np, "savetxt"), ".npz": (np, "savez"), ".mat": (scipy.io, "savemat")}
+_WRITERS = {".csv": (tables, "_write_csv"), ".npz": (tables, "_write_npz"), ".mat": (scipy.io, "savemat")}
 
 
 @pytest.mark.parametrize("suffix", FORMATS)

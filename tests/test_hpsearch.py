@@ -13,21 +13,24 @@ import errno
 import itertools
 import json
 import os
+import shlex
 import shutil
 import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from daror_runtime.bench import machine
-from daror_runtime.cli import main
+from daror_runtime.cli import build_parser, main
 from daror_runtime.data.load import load_stationary, write_dataset
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DarorError
+from daror_runtime.models.files import load_model
 from daror_runtime.neural.hpsearch import report
 from daror_runtime.neural.hpsearch.grid import (
     BUILTIN_GRIDS,
@@ -37,8 +40,10 @@ from daror_runtime.neural.hpsearch.grid import (
     grid_from_argument,
     load_grid,
 )
-from daror_runtime.neural.hpsearch.report import OUTPUT_NAMES, networks_csv
+from daror_runtime.neural.hpsearch.report import OUTPUT_NAMES, REPORT_NAMES, networks_csv
 from daror_runtime.neural.hpsearch.search import SearchRun, run_search, schedule, work_units
+from daror_runtime.neural.hpsearch.winner import fit_arguments, fit_options
+from daror_runtime.neural.hpsearch.work import NetworkRow
 from daror_runtime.neural.training import TrainingSettings
 
 TINY_GRID = """\
@@ -403,8 +408,9 @@ def test_a_failed_write_leaves_the_folder_as_it_was(
     else:
         assert not out.exists()
     monkeypatch.undo()
-    assert report.write_outputs(one_worker[0], out, machine()) == [out / name for name in OUTPUT_NAMES]
-    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_NAMES)
+    assert report.write_outputs(one_worker[0], out, machine()) == [out / name for name in REPORT_NAMES]
+    # without winners only the report is written (a folder copied from the command keeps its model files)
+    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_NAMES if existing else REPORT_NAMES)
 
 
 def test_ray_gives_the_same_numbers_and_force_replaces_only_our_files(
@@ -445,6 +451,82 @@ def test_ray_gives_the_same_numbers_and_force_replaces_only_our_files(
     assert err.splitlines()[0] == "daror hpsearch: failed: injected: the relu unit failed"
     assert "Traceback" not in err
     assert not failed.exists()
+
+
+# --- the winners as models (issue 24) ------------------------------------------------------------
+
+
+def test_the_winners_model_files_load_and_their_fit_lines_reproduce_them(
+    searched: Path, folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each model's best configuration is written as a model file, and its ``daror fit`` line (parsed by the
+    command's own parser) trains the very same parameters."""
+    summary = json.loads((searched / "summary.json").read_text())
+    ranking = _rows(searched / "ranking.csv")
+    assert list(summary["winners"]) == ["penn", "nnn"]
+    for model, winner in summary["winners"].items():
+        best = next(r for r in ranking if r["model"] == model and r["rank"] == "1")
+        assert winner["file"] == f"best_{model}.json"
+        loaded, contents = load_model(searched / winner["file"])
+        assert contents.kind == model
+        spec = loaded.parameters()["network"]
+        assert (spec["layers"], spec["width"], spec["activation"], spec["inputs"]) == (
+            int(best["layers"]), int(best["width"]), best["activation"], best["inputs"]
+        )  # fmt: skip
+        assert contents.training is not None
+        assert contents.training.n_points == summary["data"]["points"]
+        # the line, as a person would paste it: the CLI's parser takes it and means this configuration
+        argv = shlex.split(winner["command"])
+        assert argv[0] == "daror"
+        assert argv[1:] == winner["argv"]
+        args = build_parser().parse_args(argv[1:])
+        assert (args.kind, args.train, args.out) == (model, folder / "B-train.csv", searched / winner["file"])
+        assert (args.layers, args.width, args.activation, args.inputs) == (
+            int(best["layers"]), int(best["width"]), best["activation"], best["inputs"]
+        )  # fmt: skip
+        assert args.l1 == float(best["l1"])
+        assert (args.seed, args.inits, args.folds, args.adam_steps, args.lbfgs, args.thesis) == (
+            0,
+            2,
+            4,
+            10,
+            True,
+            True,
+        )
+        # the tiny grid's own learning rate and L-BFGS iterations have no fit option: said, not hidden
+        assert any(d.startswith("learning_rate: the search trained with 0.005") for d in winner["differences"])
+        assert any(d.startswith("lbfgs_steps: the search trained with 40") for d in winner["differences"])
+        # running the line gives the file's parameters, digit for digit
+        again = tmp_path / f"again_{model}.json"
+        argv[argv.index("--out") + 1] = str(again)
+        assert main(argv[1:]) == 0
+        assert load_model(again)[1].parameters == contents.parameters
+    capsys.readouterr()
+    md = (searched / "ranking.md").read_text()
+    assert "## The winners as models" in md
+    assert summary["winners"]["penn"]["command"] in md
+
+
+def test_the_fit_line_starts_from_the_searched_initialisations_where_daror_fit_can() -> None:
+    """``daror fit`` starts initialisation i from 1000 x --seed + i: seeds 0..N-1 (the built-in grids) are
+    --seed 0 --inits N; a seed it cannot start from is named as a difference."""
+    row = NetworkRow("penn", 1, 25, "sigmoid", "q", 1e-3, 1, 0.1, 5, 0.4, 0.1, 4.0, False, 1.0, 1.0, 0.1)
+    thesis = BUILTIN_GRIDS["thesis"]
+    argv = fit_arguments("penn", row, thesis, "B.csv", "out/best_penn.json")
+    assert argv == [
+        "fit", "penn", "--train", "B.csv", "--out", "out/best_penn.json", "--layers", "1", "--width", "25",
+        "--activation", "sigmoid", "--inputs", "q", "--l1", "0.001", "--seed", "0", "--inits", "2", "--folds", "4",
+        "--adam-steps", "100", "--lbfgs",
+    ]  # fmt: skip
+    far = thesis.model_copy(update={"seeds": (2000, 2001, 2002)})
+    assert fit_arguments("penn", row, far, "B.csv", "o.json")[-9:-5] == ["--seed", "2", "--inits", "3"]
+    assert fit_options(row, far)[1] == []
+    odd = thesis.model_copy(update={"seeds": (7, 1)})
+    options, differences = fit_options(replace(row, seed=7), odd)
+    assert (options["seed"], options["inits"]) == (0, 1)
+    assert differences == [
+        "initialisation seed 7: daror fit starts from 1000 x --seed + i, so the model starts from seed 0 instead"
+    ]
 
 
 # --- refusals: exit code 2, one line, nothing written --------------------------------------------
@@ -531,7 +613,7 @@ _WITHOUT_JAX = """
 import sys
 sys.modules["jax"] = None  # as if the extra nn were not installed: any import of jax fails
 from daror_runtime.bench import machine
-from daror_runtime.cli import main
+from daror_runtime.cli import build_parser, main
 code = main(sys.argv[1:])
 assert "jax" not in {m.split(".")[0] for m in sys.modules if sys.modules[m] is not None}
 raise SystemExit(code)
@@ -595,6 +677,7 @@ import os
 
 import daror_runtime.neural.training as training
 from daror_runtime.errors import DarorError
+from daror_runtime.models.files import load_model
 
 _train_group = training.train_group
 

@@ -105,9 +105,14 @@ def _theta0_text(good: Good) -> tuple[str, str]:
 
 
 def _augmented(good: Good, **parameters: object) -> dict[str, Any]:
-    """A signed augmented-kind document (a base model plus effects) with ``parameters`` laid over a plain one."""
+    """A signed augmented-kind document (a base model plus effects) with ``parameters`` laid over a plain one.
+
+    Without the PLF+ fit's report: ``daror residual`` writes an augmented model without one, and a
+    report of kind plf+ under kind augmented is refused (issue 24: the fit's kind must be the file's).
+    """
     document = _copy(good.document)
     document["kind"] = "augmented"
+    document["fit"] = {}
     document["parameters"] = {
         "base_kind": "plf+",
         "theta": good.document["parameters"]["theta"],
@@ -395,12 +400,20 @@ def test_plausible_files_still_load(good: Good, folder: Path) -> None:
 def test_evaluate_with_a_plausible_model_writes_finite_json(
     good: Good, folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The largest parameters a file may hold still give a JSON report (1e300 once broke it)."""
-    big = _copy(good.document)
-    big["parameters"]["theta"] = [PARAMETER_BOUNDS["theta"].max_abs] * 12
-    big["parameters"]["elbow_polynomial"] = [PARAMETER_BOUNDS["elbow_polynomial"].max_abs] * 12
+    """The largest parameters a file may hold still give a JSON report (1e300 once broke it).
+
+    The order-11 polynomials the bounds allow are the augmented kind's (a PLF+ file holds exactly
+    its six elbow terms since issue 24): its elbow polynomial and every joint's, at the bound.
+    """
+    largest = PARAMETER_BOUNDS["elbow_polynomial"].max_abs
+    big = _augmented(
+        good,
+        theta=[PARAMETER_BOUNDS["theta"].max_abs] * 12,
+        elbow_polynomial=[largest] * 12,
+        joint_polynomials=[[largest] * 12 for _ in range(4)],
+    )
     path = folder / "big.json"
-    path.write_text(json.dumps(signed(big)), encoding="utf-8")
+    path.write_text(json.dumps(big), encoding="utf-8")
     out = tmp_path / "errors.json"
     assert main(["evaluate", str(path), "--data", str(good.data), "--json", str(out)]) == 0
     capsys.readouterr()

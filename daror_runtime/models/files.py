@@ -387,8 +387,10 @@ def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
         ModelFileError: not a regular file of at most :data:`~hal.files.MODEL_MAX_BYTES`, not UTF-8,
             not JSON, nested too deeply, a key written twice, a value that is not a finite number
             where one is meant, an implausible parameter (:data:`PARAMETER_BOUNDS`), not a model
-            file, unsupported version, checksum mismatch, an unknown kind, or parameters that do not
-            fit the kind; one line naming the file (and the field where there is one).
+            file, unsupported version, checksum mismatch, an unknown kind, a kind that is not the one
+            its fit recorded (``fit.kind``), or parameters that do not fit the kind (another kind's,
+            a vector of the wrong length: each kind's ``from_parameters``); one line naming the file
+            (and the field where there is one).
         ModelKindPluginError: the kind is registered by a plugin that cannot be loaded (file named).
         ExtraMissingError: the kind needs an optional extra that is not installed.
     """
@@ -416,6 +418,12 @@ def load_model(path: Path | str) -> tuple[CompensationModel, ModelFile]:
     if _checksum(document) != contents.checksum_sha256:
         raise ModelFileError(
             f"{path}: checksum mismatch; the file was changed or corrupted after it was written, refit or restore it"
+        )
+    fitted_as = contents.fit.get("kind")
+    if fitted_as is not None and fitted_as != contents.kind:  # a kind edited after the fit (checksum signed again)
+        raise ModelFileError(
+            f"{path}: field kind: {contents.kind!r}, but the fit that made these parameters was of kind "
+            f"{json.dumps(fitted_as)[:40]} (field fit.kind); the parameters belong to another kind"
         )
     try:
         model = model_from_parameters(contents.robot, contents.kind, contents.parameters, contents.name)

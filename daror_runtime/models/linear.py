@@ -39,12 +39,17 @@ from hal.robot import N_JOINTS, FloatArray, Geometry, Kinematics, RobotDescripti
 PLF_PLUS_ELBOW_ORDER = 5
 
 
+#: The A Priori model's own parameters: which design terms it includes (no fitted kind has them).
+DESIGN_FLAGS = ("includes_dummy_arm", "includes_elbow_stiffness")
+
+
 class LinearParameters(BaseModel):
-    """Parameters of a linear model as stored in a model file."""
+    """Parameters of a linear model as stored in a model file (what every linear kind may hold; each kind
+    then checks what it must hold: :meth:`LinearCompensationModel._validated`)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    theta: list[float] = Field(min_length=N_GRAVITY_PARAMETERS, max_length=N_GRAVITY_PARAMETERS)
+    theta: list[float]
     theta_names: list[str] = Field(default_factory=lambda: list(GRAVITY_PARAMETER_NAMES))
     elbow_polynomial: list[float] = Field(default_factory=list, max_length=12)
     includes_dummy_arm: bool | None = None
@@ -62,6 +67,12 @@ class LinearCompensationModel(CompensationModel):
     """``tau = K(q) theta + elbow polynomial``: shared by AP, PLF and PLF+."""
 
     conservative_by_construction: ClassVar[bool] = True
+    #: How many elbow polynomial coefficients (``mu_0 .. mu_k``, Nm/rad^i) a model of this kind has,
+    #: and in words for messages.
+    elbow_terms: ClassVar[tuple[int, ...]] = (0,)
+    elbow_terms_said: ClassVar[str] = "none (no elbow polynomial)"
+    #: Whether the parameters say which design terms are included (:data:`DESIGN_FLAGS`, A Priori only).
+    design_flags: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -104,12 +115,49 @@ class LinearCompensationModel(CompensationModel):
 
     @classmethod
     def _validated(cls, parameters: Mapping[str, Any]) -> LinearParameters:
+        """``parameters`` checked against this kind: the fields, and the lengths and flags the kind has.
+
+        A file whose ``kind`` was changed (PLF parameters under ``plf+``, A Priori's under ``plf``)
+        or whose vectors were cut or padded is refused here, not run with a polynomial it never fitted.
+
+        Raises:
+            ModelFileError: one line naming the field, what it holds and what this kind has.
+        """
         try:
-            return LinearParameters.model_validate(parameters)
+            p = LinearParameters.model_validate(parameters)
         except ValidationError as exc:
             problem = exc.errors()[0]
             field = ".".join(str(p) for p in problem["loc"])
             raise ModelFileError(f"parameters.{field}: {problem['msg']} (model kind {cls.kind})") from None
+        if len(p.theta) != N_GRAVITY_PARAMETERS:
+            raise ModelFileError(
+                f"parameters.theta: {len(p.theta)} values; a model of kind {cls.kind} has {N_GRAVITY_PARAMETERS}, "
+                f"the first moments m g p (x, y, z) of the robot's {N_GRAVITY_PARAMETERS // 3} links"
+            )
+        if len(p.elbow_polynomial) not in cls.elbow_terms:
+            raise ModelFileError(
+                f"parameters.elbow_polynomial: {len(p.elbow_polynomial)} values; a model of kind {cls.kind} has "
+                f"{cls.elbow_terms_said}: the parameters are another kind's or were cut"
+            )
+        flags = [name for name in DESIGN_FLAGS if name in parameters]
+        if cls.design_flags:
+            missing = [name for name in DESIGN_FLAGS if getattr(p, name) is None]
+            if missing:
+                raise ModelFileError(
+                    f"parameters.{missing[0]}: missing; a model of kind {cls.kind} says true or false (the "
+                    "parameters are another kind's)"
+                )
+            if bool(p.includes_elbow_stiffness) != bool(p.elbow_polynomial):
+                raise ModelFileError(
+                    f"parameters.elbow_polynomial: {len(p.elbow_polynomial)} values with includes_elbow_stiffness "
+                    f"{str(p.includes_elbow_stiffness).lower()}; expected 2 (mu0, mu1) with it, none without"
+                )
+        elif flags:
+            raise ModelFileError(
+                f"parameters.{flags[0]}: an A Priori model's field in a model of kind {cls.kind}; the parameters "
+                "are another kind's"
+            )
+        return p
 
     @classmethod
     def from_parameters(
@@ -127,11 +175,18 @@ class PLFModel(LinearCompensationModel):
 class PLFPlusModel(LinearCompensationModel):
     kind: ClassVar[str] = "plf+"
     display_name: ClassVar[str] = "PLF+"
+    elbow_terms: ClassVar[tuple[int, ...]] = (PLF_PLUS_ELBOW_ORDER + 1,)
+    elbow_terms_said: ClassVar[str] = (
+        f"{PLF_PLUS_ELBOW_ORDER + 1} (mu0 .. mu{PLF_PLUS_ELBOW_ORDER} of its elbow polynomial, Sec. 4.2.2)"
+    )
 
 
 class APModel(LinearCompensationModel):
     kind: ClassVar[str] = "ap"
     display_name: ClassVar[str] = "A Priori"
+    elbow_terms: ClassVar[tuple[int, ...]] = (0, 2)
+    elbow_terms_said: ClassVar[str] = "none, or 2 with the elbow stiffness (mu0, mu1, Eq. 4.7)"
+    design_flags: ClassVar[bool] = True
 
     def __init__(
         self,

@@ -160,6 +160,21 @@ def _change(before: float, after: float) -> str:
     return f"{(after / before - 1) * 100:+.1f} %" if before > 0 else "n/a"
 
 
+def effect_rmse_nm(closure: Closure, index: int) -> tuple[float, float]:
+    """The validation RMSE (Nm) before and after effect ``index`` (0-based, in the order found) was added."""
+    before = closure.before.rmse_nm if index == 0 else closure.rmse_after_each_nm[index - 1]
+    return before, closure.rmse_after_each_nm[index]
+
+
+def rmse_change(before_nm: float, after_nm: float, digits: int = 4) -> str:
+    """A change of RMSE as a change: ``validation RMSE 0.6200 -> 0.4191 Nm (-0.2009 Nm)``.
+
+    Both RMSEs are shown (an RMSE is never negative); the signed figure in brackets is the change
+    (Nm, negative when the error fell). ``digits``: decimals of every figure.
+    """
+    return f"validation RMSE {before_nm:.{digits}f} -> {after_nm:.{digits}f} Nm ({after_nm - before_nm:+.{digits}f} Nm)"
+
+
 def _learned_section(learned: LearnedRemainder) -> list[str]:
     """The report's section on the learned remainder (``--learned``)."""
     lines = [
@@ -229,7 +244,7 @@ def report_markdown(
     for i, f in enumerate(diagnosis.found, start=1):
         e = f.evidence
         lines.append(
-            f"{i}. **{f.sentence}**. Validation RMSE {-result.rmse_gain_nm(i - 1):+.4f} Nm when added; "
+            f"{i}. **{f.sentence}**. When added: {rmse_change(*effect_rmse_nm(result, i - 1))}; "
             f"held-out (training CV) RMSE {e.cv_rmse_before_nm:.4f} -> {e.cv_rmse_after_nm:.4f} Nm, "
             f"dBIC {e.delta_bic:.1f}, F test p = {e.p_value:.2g}."
         )

@@ -10,9 +10,11 @@ Files in the output folder (:data:`OUTPUT_NAMES`):
 * ``ranking.md``: Table I (PENN) and Table II (NNN): the :data:`TOP` best configurations, with a
   header saying the data, the loss, the grid, the training and the machine time; the collapsed
   configurations; the most expensive shapes;
-* ``summary.json``: the same facts for scripts, written last (its presence marks a complete set).
+* ``summary.json``: the same facts for scripts, written last (its presence marks a complete set);
+* ``best_penn.json``, ``best_nnn.json``: each searched model's winner fitted by ``daror fit`` (its
+  command line in ranking.md and summary.json; :mod:`.winner`).
 
-Every file is rendered in memory first, then written in two steps: all four to temporary names
+Every file is rendered in memory first, then written in two steps: all of them to temporary names
 beside their targets (a failure here, a full disk, removes them: the folder is as it was), then
 renamed into place one after the other (renames in one folder do not fail for want of space).
 Ctrl-C is held from the first temporary file until the last rename, so the folder has all of this
@@ -29,18 +31,20 @@ import math
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from daror_runtime.neural.fit import COLLAPSE_FRACTION
 from daror_runtime.neural.hpsearch.search import SearchRun
+from daror_runtime.neural.hpsearch.winner import WINNER_FILES, Winner
 from daror_runtime.neural.hpsearch.work import NetworkRow
 from daror_runtime.util.atomic import atomic_path
 
 __all__ = [
     "OUTPUT_NAMES",
+    "REPORT_NAMES",
     "TOP",
     "RankedConfiguration",
     "ranking",
@@ -53,8 +57,10 @@ __all__ = [
 TOP = 10
 #: Shapes listed in ranking.md and summary.json as the most expensive.
 EXPENSIVE = 10
-#: The files a search writes, summary.json last.
-OUTPUT_NAMES = ("networks.csv", "ranking.csv", "ranking.md", "summary.json")
+#: The report's files, summary.json last.
+REPORT_NAMES = ("networks.csv", "ranking.csv", "ranking.md", "summary.json")
+#: Every file a search may write: the winners' model files (of the models searched), then the report.
+OUTPUT_NAMES = (*WINNER_FILES.values(), *REPORT_NAMES)
 #: The version of summary.json's layout.
 SUMMARY_VERSION = 1
 
@@ -200,8 +206,29 @@ def _collapsed_lines(run: SearchRun, ranked: list[RankedConfiguration]) -> list[
     return lines
 
 
-def render_markdown(run: SearchRun, ranked: list[RankedConfiguration], machine: dict[str, Any]) -> str:
-    """``ranking.md``: the header, Table I (PENN) and Table II (NNN), collapses, the most expensive shapes."""
+def _winner_lines(winners: Sequence[Winner]) -> list[str]:
+    """ranking.md's section on the winners' model files and the ``daror fit`` line of each."""
+    if not winners:
+        return []
+    lines = [
+        "",
+        "## The winners as models",
+        "",
+        "Each model's best configuration, fitted by `daror fit` (its fold networks as the search trained them, "
+        "then the fit on all the points); the line reproduces the file:",
+    ]
+    for w in winners:
+        written = f"`{w.file_name}`" if w.file_name is not None else f"no file ({w.problem})"
+        lines += ["", f"- {w.model.upper()}: {written}", "", "  ```sh", f"  {w.command}", "  ```"]
+        lines += [f"  - differs from the search: {d}" for d in w.differences]
+    return lines
+
+
+def render_markdown(
+    run: SearchRun, ranked: list[RankedConfiguration], machine: dict[str, Any], winners: Sequence[Winner] = ()
+) -> str:
+    """``ranking.md``: the header, Table I (PENN) and Table II (NNN), the winners' ``daror fit`` lines, collapses,
+    the most expensive shapes."""
     unit = "" if run.grid.training.loss == "scaled" else " (Nm^2)"
     n = len(run.rows)
     out = [
@@ -237,6 +264,7 @@ def render_markdown(run: SearchRun, ranked: list[RankedConfiguration], machine: 
                 f"| {c.rank} | {b.layers} | {b.width} | {b.activation} | {b.inputs} | {b.l1:g} | {b.mvl:.5g} | "
                 f"{b.val_rmse_nm:.4f} | {b.seed} | {'yes' if b.collapsed else 'no'} |"
             )
+    out += _winner_lines(winners)
     out += ["", "## Collapsed configurations (zero torque: the network learned nothing)", ""]
     out += _collapsed_lines(run, ranked)
     out += ["", f"## The {EXPENSIVE} most expensive shapes (all their networks trained together)", ""]
@@ -257,8 +285,11 @@ def _configuration(c: RankedConfiguration) -> dict[str, Any]:
     return {"rank": c.rank, **row, "inits": c.inits, "mvl_worst_init": _finite(c.mvl_worst)}
 
 
-def summary_document(run: SearchRun, ranked: list[RankedConfiguration], machine: dict[str, Any]) -> dict[str, Any]:
-    """``summary.json``: what was searched, on what, how long it took, the best configurations, collapses."""
+def summary_document(
+    run: SearchRun, ranked: list[RankedConfiguration], machine: dict[str, Any], winners: Sequence[Winner] = ()
+) -> dict[str, Any]:
+    """``summary.json``: what was searched, on what, how long it took, the best configurations, collapses, the
+    winners' model files and ``daror fit`` lines (:meth:`Winner.to_dict`)."""
     n = len(run.rows)
     models = [m for m in _MODEL_ORDER if m in run.grid.models]
     return {
@@ -279,8 +310,14 @@ def summary_document(run: SearchRun, ranked: list[RankedConfiguration], machine:
         "top": {m: [_configuration(c) for c in ranked if c.best.model == m][:TOP] for m in models},
         "collapsed_configurations": {m: sum(c.best.collapsed for c in ranked if c.best.model == m) for m in models},
         "most_expensive_shapes": _expensive(run),
-        "files": list(OUTPUT_NAMES),
+        "winners": {w.model: w.to_dict() for w in winners},
+        "files": _file_names(winners),
     }
+
+
+def _file_names(winners: Sequence[Winner]) -> list[str]:
+    """The files a search with ``winners`` writes, in the order they are listed (summary.json last)."""
+    return [*(w.file_name for w in winners if w.file_name is not None), *REPORT_NAMES]
 
 
 @contextlib.contextmanager
@@ -299,22 +336,29 @@ def _interrupt_held() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any]) -> list[Path]:
-    """Write :data:`OUTPUT_NAMES` into ``out_dir`` (created if missing), all or none; the paths written, in order.
+def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any], winners: Sequence[Winner] = ()) -> list[Path]:
+    """Write the winners' model files and :data:`REPORT_NAMES` into ``out_dir`` (created if missing), all or none;
+    the paths written, in order (summary.json last).
 
     Raises:
         OutputWriteError: the folder cannot be written (exit code 2); nothing was written.
         DarorError: writing failed otherwise (a full disk); nothing was written.
+        ValueError: a winner's model file holds a number that is not finite; nothing was written.
     """
     ranked = ranking(run.rows)
     texts = {
+        **{
+            w.file_name: json.dumps(w.document, indent=2, allow_nan=False) + "\n"
+            for w in winners
+            if w.file_name is not None
+        },
         "networks.csv": networks_csv(run),
         "ranking.csv": ranking_csv(ranked),
-        "ranking.md": render_markdown(run, ranked, machine),
-        "summary.json": json.dumps(summary_document(run, ranked, machine), indent=2, allow_nan=False) + "\n",
+        "ranking.md": render_markdown(run, ranked, machine, winners),
+        "summary.json": json.dumps(summary_document(run, ranked, machine, winners), indent=2, allow_nan=False) + "\n",
     }
     created = not out_dir.exists()
-    paths = [out_dir / name for name in OUTPUT_NAMES]
+    paths = [out_dir / name for name in _file_names(winners)]
     try:
         with _interrupt_held(), contextlib.ExitStack() as stack:
             # Each atomic_path renames its temporary file when the stack ends, last entered first:
