@@ -86,7 +86,7 @@ def measure(seconds: float, web: bool, clients: int = 2, press: bool = True) -> 
         if web:
             from daror_runtime.console.web.serve import start_web
 
-            server = start_web(runtime, world, port=0)
+            server = start_web(runtime, world, port=0, require_token=False)  # loopback; the cost, not the access
             if clients:  # forked before the loop runs: a fork of this process beside the loop stalls it
                 browsers = subprocess.Popen(
                     [sys.executable, "-c", _CLIENTS, str(clients), str(seconds), "press" if press else "nopress"],

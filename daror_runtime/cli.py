@@ -923,7 +923,7 @@ def _console_session(
         run_interactive,
         run_piped,
         run_script,
-        stop_signals,
+        run_session,
     )
     from daror_runtime.runtime import Runtime
 
@@ -934,72 +934,52 @@ def _console_session(
         args.log_level or "critical",  # the console announces what the operator must see
         args.log_json if args.log_json is not None else out / "audit.jsonl",
     )
-    code = 0
-    reason = "the session ended with an error"
     runtime.open()
     web = None
-    interrupt: KeyboardInterrupt | None = None
-    with stop_signals() as signals:  # SIGINT, SIGTERM, SIGHUP: raised here, in the main thread, once
-        try:
-            session = make_session(runtime, console)
-            if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
-                from daror_runtime.console.web.serve import start_web
 
-                web = start_web(runtime, session.world, args.host, args.port, require_token=not args.no_token)
-                session.announcements = web.hub.terminal_reader()
-                console.print(f"web console: {web.address}" + ("" if web.token else _NO_TOKEN_NOTE), soft_wrap=True)
-            background = realtime and not typed  # the loop on its own thread: announcements printed as they come
-            if background:
-                runtime.start_background()
-            with announcing(session, enabled=background):
-                if checked is not None:
-                    try:
-                        result = run_script(session, args.script, checked)
-                    except DarorError:
-                        if after_script is not None:
-                            after_script(runtime, session)
-                        raise
+    def body() -> tuple[int, str]:
+        nonlocal web
+        session = make_session(runtime, console)
+        if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
+            from daror_runtime.console.web.serve import start_web
+
+            web = start_web(runtime, session.world, args.host, args.port, require_token=not args.no_token)
+            session.announcements = web.hub.terminal_reader()
+            console.print(f"web console: {web.address}" + ("" if web.token else _NO_TOKEN_NOTE), soft_wrap=True)
+        background = realtime and not typed  # the loop on its own thread: announcements printed as they come
+        if background:
+            runtime.start_background()
+        with announcing(session, enabled=background):
+            if checked is not None:
+                try:
+                    result = run_script(session, args.script, checked)
+                except DarorError:
                     if after_script is not None:
                         after_script(runtime, session)
-                    console.print(f"script done: {result.lines_run} lines, state {result.state}")
-                    reason = "quit" if result.quit else "the script ended"
-                elif typed:
-                    run_interactive(session, history_path(), start=runtime.start_background)
-                    reason = "quit"
-                elif web is None:
-                    code = run_piped(session, sys.stdin)
-                    reason = "quit or the end of the input"
-                else:  # the page is the console: until a signal, or until the server is lost (nothing would control the robot)
-                    reason = web.serve_until_interrupted()
-                    console.print(f"web console: {reason}", soft_wrap=True)
-        except KeyboardInterrupt as exc:  # Ctrl-C typed at the prompt (a key), or a stop signal
-            interrupt = exc
-        finally:
-            signals.hold()  # from here on a signal is noted, never raised: nothing interrupts the torque off
-            stop = signals.stop(interrupt)
-            if stop is not None:  # also a signal that came as the session was ending by itself (a hang-up's EOF)
-                reason, code = stop.reason, stop.exit_code
-            ended = runtime.shutdown(reason)  # torque off first, whatever happened
-            if web is not None:
-                web.stop()
-            _tell(console, ended.sentence())
-            runtime.close()
-            _tell(console, f"session {runtime.session_id}: {out / 'session.json'}")
-            if len(signals.received) > 1:
-                log.warning("signals while the session ended, ignored", signals=signals.received[1:])
-    return code
+                    raise
+                if after_script is not None:
+                    after_script(runtime, session)
+                console.print(f"script done: {result.lines_run} lines, state {result.state}")
+                return 0, "quit" if result.quit else "the script ended"
+            if typed:
+                run_interactive(session, history_path(), start=runtime.start_background)
+                return 0, "quit"
+            if web is None:
+                return run_piped(session, sys.stdin), "quit or the end of the input"
+            # the page is the console: until a signal, or until the server is lost (nothing would control the robot)
+            reason = web.serve_until_interrupted()
+            console.print(f"web console: {reason}", soft_wrap=True)
+            return 0, reason
+
+    def stop_web() -> None:
+        if web is not None:
+            web.stop()
+
+    return run_session(runtime, console, body, stop_web)  # SIGINT, SIGTERM, SIGHUP: torque off, 128 + signal
 
 
 #: Said after the web console's address when it asks no token (``--no-token``, loopback only).
 _NO_TOKEN_NOTE = " (no token: any program on this computer can drive the robot)"
-
-
-def _tell(console: Console, text: str) -> None:
-    """Print one line at the end of a session; a terminal that is gone (a hang-up) does not stop the ending."""
-    try:
-        console.print(text, soft_wrap=True)
-    except OSError:  # the audit log and session.json have it
-        return
 
 
 # --- hil ------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The operator's web console (issue 15): the page in a real headless browser, the live stream, the token.
+"""The operator's web console (issue 15): the page in a real headless browser, the live stream, who may use it.
 
 The browser test walks a simulated session from start-up to compensation by clicking only (the
 e-stops through the page's simulated-world buttons), with the loop on its background thread as
@@ -10,6 +10,11 @@ shows its reason, that the plots receive data at >= 20 Hz, that a second page se
 and log, and that losing the browser changes nothing on the robot. Screenshots of the main states
 go to ``DAROR_WEB_SCREENSHOTS`` when set (e.g. ``docs/img``), else under the test's tmp dir.
 
+Issue 24, defect 8 (H29): a token on every address by default, the Host header checked against
+the server's addresses (DNS rebinding), the Origin of every state-changing request and of the
+WebSocket (another page); ``--no-token`` on the loopback only. Defects 4 and 5: ``daror console
+--web`` prints what the runtime announces on the terminal and ends on SIGTERM with torque off.
+
 Skipped only when /usr/bin/chromium (or its driver) is missing; ``make test`` installs them.
 """
 
@@ -19,10 +24,12 @@ import contextlib
 import json
 import math
 import os
+import queue
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -31,11 +38,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
 
 from daror_runtime.clocks import LockStepClock, RealTimeClock
+from daror_runtime.console.run import STOP_SIGNALS
+from daror_runtime.console.web.access import Access, is_loopback
 from daror_runtime.console.web.page import rows_json
 from daror_runtime.console.web.ring import RowRing
-from daror_runtime.console.web.serve import WebServer, is_loopback, start_web
+from daror_runtime.console.web.serve import WebServer, start_web
 from daror_runtime.console.world import SimWorld
 from daror_runtime.errors import UsageError
 from daror_runtime.runtime import Runtime
@@ -67,12 +78,30 @@ def _get(url: str, headers: dict[str, str] | None = None) -> tuple[int, Any]:
         return error.code, json.loads(error.read())
 
 
-def _post(url: str, line: str) -> dict[str, Any]:
+def _token(token: str | None) -> dict[str, str]:
+    """The header a client that is not a browser presents the token in."""
+    return {"X-Daror-Token": token} if token else {}
+
+
+def _send(url: str, line: str, headers: dict[str, str] | None = None) -> tuple[int, Any]:
+    """POST one console line: the status and the answer."""
     request = urllib.request.Request(
-        url + "/api/command", data=json.dumps({"line": line}).encode(), headers={"Content-Type": "application/json"}
+        url + "/api/command",
+        data=json.dumps({"line": line}).encode(),
+        headers={"Content-Type": "application/json", **(headers or {})},
     )
-    with urllib.request.urlopen(request, timeout=10.0) as answer:
-        return json.loads(answer.read())
+    try:
+        with urllib.request.urlopen(request, timeout=10.0) as answer:
+            return answer.status, json.loads(answer.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
+
+
+def _post(server: WebServer, line: str) -> dict[str, Any]:
+    """POST one console line as a client that is not a browser (no Origin), with the token."""
+    code, answer = _send(server.url, line, _token(server.token))
+    assert code == 200, answer
+    return answer
 
 
 def _end(runtime: Runtime, server: WebServer | None = None) -> None:
@@ -110,12 +139,14 @@ def test_daror_console_web_serves_until_ctrl_c(tmp_path: Path) -> None:
     )  # fmt: skip
     try:
         assert process.stdout is not None
-        line = process.stdout.readline()  # "web console: http://127.0.0.1:PORT/"
+        line = process.stdout.readline()  # "web console: http://127.0.0.1:PORT/?token=..."
         assert line.startswith("web console: http://127.0.0.1:"), line
-        url = line.split()[2].rstrip("/")
-        code, status = _get(url + "/api/status")
+        url, _, token = line.split()[2].partition("/?token=")
+        assert len(token) >= 16, line  # a token by default, on the loopback too
+        code, status = _get(url + "/api/status", _token(token))
         assert code == 200
         assert status["loop"]["clock"] == "real time"
+        assert status["loop"]["overruns"] == 0
         assert status["session_id"]
     finally:
         process.send_signal(signal.SIGINT)
@@ -125,9 +156,78 @@ def test_daror_console_web_serves_until_ctrl_c(tmp_path: Path) -> None:
     assert json.loads((out / "session.json").read_text(encoding="utf-8"))["ended"]
 
 
+class _Output:
+    """A process's standard output, read line by line by a thread (waits with a deadline)."""
+
+    def __init__(self, stream: Any) -> None:
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read, args=(stream,), daemon=True).start()
+
+    def _read(self, stream: Any) -> None:
+        for line in stream:
+            self.lines.put(line)
+
+    def until(self, text: str, timeout_s: float = 30.0) -> str:
+        """The first line, from here on, that contains ``text``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                break
+            self.seen.append(line)
+            if text in line:
+                return line
+        raise AssertionError(f"{text!r} was not printed:\n{''.join(self.seen)[-3000:]}")
+
+
+def test_daror_console_web_prints_what_happens_and_ends_on_sigterm(tmp_path: Path) -> None:
+    """Issue 24: the terminal shows the session's transitions and faults; kill -TERM ends it with torque off."""
+    out, audit = tmp_path / "s", tmp_path / "audit.jsonl"
+    daror = Path(sys.executable).with_name("daror")
+    process = subprocess.Popen(
+        [str(daror), "--log-json", str(audit), "console", "--web", "--port", "0", "--out", str(out)],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert process.stdout is not None
+        output = _Output(process.stdout)
+        url, _, token = output.until("web console: http://").split()[2].partition("/?token=")
+        headers = _token(token)
+        assert _send(url, "advance", headers)[1]["ok"]
+        # printed on the terminal as it happens (nothing is typed there: the page is the console)
+        assert "safety_check" in output.until("transition: startup -> safety_check")
+        assert _send(url, "sim estop operator on", headers)[1]["ok"]
+        output.until("fault: estop: e-stop pressed (operator)")
+        assert _send(url, "sim estop operator off", headers)[1]["ok"]
+        deadline = time.monotonic() + 10.0
+        status = _get(url + "/api/status", headers)[1]
+        while time.monotonic() < deadline and status["joints"]["drives"] != ["enabled"] * 4:
+            time.sleep(0.1)
+            status = _get(url + "/api/status", headers)[1]
+        # real time on a shared machine: a loop stalled by the scheduler faults (watchdog, H5)
+        assert status["state"] == "safety_check", f"the loop faulted before the signal: {status['faults']}"
+        assert status["joints"]["drives"] == ["enabled"] * 4  # the arm is driven (minimal impedance)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=30)
+    assert process.returncode == 143
+    output.until("torque off at t = ")
+    assert "(state safety_check; terminated (SIGTERM))" in output.seen[-1]
+    ended = json.loads((out / "session.json").read_text(encoding="utf-8"))["ended"]
+    assert ended["reason"] == STOP_SIGNALS[signal.SIGTERM]
+    assert ended["confirmed"] is True
+    assert ended["drives"] == ["disabled"] * 4
+    audit_lines = [json.loads(line) for line in audit.read_text(encoding="utf-8").splitlines()]
+    stops = [e for e in audit_lines if e["event"] == "session stopped: torque off"]
+    assert [e["reason"] for e in stops] == ["terminated (SIGTERM)"]
+
+
 def test_loopback_addresses() -> None:
     assert is_loopback("127.0.0.1")
     assert is_loopback("::1")
+    assert is_loopback("[::1]")
     assert is_loopback("localhost")
     assert not is_loopback("0.0.0.0")
     assert not is_loopback("192.168.1.20")
@@ -150,6 +250,196 @@ def test_beyond_the_loopback_a_token_is_required(tmp_path: Path) -> None:
         _end(runtime, server)
 
 
+# --- who may use the console (issue 24, defect 8; docs/safety.md H29) ------------------------------------
+
+
+def _raw(server: WebServer, path: str, host: str | None = None, method: str = "GET", **headers: str) -> tuple[int, Any]:
+    """One request to ``server`` with the Host header ``host`` (default: the server's own address)."""
+    data = json.dumps({"line": "advance"}).encode() if method == "POST" else None
+    request = urllib.request.Request(server.url + path, data=data, method=method)
+    request.add_header("Content-Type", "application/json")
+    if host is not None:
+        request.add_header("Host", host)
+    for name, value in headers.items():
+        request.add_header(name.replace("_", "-"), value)
+    try:
+        with urllib.request.urlopen(request, timeout=10.0) as answer:
+            return answer.status, json.loads(answer.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
+
+
+def _websocket(server: WebServer, origin: str | None, token: str | None, host: str | None = None) -> dict[str, Any]:
+    """Open ``/ws`` as a browser on ``origin`` would (``host``: the name it believes it reaches); the first message.
+
+    Raises:
+        InvalidStatus: the handshake was refused.
+    """
+    port = int(server.url.rsplit(":", 1)[1])
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10.0)
+    uri = f"ws://{host or f'127.0.0.1:{port}'}/ws"
+    with connect(uri, sock=sock, origin=origin, additional_headers=_token(token), proxy=None, open_timeout=10.0) as ws:  # type: ignore[arg-type]
+        return json.loads(ws.recv(timeout=10.0))
+
+
+@pytest.fixture
+def served_lockstep(tmp_path: Path) -> Iterator[tuple[Runtime, WebServer]]:
+    """A web console with its defaults (a token on the loopback) beside a lock-step session in startup."""
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    runtime.run_ticks(5)
+    server = start_web(runtime, SimWorld(runtime.world), port=0)
+    try:
+        yield runtime, server
+    finally:
+        _end(runtime, server)
+
+
+def test_a_token_is_required_on_the_loopback_too(served_lockstep: tuple[Runtime, WebServer]) -> None:
+    runtime, server = served_lockstep
+    assert server.token is not None
+    assert len(server.token) >= 16
+    assert server.address == f"{server.url}/?token={server.token}"  # printed: the URL to open
+    assert _get(server.url + "/api/status")[0] == 403
+    assert _get(server.url + "/")[0] == 403
+    assert _get(server.url + "/api/status", _token("wrong"))[0] == 403
+    code, answer = _send(server.url, "advance")  # no token: refused before the runtime hears of it
+    assert code == 403
+    assert "token" in answer["error"]
+    assert _websocket_refused(server, origin=None, token=None)
+    runtime.run_ticks(50)
+    assert runtime.state_name == "startup"
+    assert not any("advance" in text for _, text in server.hub.since(0))
+    # the printed URL: the page, and a cookie for the rest (HttpOnly, SameSite=strict, this port's)
+    request = urllib.request.Request(server.address)
+    with urllib.request.urlopen(request, timeout=10.0) as page:
+        assert page.status == 200
+        cookie = page.headers["set-cookie"]
+    port = server.url.rsplit(":", 1)[1]
+    assert cookie.startswith(f"daror_token_{port}={server.token};")
+    assert "HttpOnly" in cookie
+    assert "SameSite=strict" in cookie
+    assert _get(server.url + "/api/status", {"Cookie": f"daror_token_{port}={server.token}"})[0] == 200
+    assert _get(server.url + "/api/status", {"Cookie": f"daror_token_1={server.token}"})[0] == 403  # another console's
+    assert _get(server.url + "/api/status", _token(server.token))[0] == 200
+    assert _post(server, "advance")["status"]["state"] == "safety_check"  # the right token: it drives
+
+
+def _websocket_refused(server: WebServer, origin: str | None, token: str | None, host: str | None = None) -> bool:
+    try:
+        _websocket(server, origin, token, host)
+    except InvalidStatus as refused:
+        return refused.response.status_code == 403
+    return False
+
+
+def test_a_dns_rebinding_page_is_refused_by_the_host_header(served_lockstep: tuple[Runtime, WebServer]) -> None:
+    """The measurement of the issue: Host and Origin evil.example, 'advance' accepted; now 403 and nothing runs."""
+    runtime, server = served_lockstep
+    port = server.url.rsplit(":", 1)[1]
+    token = server.token or ""
+    evil = {"Origin": "http://evil.example"}
+    assert _raw(server, "/api/command", f"evil.example:{port}", "POST", X_Daror_Token=token, **evil)[0] == 403
+    # the token alone does not do: a rebinding page may have read it from nowhere, but Host is checked first
+    code, answer = _raw(server, "/api/status", f"evil.example:{port}", X_Daror_Token=token)
+    assert code == 403
+    assert "evil.example" in answer["error"]
+    assert _raw(server, "/api/status", f"127.0.0.1:{int(port) + 1}", X_Daror_Token=token)[0] == 403  # another port
+    assert _raw(server, "/api/status", "127.0.0.1", X_Daror_Token=token)[0] == 403  # port 80
+    assert _websocket_refused(server, f"http://evil.example:{port}", token, host=f"evil.example:{port}")
+    runtime.run_ticks(50)
+    assert runtime.state_name == "startup"
+    for name in ("127.0.0.1", "localhost", "LOCALHOST", "[::1]"):  # what the loopback answers to
+        assert _raw(server, "/api/status", f"{name}:{port}", X_Daror_Token=token)[0] == 200, name
+
+
+def test_another_page_cannot_post_or_open_the_live_socket(served_lockstep: tuple[Runtime, WebServer]) -> None:
+    """CSRF and cross-site WebSockets: the Origin of a state-changing request and of /ws must be the console's."""
+    runtime, server = served_lockstep
+    port = server.url.rsplit(":", 1)[1]
+    token = server.token or ""
+    for origin in ("http://evil.example", "null", f"https://127.0.0.1:{port}", f"http://127.0.0.1:{int(port) + 1}"):
+        code, answer = _raw(server, "/api/command", None, "POST", X_Daror_Token=token, Origin=origin)
+        assert code == 403, origin
+        assert "refused" in answer["error"]
+        assert _websocket_refused(server, origin, token), origin
+    runtime.run_ticks(50)
+    assert runtime.state_name == "startup"  # nothing ran
+    assert not any("advance" in text for _, text in server.hub.since(0))
+    assert _websocket_refused(server, f"http://127.0.0.1:{port}", None)  # its own origin, without the token
+    message = _websocket(server, f"http://localhost:{port}", token)  # the console's own page
+    assert message["status"]["state"] == "startup"
+    code, answer = _raw(server, "/api/command", None, "POST", X_Daror_Token=token, Origin=f"http://127.0.0.1:{port}")
+    assert code == 200
+    assert answer["ok"]
+    assert answer["status"]["state"] == "safety_check"
+
+
+def test_no_token_only_on_the_loopback_and_never_without_the_host_and_origin_checks(tmp_path: Path) -> None:
+    out = tmp_path / "s"
+    run = subprocess.run(
+        [str(Path(sys.executable).with_name("daror")), "console", "--web", "--no-token", "--host", "0.0.0.0",
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert run.returncode == 2, run.stderr
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, run.stderr
+    assert "--no-token --host 0.0.0.0" in lines[0]
+    assert "loopback only" in lines[0]
+    assert not out.exists()  # nothing written
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    with pytest.raises(UsageError, match="loopback only"):
+        start_web(runtime, SimWorld(runtime.world), host="0.0.0.0", port=0, require_token=False)
+    assert not (tmp_path / "session" / "web-server.log").exists()  # no server process was started
+    server = start_web(runtime, SimWorld(runtime.world), port=0, require_token=False)
+    try:
+        port = server.url.rsplit(":", 1)[1]
+        assert server.token is None
+        assert server.address == f"{server.url}/"
+        assert _get(server.url + "/api/status")[0] == 200
+        assert _raw(server, "/api/status", f"evil.example:{port}")[0] == 403
+        assert _raw(server, "/api/command", None, "POST", Origin="http://evil.example")[0] == 403
+        assert _websocket_refused(server, "http://evil.example", None)
+        assert runtime.state_name == "startup"
+    finally:
+        _end(runtime, server)
+
+
+def test_the_access_rules() -> None:
+    """Host and Origin parsing, beyond the loopback too (no server needed)."""
+    local = Access.for_address("127.0.0.1", 8765, "t0ken")
+    assert local.host_allowed("127.0.0.1:8765")
+    assert local.host_allowed("[::1]:8765")
+    assert not local.host_allowed("[::1]:8766")
+    assert not local.host_allowed("127.0.0.1")  # no port: 80
+    assert not local.host_allowed("127.0.0.1:8765:1")
+    assert not local.host_allowed("127.0.0.1:+8765")
+    assert not local.host_allowed("[::1:8765")
+    assert not local.host_allowed("")
+    assert not local.host_allowed(None)
+    assert not local.host_allowed("127.0.0.2:8765")  # loopback, but not a name the page is served under
+    assert local.origin_allowed(None)
+    assert local.origin_allowed("http://localhost:8765")
+    assert not local.origin_allowed("http://localhost:8765/path")
+    assert not local.origin_allowed("localhost:8765")
+    assert not local.origin_allowed("null")
+    assert local.token_allowed("t0ken")
+    assert not local.token_allowed("t0ke")
+    assert not local.token_allowed(None)
+    assert local.refusal("127.0.0.1:8765", "http://evil.example", "t0ken", state_changing=False) is None  # a GET
+    everywhere = Access.for_address("0.0.0.0", 8765, "t0ken")
+    assert everywhere.host_allowed("127.0.0.1:8765")
+    assert everywhere.host_allowed(f"{socket.gethostname()}:8765")
+    assert everywhere.host_allowed("127.0.0.5:8765")  # an address of this machine (the loopback net)
+    assert not everywhere.host_allowed("192.0.2.1:8765")  # TEST-NET-1: never ours
+    assert not everywhere.host_allowed("evil.example:8765")
+    one = Access.for_address("192.0.2.7", 80, "t0ken")
+    assert one.host_allowed("192.0.2.7")  # port 80 may be left out
+    assert not one.host_allowed("localhost")  # a server on another address does not answer to the loopback
+    with pytest.raises(UsageError, match="loopback only"):
+        Access.for_address("192.0.2.7", 80, None)
+
+
 def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: Path) -> None:
     """A line from the page is checked and answered as typed; refusals carry their reason; one log."""
     runtime = _runtime(tmp_path / "session", realtime=False)
@@ -157,18 +447,16 @@ def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: 
     server = start_web(runtime, SimWorld(runtime.world), port=0)
     terminal = server.hub.terminal_reader()
     try:
-        assert is_loopback("127.0.0.1")
-        assert server.token is None
-        answer = _post(server.url, "advance")  # lock-step: waiting for its answer runs the ticks
+        answer = _post(server, "advance")  # lock-step: waiting for its answer runs the ticks
         assert answer["ok"], answer
         assert answer["status"]["state"] == "safety_check"
-        bad = _post(server.url, "support 7")
+        bad = _post(server, "support 7")
         assert not bad["ok"]
         assert "support" in bad["answer"]
-        refused = _post(server.url, "confirm installation")
+        refused = _post(server, "confirm installation")
         assert not refused["ok"]
         assert "refused" in refused["answer"]
-        assert not _post(server.url, "quit")["ok"]  # the session ends at the terminal only
+        assert not _post(server, "quit")["ok"]  # the session ends at the terminal only
         assert runtime.state_name == "safety_check"
         lines = [text for _, text in server.hub.since(0)]
         assert any("(web) > support 7" in line for line in lines)
@@ -231,10 +519,11 @@ def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tm
     runtime.start_background(realtime=False)
     try:
         deadline = time.monotonic() + 20.0
-        first = _get(server.url + "/api/status")[1]["t_s"]
-        while time.monotonic() < deadline and _get(server.url + "/api/status")[1]["t_s"] == first:
+        token = _token(server.token)
+        first = _get(server.url + "/api/status", token)[1]["t_s"]
+        while time.monotonic() < deadline and _get(server.url + "/api/status", token)[1]["t_s"] == first:
             time.sleep(0.1)
-        assert _get(server.url + "/api/status")[1]["t_s"] != first  # the status is published (5 Hz)
+        assert _get(server.url + "/api/status", token)[1]["t_s"] != first  # the status is published (5 Hz)
         assert server.ring.written > 0  # rows are published (50 Hz)
         state = runtime.state_name
         server.process.kill()  # the server dies (not a browser leaving: the page's only way to the robot)

@@ -1,6 +1,8 @@
 """The web console's application, served from its own process: the page, the status, console lines, live data.
 
-Routes (all behind the token when the server listens beyond the loopback):
+Every request and the WebSocket handshake pass :class:`~daror_runtime.console.web.access.Access`
+first (the Host header, the Origin of what changes state, the token): refused with 403 and nothing
+run. Routes:
 
 * ``GET /``: the page (``static/index.html``; every asset is in the package: the lab PC is offline);
 * ``GET /api/fsm``: the diagram of ``fsm_spec.yaml``, laid out (:func:`daror_runtime.fsm.diagram.layout`);
@@ -17,7 +19,6 @@ the shared ring of rows from its own cursor, and a socket that is closed or slow
 from __future__ import annotations
 
 import asyncio
-import hmac
 import json
 from importlib import resources
 from typing import Any
@@ -26,35 +27,38 @@ from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 
+from daror_runtime.console.web.access import SAFE_METHODS, Access
 from daror_runtime.console.web.page import PageState
 
 #: Seconds between two messages on a socket (20 Hz); the status goes with the first after it changed.
 PUSH_PERIOD_S = 0.05
 STATIC = resources.files("daror_runtime.console.web") / "static"
-TOKEN_COOKIE = "daror_token"
+#: The header a client that is not a browser presents the token in.
+TOKEN_HEADER = "x-daror-token"
 
 
-def allowed(token: str | None, presented: str | None) -> bool:
-    """Whether ``presented`` opens a server whose token is ``token`` (None: loopback, no token)."""
-    return token is None or (presented is not None and hmac.compare_digest(presented, token))
+def _presented(access: Access, query: Any, cookies: dict[str, str], headers: Any) -> str | None:
+    """The token a request presents: ``?token=``, the header, or the cookie (in that order)."""
+    return query.get("token") or headers.get(TOKEN_HEADER) or cookies.get(access.cookie)
 
 
-def _presented(token: str | None, cookies: dict[str, str], headers: Any) -> str | None:
-    return token or headers.get("x-daror-token") or cookies.get(TOKEN_COOKIE)
-
-
-def create_app(page: PageState, token: str | None) -> FastAPI:
+def create_app(page: PageState, access: Access) -> FastAPI:
     """The FastAPI application of one web console (served by :mod:`daror_runtime.console.web.server`)."""
     app = FastAPI(title="DAROR-01 operator console", docs_url=None, redoc_url=None, openapi_url=None)
 
     @app.middleware("http")
     async def guard(request: Request, call_next: Any) -> Response:
-        presented = _presented(request.query_params.get("token"), request.cookies, request.headers)
-        if not allowed(token, presented):
-            return JSONResponse({"error": "a token is required (printed when the console started)"}, status_code=403)
+        refusal = access.refusal(
+            request.headers.get("host"),
+            request.headers.get("origin"),
+            _presented(access, request.query_params, request.cookies, request.headers),
+            state_changing=request.method not in SAFE_METHODS,
+        )
+        if refusal is not None:  # before any route: nothing runs
+            return JSONResponse({"error": refusal}, status_code=403)
         response: Response = await call_next(request)
-        if token is not None and request.query_params.get("token"):
-            response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        if access.token is not None and request.query_params.get("token"):
+            response.set_cookie(access.cookie, access.token, httponly=True, samesite="strict")
         return response
 
     @app.get("/")
@@ -78,8 +82,13 @@ def create_app(page: PageState, token: str | None) -> FastAPI:
 
     @app.websocket("/ws")
     async def live(socket: WebSocket) -> None:
-        presented = _presented(socket.query_params.get("token"), socket.cookies, socket.headers)
-        if not allowed(token, presented):
+        refusal = access.refusal(  # a browser always sends its page's Origin here; WebSockets skip CORS
+            socket.headers.get("host"),
+            socket.headers.get("origin"),
+            _presented(access, socket.query_params, socket.cookies, socket.headers),
+            state_changing=True,
+        )
+        if refusal is not None:  # closed before it is accepted: the handshake is answered 403
             await socket.close(code=1008)
             return
         await socket.accept()

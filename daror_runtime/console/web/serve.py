@@ -6,12 +6,13 @@ same log (:attr:`WebServer.hub`). The HTTP and websocket work (uvicorn, FastAPI,
 process of its own (:mod:`daror_runtime.console.web.server`), so it never holds the interpreter
 the control loop needs; the runtime's process keeps only :class:`~daror_runtime.console.web.bridge.WebBridge`
 (docs/console.md, "What the page costs the loop"). Closing a browser changes nothing on the robot;
-neither does the server stopping (the session ends at the terminal: quit or Ctrl-C).
+neither does the server stopping (the session ends at the terminal: quit, Ctrl-C, or a signal).
+Who may use the page: :mod:`daror_runtime.console.web.access` (a token by default on every address,
+the Host header, the Origin).
 """
 
 from __future__ import annotations
 
-import ipaddress
 import os
 import pickle
 import secrets
@@ -22,6 +23,7 @@ import time
 from dataclasses import dataclass
 
 from daror_runtime.console.web import require_web_extra
+from daror_runtime.console.web.access import Access, check_no_token
 from daror_runtime.console.web.bridge import MAX_MESSAGE_BYTES, AnnouncementHub, WebBridge
 from daror_runtime.console.web.ring import RowRing
 from daror_runtime.console.world import SimWorld
@@ -42,19 +44,9 @@ START_TIMEOUT_S = 30.0
 SERVER_LOG = "web-server.log"
 
 
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` is reachable from this machine only (127.0.0.0/8, ::1, localhost)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 @dataclass
 class WebServer:
-    """A running web console: its address, its token (None on the loopback), and how to stop it."""
+    """A running web console: its address, its token (None: ``--no-token``, loopback only), and how to stop it."""
 
     url: str
     token: str | None
@@ -83,7 +75,7 @@ class WebServer:
         self.ring.close()
 
     def serve_until_interrupted(self) -> str:
-        """Block until Ctrl-C (KeyboardInterrupt propagates) or the server is lost; then why it was lost."""
+        """Block until a stop signal (KeyboardInterrupt propagates) or the server is lost; then why it was lost."""
         while self.process.poll() is None and self.bridge.lost is None:
             time.sleep(0.2)
         return f"{self.bridge.lost or 'the web server exited'} (see {SERVER_LOG})"
@@ -103,23 +95,30 @@ def start_web(
     world: SimWorld | None,
     host: str = DEFAULT_HOST,
     port: int = DEFAULT_PORT,
+    require_token: bool = True,
     token: str | None = None,
 ) -> WebServer:
     """Serve the web console of ``runtime`` on ``host:port`` (port 0: any free port) until :meth:`WebServer.stop`.
 
-    Beyond the loopback a token is required (``token`` or a new random one). Call it before the
-    loop starts: starting a process beside a running loop costs it a stall.
+    A token is required on every address (``token``, or a new random one; :attr:`WebServer.address`
+    carries it); ``require_token`` False (``--no-token``) only on the loopback. The Host and Origin
+    headers are checked whatever the token (:class:`~daror_runtime.console.web.access.Access`).
+    Call it before the loop starts: starting a process beside a running loop costs it a stall.
 
     Raises:
         WebExtraMissingError: FastAPI, uvicorn or websockets are not installed.
-        UsageError: the address cannot be bound.
+        UsageError: no token beyond the loopback, or the address cannot be bound (nothing started).
         DarorError: the server process did not start (its log names why).
     """
     require_web_extra()
-    if not is_loopback(host) and token is None:
-        token = secrets.token_urlsafe(18)
+    if require_token:
+        token = token or secrets.token_urlsafe(18)
+    else:
+        check_no_token(host)
+        token = None
     listen = _listen(host, port)
     bound = listen.getsockname()[1]
+    access = Access.for_address(host, bound, token)
     n_joints = N_JOINTS
     ring, ring_fd = RowRing.create(int(SAMPLE_HZ * WINDOW_S), n_joints)
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -139,7 +138,7 @@ def start_web(
     listen.close()
     os.close(ring_fd)
     hello = {
-        "token": token,
+        "access": access,  # the token, the accepted Host names and port
         "fsm": layout(runtime.spec),  # the diagram the page draws
         "has_world": world is not None,
         "capacity": ring.capacity,

@@ -44,7 +44,7 @@ def main(argv: list[str]) -> int:
         return 2
     ring = RowRing.attach(int(argv[1]), hello["capacity"], hello["n_joints"])
     page = PageState(link, ring, hello)
-    app = create_app(page, hello["token"])
+    app = create_app(page, hello["access"])
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off", ws="websockets-sansio")
     server = uvicorn.Server(config)
 
