@@ -23,7 +23,7 @@ from rich.console import Console
 from daror_runtime.cli import main
 from daror_runtime.console.commands import ConsoleSession
 from daror_runtime.console.view import render_status
-from daror_runtime.data.load import write_dataset
+from daror_runtime.data.load import load_stationary, write_dataset
 from daror_runtime.data.provenance import (
     provenance_path,
     read_provenance,
@@ -33,7 +33,7 @@ from daror_runtime.data.provenance import (
 )
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DataError
-from daror_runtime.models.files import save_model
+from daror_runtime.models.files import load_model, save_model
 from daror_runtime.models.neural import Network, NetworkSpec, NnnModel
 from daror_runtime.session.core import RequestRefusedError
 from daror_runtime.session.settings import SessionSettings
@@ -212,3 +212,20 @@ def test_a_conservative_model_is_not_asked_for_confirmation(session: Session, mo
     assert status.model.conservative is True
     assert not status.model.nonconservative_confirmed
     assert status.model_refused is None
+
+
+def test_the_gate_says_how_many_validation_points_the_model_extrapolates_to(session: Session, models: Models) -> None:
+    """Issue 24, defect 7, in the session: points outside the model's training range, and the RMSE on each side."""
+    session.select(models.good, models.validation)
+    _, document = load_model(models.good)
+    assert document.training is not None
+    validation = load_stationary(models.validation)
+    low, high = np.array(document.training.q_min_rad), np.array(document.training.q_max_rad)
+    outside = np.any((validation.q_rad < low - 1e-3) | (validation.q_rad > high + 1e-3), axis=1)
+    summary = session.runtime._core.progress.last_model["extrapolation"]
+    assert summary["points"] == len(validation)
+    assert summary["outside"] == int(outside.sum())
+    text = session.runtime.snapshot().model.validation_extrapolation  # type: ignore[union-attr]
+    assert text is not None
+    assert text.startswith(f"{int(outside.sum())} of {len(validation)} validation points outside the model's")
+    assert text in render_status(session.runtime.snapshot(), [], [])

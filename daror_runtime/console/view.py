@@ -86,6 +86,8 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
         )
         if model.validation_data is not None:
             lines.append(f"  validation data: {model.validation_data}")
+        if model.validation_extrapolation is not None:
+            lines.append(f"  {model.validation_extrapolation}")
         if model.nonconservative_confirmed and model.closed_path_energy_j:
             lines.append(
                 f"  NOT conservative: {model.closed_path_energy_j[-1]:.3g} J over the closed path; used because the "
@@ -132,9 +134,14 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
     if status.last_error:
         lines.append(f"last error: {status.last_error}")
     loop = status.loop
+    timing = (  # paced: a stall of the process delayed the simulated world, it is not a fault
+        f"{loop.stalls} stalls (not faults), the world {loop.behind_ms:.1f} ms behind the wall clock"
+        if loop.clock == "paced"
+        else f"{loop.overruns} overruns, {loop.missed_deadlines} missed deadlines"
+    )
     lines.append(
-        f"loop: {loop.clock} at {loop.rate_hz:g} Hz, {loop.ticks} ticks, {loop.overruns} overruns, "
-        f"{loop.missed_deadlines} missed deadlines, worst lateness {loop.worst_lateness_ms:.2f} ms, "
+        f"loop: {loop.clock} at {loop.rate_hz:g} Hz, {loop.ticks} ticks, {timing}, "
+        f"worst lateness {loop.worst_lateness_ms:.2f} ms, "
         f"tick work {loop.tick_work_mean_us:.0f} us mean, {loop.tick_work_max_us:.0f} us worst"
         + (f", {loop.dropped_rows} recorder rows dropped" if loop.dropped_rows else "")
     )

@@ -498,6 +498,7 @@ def post_model(
         "conservative": closed_path.conservative,
         "closed_path_energy_j": [step.energy_j for step in closed_path.steps],
         "nonconservative_confirmed": accept_nonconservative and not closed_path.conservative,
+        "extrapolation": trained.extrapolation.to_dict() if trained.extrapolation is not None else None,
         **(data or {}),
     }
 

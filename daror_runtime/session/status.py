@@ -62,6 +62,7 @@ class ModelStatus:
     conservative: bool | None = None  # the closed-path test's verdict (None: not tested, the A Priori model)
     closed_path_energy_j: tuple[float, ...] | None = None  # its energy per step size, coarse to fine, J
     nonconservative_confirmed: bool = False  # not conservative, used because the operator confirmed it
+    validation_extrapolation: str | None = None  # validation points outside the model's training range, and RMSEs
 
 
 @dataclass(frozen=True)
@@ -83,15 +84,19 @@ class ReactionStatus:
 
 @dataclass(frozen=True)
 class LoopStatus:
-    clock: str  # "lock-step" or "real time"
+    clock: str  # "lock-step", "real time" or "paced" (virtual time paced to the wall clock)
     rate_hz: float
     ticks: int
-    overruns: int
+    overruns: int  # real time only: a paced clock's late ticks are stalls, not overruns
     missed_deadlines: int
     worst_lateness_ms: float
     tick_work_mean_us: float
     tick_work_max_us: float
     dropped_rows: int
+    # paced only (0 on the other clocks): the process held the simulated world; never a fault
+    stalls: int = 0  # stalls the real-time watchdog would have faulted (3 periods or more late; one per stall)
+    lag_ms: float = 0.0  # how far the world is behind its paced grid now (being caught up)
+    behind_ms: float = 0.0  # how far the world's time is behind the wall clock since the start (lags dropped + lag)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import InputError, ModelFileError, UsageError
 from daror_runtime.fsm.signals import SelectedModel
 from daror_runtime.models.base import CompensationModel
-from daror_runtime.models.files import file_sha256, load_model, save_model, training_summary
+from daror_runtime.models.extrapolation import Extrapolation, model_extrapolation
+from daror_runtime.models.files import TrainingSummary, file_sha256, load_model, save_model, training_summary
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
 from daror_runtime.models.registry import fit_model, installation_options, kind_entry
 from daror_runtime.session.identification import next_free_path
@@ -34,6 +35,7 @@ class TrainedModel:
     model: CompensationModel
     selected: SelectedModel
     validation: ErrorMetrics
+    extrapolation: Extrapolation | None = None  # the validation points outside the training range (issue 24)
 
 
 def validation_errors(model: CompensationModel, data: StationaryDataset, signal: FloatArray | None) -> ErrorMetrics:
@@ -74,7 +76,11 @@ def train_model(
     validation = load_stationary(validation_path)
     metrics = validation_errors(result.model, validation, prediction_signal(result.model, validation, validation_path))
     path = next_free_path(directory, f"model_{kind.replace('+', '_plus')}", ".json")
-    save_model(path, result.model, training_summary(training, training_path), result.report)
+    summary = training_summary(training, training_path)
+    save_model(path, result.model, summary, result.report)
+    extrapolated = model_extrapolation(
+        result.model, summary, validation, prediction_signal(result.model, validation, validation_path)
+    )
     selected = SelectedModel(result.model.name, kind, path, metrics.rmse_nm, max_rmse_nm)
     log.info(
         "model trained",
@@ -85,7 +91,7 @@ def train_model(
         validated=selected.validated,
         max_rmse_nm=max_rmse_nm,
     )
-    return TrainedModel(result.model, selected, metrics)
+    return TrainedModel(result.model, selected, metrics, extrapolated)
 
 
 class NotHeldOutError(InputError):
@@ -102,6 +108,7 @@ class ModelCandidate:
     validation: StationaryDataset
     validation_path: Path
     signal: FloatArray | None  # what the model predicts the validation readings with (prediction_signal)
+    training: TrainingSummary | None  # what the model file says it was trained on (its range of joint angles)
 
 
 def read_model_candidate(path: Path, validation_path: Path, description: RobotDescription) -> ModelCandidate:
@@ -125,12 +132,13 @@ def read_model_candidate(path: Path, validation_path: Path, description: RobotDe
     from daror_runtime.residual.data import prediction_signal  # the analysis's path reader, when asked for
 
     signal = prediction_signal(model, validation, validation_path)  # a raw log, read here with the other files
-    return ModelCandidate(model, document.kind, Path(path), validation, Path(validation_path), signal)
+    return ModelCandidate(model, document.kind, Path(path), validation, Path(validation_path), signal, training)
 
 
 def validate_candidate(candidate: ModelCandidate, max_rmse_nm: float) -> TrainedModel:
     """The candidate's errors on its validation data, and whether that validates it (a job: outside the tick)."""
     metrics = validation_errors(candidate.model, candidate.validation, candidate.signal)
+    extrapolated = model_extrapolation(candidate.model, candidate.training, candidate.validation, candidate.signal)
     selected = SelectedModel(candidate.model.name, candidate.kind, candidate.path, metrics.rmse_nm, max_rmse_nm)
     log.info(
         "model validated",
@@ -141,4 +149,4 @@ def validate_candidate(candidate: ModelCandidate, max_rmse_nm: float) -> Trained
         validated=selected.validated,
         max_rmse_nm=max_rmse_nm,
     )
-    return TrainedModel(candidate.model, selected, metrics)
+    return TrainedModel(candidate.model, selected, metrics, extrapolated)
