@@ -6,7 +6,8 @@ records after the run, whatever the session or the script did, and says for ever
 
 * when it happened (the SYNC the drive got it at, robot time) and in which state;
 * what the runtime found (the audit log's faults), the state it went to and the reaction it took,
-  beside the reaction the spec declares for those faults in that state (``fault_reactions``);
+  beside the reaction the spec declares for those faults in that state (``fault_reactions``): within
+  1 s of the injection, and while a FAIL entered then lasts;
 * when each drive's power stage stopped applying torque (the simulated drives' own record), in
   ticks from the injection: the faulted joint's at once or after its drive's stop ramp, the
   others' when the reaction lets go of the arm (or not within the run: it still holds it).
@@ -38,8 +39,11 @@ __all__ = [
     "read_audit",
 ]
 
-#: Faults listed per injection at most (a fault that repeats while the arm is lowered is listed once).
+#: Faults listed per injection at most (``found_count`` counts them all: one may repeat while the arm is lowered).
 _MAX_FAULTS = 8
+#: A fault's consequence is looked for this long after it, s: every bus fault is found well within
+#: (a lost heartbeat after the consumer's 250 ms); a FAIL entered then is followed until it is left.
+_FOUND_WITHIN_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -114,11 +118,15 @@ def fault_summaries(
             unmatched.remove(origin)
         before = [e for e in transitions if _t(e) < start]  # type: ignore[operator]
         state_before = str(before[-1]["dest"]) if before else spec.first.name
+        soon = min(end, t_inj + _FOUND_WITHIN_S)
         after = [e for e in transitions if start <= _t(e) < end]  # type: ignore[operator]
-        left_fail = next((_t(e) for e in after if e.get("source") == spec.fail.name), end)
-        found = [e for e in faults if start <= _t(e) < min(left_fail, end)]  # type: ignore[operator]
-        first = after[0] if after else None
-        taken = [e for e in reactions if start <= _t(e) < min(left_fail, end)]  # type: ignore[operator]
+        first = after[0] if after and _t(after[0]) < soon else None  # type: ignore[operator]
+        if first is not None and first.get("dest") == spec.fail.name:  # its episode: until FAIL is left
+            window = next((_t(e) for e in after if e.get("source") == spec.fail.name), end)
+        else:
+            window = soon
+        found = [e for e in faults if start <= _t(e) < window]  # type: ignore[operator]
+        taken = [e for e in reactions if start <= _t(e) < window]  # type: ignore[operator]
         kinds = list(dict.fromkeys(str(e["kind"]) for e in found))
         summaries.append(
             {
@@ -132,11 +140,12 @@ def fault_summaries(
                     {"kind": e["kind"], "t_s": _t(e), "joint": e.get("joint"), "message": e.get("message")}
                     for e in found[:_MAX_FAULTS]
                 ],
+                "found_count": len(found),
                 "ticks_to_found": _ticks(_t(found[0]), t_inj, period) if found else None,
                 "state_after": str(first["dest"]) if first is not None else state_before,
                 "ticks_to_state_after": _ticks(_t(first), t_inj, period) if first is not None else None,
                 "declared_reaction": _declared(kinds, state_before, spec),
-                "reaction": _reaction(taken, phases, start, min(left_fail, end)),
+                "reaction": _reaction(taken, phases, start, window),
                 "power_stage": _power_stages(events, t_inj, end, len(node_ids), period, ended),
             }
         )

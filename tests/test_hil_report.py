@@ -186,3 +186,35 @@ def test_a_wait_begun_outside_fail_ends_there_and_one_begun_in_fail_runs_its_cou
     assert (fault["state_before"], fault["state_after"]) == ("startup", "FAIL")
     assert fault["reaction"]["reaction"] == "off"  # no drive held anything in startup: nothing to lower
     assert not any(stage["on_at_injection"] for stage in fault["power_stage"].values())
+
+
+def test_the_summary_attributes_only_what_followed_a_fault() -> None:
+    """A fault the robot shrugs off is not blamed for a transition or a fault long after it; a scheduled
+    fault the session never reached is listed as never injected."""
+    from daror_runtime.fsm.spec import load_fsm_spec
+    from daror_runtime.hil import ScheduledFault, fault_summaries
+
+    spec = load_fsm_spec(None)
+    scheduled = [ScheduledFault("drop_frames", 3, 3, 5.0), ScheduledFault("emcy", 2, 2, 500.0)]
+    drive_events = [
+        (0.2, 3, "power stage on"),
+        (5.0, 3, "injected drop_frames"),
+        (9.0, 3, "power stage off"),
+    ]
+    audit = [
+        {"event": "transition", "t_s": 0.1, "source": "startup", "dest": "safety_check"},
+        {"event": "fault", "kind": "estop", "t_s": 8.0, "joint": None, "message": "e-stop pressed (operator)"},
+        {"event": "transition", "t_s": 9.0, "source": "safety_check", "dest": "settings"},
+        {"event": "session stopped: torque off", "t_s": 20.0},
+    ]
+    dropped, never = fault_summaries(scheduled, drive_events, audit, spec, [1, 2, 3, 4], 500.0)
+    assert (dropped["scheduled_at_s"], dropped["injected_s"], dropped["state_before"]) == (5.0, 5.0, "safety_check")
+    assert dropped["state_after"] == "safety_check"  # nothing happened within 1 s of it
+    assert dropped["ticks_to_state_after"] is None
+    assert dropped["found"] == []
+    assert dropped["reaction"] is None
+    assert dropped["power_stage"]["3"] == {
+        "on_at_injection": True, "off_s": 9.0, "ticks_to_off": 2000, "by_session_end": False,
+    }  # fmt: skip
+    assert dropped["power_stage"]["1"]["on_at_injection"] is False
+    assert never == {"kind": "emcy", "node": 2, "joint": 2, "scheduled_at_s": 500.0, "injected_s": None}
