@@ -84,6 +84,19 @@ def test_synthetic_points_of_daror_simulate_static_do_not_validate_a_model(
     assert "not a recording of the pilot" in reason
 
 
+def test_a_model_file_carries_the_provenance_of_its_training_data(tmp_path: Path) -> None:
+    train, model = tmp_path / "B_train.csv", tmp_path / "plf_plus.json"
+    args = ["simulate", "static", "--scenario", "exo_dummy_arm", "--trajectory", "training", "--out", str(train)]
+    assert main(args) == 0
+    assert main(["fit", "plf+", "--train", str(train), "--out", str(model)]) == 0
+    _, document = load_model(model)
+    assert document.training is not None
+    assert document.training.provenance == read_provenance(train)
+    assert document.training.provenance is not None
+    assert document.training.provenance.source == "simulate"
+    assert document.training.provenance.pilot == simulated_pilot("exo_dummy_arm")
+
+
 def test_data_without_provenance_does_not_validate_a_model(session: Session, models: Models, tmp_path: Path) -> None:
     data = _held_out(tmp_path / "from_elsewhere.csv")
     reason = _refused(session, models.good, data)

@@ -30,6 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from daror_runtime.data.provenance import Provenance, read_provenance
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import DarorError, DataError, ModelFileError, UnknownModelKindError
 from daror_runtime.models.base import CompensationModel, FitReport
@@ -97,6 +98,8 @@ class TrainingSummary(BaseModel):
     has_direction: Flag
     q_min_rad: list[Number] = Field(min_length=N_JOINTS, max_length=N_JOINTS)
     q_max_rad: list[Number] = Field(min_length=N_JOINTS, max_length=N_JOINTS)
+    # whose data it was (the training file's provenance file, when it has one: data/provenance.py)
+    provenance: Provenance | None = None
 
 
 class ModelFile(BaseModel):
@@ -130,10 +133,16 @@ def file_sha256(path: Path | str) -> str:
 
 
 def training_summary(dataset: StationaryDataset, source_path: Path | str | None = None) -> TrainingSummary:
+    """What a model is trained on: the file, its checksum and provenance (when it has one), the points' range.
+
+    Raises:
+        DataError: the file's provenance file is malformed or belongs to other data.
+    """
     path = Path(source_path) if source_path is not None else None
     return TrainingSummary(
         source=str(path) if path is not None else dataset.source,
         sha256=file_sha256(path) if path is not None and path.is_file() else None,
+        provenance=read_provenance(path) if path is not None and path.is_file() else None,
         n_points=len(dataset),
         has_direction=dataset.direction is not None,
         q_min_rad=[float(v) for v in np.min(dataset.q_rad, axis=0)],
