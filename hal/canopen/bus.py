@@ -149,8 +149,8 @@ class TrafficLog:
 
     A path ending in ``.gz`` is written gzip-compressed by the same thread (level
     :data:`GZIP_LEVEL`, each write flushed to the OS as a whole deflate block, so a crash loses
-    no more than a plain log does): ``zcat can.log.gz | canplayer -I -`` and ``log2asc`` read it
-    from their standard input, Python's ``gzip.open`` directly (docs/canopen.md, D137). A log
+    no more than a plain log does): ``zcat can.log.gz | canplayer vcan0=daror`` and ``log2asc``
+    read it from their standard input, Python's ``gzip.open`` directly (docs/canopen.md, D137). A log
     opened again with ``append`` gets a second gzip member, which every reader concatenates.
 
     Args:
