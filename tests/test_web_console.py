@@ -145,7 +145,7 @@ def test_daror_console_web_serves_until_ctrl_c(tmp_path: Path) -> None:
         assert len(token) >= 16, line  # a token by default, on the loopback too
         code, status = _get(url + "/api/status", _token(token))
         assert code == 200
-        assert status["loop"]["clock"] == "real time"
+        assert status["loop"]["clock"] == "paced"  # the simulated plant on a busy PC does not fail (issue 24)
         assert status["loop"]["overruns"] == 0
         assert status["session_id"]
     finally:
@@ -751,6 +751,8 @@ def test_a_session_from_startup_to_compensation_by_clicking(
     page.type("model-file", str(models.good))
     page.click("model-select")
     page.until(lambda: "validated" in page.text("model"), "the model validated", 60.0)
+    # where the validation data came from: an earlier session's recording of this (simulated) pilot
+    assert "validation data: recorded in session earlier-session (validation run)" in page.text("model")
     page.shot("web_console_rom_limits")
     page.advance("operative_check")
     page.press("operator")

@@ -50,7 +50,8 @@ function render(st) {
   $("estop-badge").className = "badge " + (pressed.length ? "bad" : "ok");
   $("fault-badge").textContent = st.faults.length ? st.faults.length + " fault(s)" : "no faults";
   $("fault-badge").className = "badge " + (st.faults.length ? "bad" : "ok");
-  $("clock").textContent = st.t_s === null ? "" : "t = " + st.t_s.toFixed(1) + " s, " + st.loop.clock + ", worst lateness " + st.loop.worst_lateness_ms.toFixed(2) + " ms";
+  $("clock").textContent = st.t_s === null ? "" : "t = " + st.t_s.toFixed(1) + " s, " + st.loop.clock + ", worst lateness " + st.loop.worst_lateness_ms.toFixed(2) + " ms"
+    + (st.loop.clock === "paced" ? ", " + st.loop.stalls + " stalls (not faults), " + st.loop.behind_ms.toFixed(0) + " ms behind" : "");
   drawFsm(st.state);
   // operator events: a button each, disabled with the unmet guards beside it
   let ev = "";
@@ -83,9 +84,15 @@ function render(st) {
   $("support-delivered").textContent = "delivered " + Number(st.delivered_support_level).toFixed(2);
   // model
   const m = st.model;
-  $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}` : '<span class="small">no model in use</span>';
+  $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}`
+    + (m.validation_data ? `<div class="small" id="model-validation-data">validation data: ${esc(m.validation_data)}</div>` : "")
+    + (m.validation_extrapolation ? `<div class="small">${esc(m.validation_extrapolation)}</div>` : "")
+    + (m.nonconservative_confirmed ? `<div class="refused">NOT conservative (${Number(m.closed_path_energy_j[m.closed_path_energy_j.length - 1]).toPrecision(3)} J over the closed path): used because the operator confirmed it</div>` : "")
+    : '<span class="small">no model in use</span>';
   const r = st.model_refused;
-  $("model-refused").textContent = r ? "refused: " + r.name + ", validation RMSE " + Number(r.validation_rmse_nm).toFixed(3) + " Nm (limit " + r.max_validation_rmse_nm + " Nm): never used" : "";
+  $("model-refused").textContent = !r ? "" : r.validated
+    ? "refused: " + r.name + " is not conservative (" + Number(r.closed_path_energy_j[r.closed_path_energy_j.length - 1]).toPrecision(3) + " J over the closed path); 'model FILE VALIDATION nonconservative' uses it anyway"
+    : "refused: " + r.name + ", validation RMSE " + Number(r.validation_rmse_nm).toFixed(3) + " Nm (limit " + r.max_validation_rmse_nm + " Nm): never used";
   $("isb").textContent = st.isb_limits_deg ? Object.entries(st.isb_limits_deg).map(([k, v]) => `${k} ${v[0].toFixed(0)}..${v[1].toFixed(0)}°`).join(", ") : (st.rom_recording ? "recording…" : "not recorded");
   const run = st.identification_running;
   const pairs = (o) => Object.entries(o).map(([k, v]) => `${k.replace(/_/g, " ")}: ${typeof v === "number" ? Number(v.toFixed(3)) : (typeof v === "object" && v !== null ? JSON.stringify(v) : v)}`).join(", ");
