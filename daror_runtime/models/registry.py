@@ -504,6 +504,27 @@ def model_class(kind: str) -> type[CompensationModel]:
     return cls
 
 
+#: The ``daror fit`` flag of each model option (a field of the kinds' options models), for messages and for
+#: writing a fit's command line (``neural/hpsearch/winner.py``); a bool field's ``--x/--no-x`` spells both.
+FIT_OPTION_FLAGS = {
+    "name": "--name",
+    "dummy_arm": "--dummy-arm",
+    "elbow_stiffness": "--elbow-stiffness/--no-elbow-stiffness",
+    "seed": "--seed",
+    "thesis": "--thesis",
+    "layers": "--layers",
+    "width": "--width",
+    "activation": "--activation",
+    "inputs": "--inputs",
+    "l1": "--l1",
+    "inits": "--inits",
+    "folds": "--folds",
+    "adam_steps": "--adam-steps",
+    "lbfgs": "--lbfgs/--no-lbfgs",
+    "base": "--base",
+}
+
+
 def options_for(
     kind: str, values: Mapping[str, Any] | None = None, spelled: Mapping[str, str] | None = None
 ) -> ModelOptions:

@@ -29,7 +29,7 @@ from typing import Any
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.base import FitResult
 from daror_runtime.models.files import model_document, training_summary
-from daror_runtime.models.registry import fit_model, options_for
+from daror_runtime.models.registry import FIT_OPTION_FLAGS, fit_model, options_for
 from daror_runtime.neural.fit import TrainingDivergedError, resolve
 from daror_runtime.neural.hpsearch.grid import SearchGrid
 from daror_runtime.neural.hpsearch.work import NetworkRow
@@ -41,20 +41,6 @@ __all__ = ["WINNER_FILES", "Winner", "fit_arguments", "fit_options", "fit_winner
 #: The model file of each model's winner, in the search's output folder.
 WINNER_FILES: dict[str, str] = {"penn": "best_penn.json", "nnn": "best_nnn.json"}
 
-#: ``daror fit``'s flag of each option field (a bool field: its flag when true, ``--no-...`` when false).
-_FLAGS: dict[str, str] = {
-    "thesis": "--thesis",
-    "layers": "--layers",
-    "width": "--width",
-    "activation": "--activation",
-    "inputs": "--inputs",
-    "l1": "--l1",
-    "seed": "--seed",
-    "inits": "--inits",
-    "folds": "--folds",
-    "adam_steps": "--adam-steps",
-    "lbfgs": "--lbfgs",
-}
 #: The training settings a search and a fit must share for the fit to train what the search ranked
 #: (``final_fit`` differs on purpose: the search ranks fold networks, the model is the final fit).
 _SHARED_SETTINGS = (
@@ -147,10 +133,12 @@ def fit_options(best: NetworkRow, grid: SearchGrid) -> tuple[dict[str, Any], lis
 def _arguments(options: dict[str, Any]) -> list[str]:
     out: list[str] = []
     for field, value in options.items():
+        spelled = FIT_OPTION_FLAGS[field].split("/")  # "--lbfgs/--no-lbfgs": both ways; "--thesis": on only
         if isinstance(value, bool):
-            out.append(_FLAGS[field] if value else "--no-" + _FLAGS[field].removeprefix("--"))
+            if value or len(spelled) == 2:
+                out.append(spelled[0] if value else spelled[1])
         else:
-            out += [_FLAGS[field], repr(value) if isinstance(value, float) else str(value)]
+            out += [spelled[0], repr(value) if isinstance(value, float) else str(value)]
     return out
 
 
