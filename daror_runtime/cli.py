@@ -813,6 +813,43 @@ def cmd_bench(args: argparse.Namespace, console: Console) -> int:
     return run_benchmarks(console, json_path=args.json, quick=args.quick, only=args.only)
 
 
+def cmd_rt_check(args: argparse.Namespace, console: Console) -> int:
+    """This PC's tick lateness with the real loop at the backend's rate: exit 0 if it can run the robot, 1 if not."""
+    from daror_runtime.rt_check import check_seconds, measured_backend, run_rt_check
+
+    check_seconds(args.seconds)
+    if args.json is not None:
+        _output_file(args.json)
+    backend, plant = measured_backend(_hal_config(args))
+    # the watchdog's faults are what is measured: counted in the report, not logged on the terminal
+    configure_logging(args.log_level or "critical", args.log_json)
+    console.print(
+        f"rt-check: the real loop at {plant.rate_hz:g} Hz (the {backend.kind} backend's rate) on the simulated "
+        f"plant for {args.seconds:g} s ...",
+        soft_wrap=True,
+    )
+    report = run_rt_check(backend, plant, args.seconds)
+    f, late = report.figures, report.figures.lateness
+    console.print(
+        f"  {f.ticks} ticks on {report.deadlines} deadlines in {f.duration_s:.2f} s; lateness p50 {late.p50_us:.1f} us, "
+        f"p99 {late.p99_us:.1f} us, p99.9 {late.p99_9_us:.1f} us, max {late.max_us:.1f} us",
+        soft_wrap=True,
+    )
+    console.print(
+        f"  {f.overruns} overruns, {f.missed_deadlines} missed deadlines, {f.watchdog_faults} overrun faults (the "
+        f"watchdog: {f.overrun_limit} deadlines missed in a row, or a stall over {f.max_stall_periods} periods); "
+        f"tick work {report.tick_work_mean_us:.0f} us mean, {report.tick_work_max_us:.0f} us worst",
+        soft_wrap=True,
+    )
+    for refusal in report.refusals:
+        console.print(f"  {refusal}", soft_wrap=True)
+    console.print(report.verdict.line, soft_wrap=True)
+    if args.json is not None:
+        _write_json(args.json, report.as_dict())
+        console.print(f"{args.json}: written")
+    return 0 if report.verdict.can_run else 1
+
+
 class _BenchHelp(argparse.Action):
     """``daror bench --help``: the usual help, then the benchmarks' names (their scripts are loaded only then)."""
 
@@ -855,7 +892,7 @@ def _hal_config(args: argparse.Namespace) -> Any:
 
 
 def cmd_console(args: argparse.Namespace, console: Console) -> int:
-    from daror_runtime.clocks import LockStepClock, RealTimeClock, check_clock
+    from daror_runtime.clocks import session_clock
     from daror_runtime.console.commands import parse_context
     from daror_runtime.console.grammar import check_lines
     from daror_runtime.console.run import read_script, stdin_is_terminal
@@ -884,10 +921,10 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
             parse_context(spec, hal.description, hal.world.fault_kinds if hal.world is not None else None),
         )
     typed = checked is None and stdin_is_terminal()
-    realtime = args.realtime or typed or args.web
-    period_s = 1.0 / hal.rate_hz
-    clock = RealTimeClock(period_s) if realtime else LockStepClock(period_s)
-    check_clock(clock, hal)  # lock-step on hardware: refused here, before anything is written
+    if args.realtime and args.clock not in (None, "realtime"):
+        raise UsageError(f"--realtime is --clock realtime; it contradicts --clock {args.clock}: give one of them")
+    # paced or lock-step on hardware, lock-step typed or on the web: refused here, before anything is written
+    clock = session_clock(hal, "realtime" if args.realtime else args.clock, live=typed or args.web)
     if args.out is None:  # the default: a new folder under ./sessions (created)
         _output_dir("sessions").mkdir(exist_ok=True)
     out = _output_dir(args.out if args.out is not None else Path("sessions") / time.strftime("%Y%m%d-%H%M%S"))
@@ -1462,15 +1499,20 @@ def build_parser() -> argparse.ArgumentParser:
     con.add_argument("--scenario", help="simulated plant: a scenario name or .yaml (default exo_dummy_arm)")
     con.add_argument("--hal-config", type=Path, metavar="FILE", help="HAL configuration YAML (instead of --hal)")
     con.add_argument(
-        "--script", type=Path, help="run these console lines, all checked first (lock-step unless --realtime)"
+        "--script", type=Path, help="run these console lines, all checked first (lock-step unless --clock says)"
     )
     con.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
     con.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
     con.add_argument("--out", type=Path, help="session directory (default sessions/DATE-TIME)")
+    con.add_argument("--realtime", action="store_true", help="the same as --clock realtime")
     con.add_argument(
-        "--realtime", action="store_true", help="run the loop at wall-clock rate (always when typed at a terminal)"
+        "--clock",
+        choices=["paced", "realtime", "lockstep"],
+        help="paced: simulated time follows the wall clock, a stall of the PC delays it (typed or --web on a "
+        "simulated backend); realtime: the overrun watchdog faults a stall (hardware); lockstep: as fast as the CPU "
+        "allows (scripts, pipes). docs/loop.md",
     )
-    con.add_argument("--web", action="store_true", help="also serve the console in a browser (real time; web extra)")
+    con.add_argument("--web", action="store_true", help="also serve the console in a browser (live; web extra)")
     con.add_argument("--port", type=int, default=8765, help="with --web: the port (default 8765)")
     con.add_argument(
         "--host", default="127.0.0.1", help="with --web: the address (default 127.0.0.1; the printed URL has the token)"
@@ -1524,6 +1566,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--only", help="run only benchmarks whose name contains this (see --list)")
     bench.add_argument("--list", action="store_true", help="list the benchmarks by script and exit")
     bench.set_defaults(handler=cmd_bench)
+
+    rt = commands.add_parser(
+        "rt-check", help="can this PC run the robot's loop at its rate? the real loop measured (docs/loop.md)"
+    )
+    rt.add_argument("--seconds", type=float, default=30.0, help="how long to measure, s (default 30)")
+    rt.add_argument("--hal", choices=["sim", "can-sim", "can"], help="the backend whose rate is checked (default sim)")
+    rt.add_argument("--hal-config", type=Path, metavar="FILE", help="HAL configuration YAML: its backend's rate")
+    rt.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON here")
+    rt.set_defaults(handler=cmd_rt_check, scenario=None)
     return parser
 
 

@@ -19,6 +19,10 @@ message, logged, and the loop goes on under that fault's reaction.
 The overrun watchdog counts missed deadlines, not late wake-ups: ``overrun_limit`` deadlines
 missed in a row, or one stall that missed more than ``max_stall_periods`` deadlines at once, is an
 ``overrun`` fault in the tick that finds it (the first tick after the stall), met by its reaction.
+The clock decides what a late tick is: the real-time clock reports it as an overrun (the drives
+held the last command through it) and the watchdog judges it; a paced clock (virtual time paced
+to the wall clock, a simulated backend only) never does, since the simulated world stalled with
+the process: it counts the stall itself (``Clock.pacing``), and the tick's lateness is recorded.
 """
 
 from __future__ import annotations
@@ -286,7 +290,7 @@ class ControlLoop:
         else:
             self._last_t_s = sample.t_s
             faults = monitor.check(sample)
-        if timing.overrun:
+        if timing.overrun:  # a deadline the drives depended on passed (real time; a paced clock reports none)
             self._watchdog(faults, timing)
         supervisor = self.supervisor
         controller = supervisor.on_tick(sample, faults, monitor)

@@ -4,7 +4,8 @@ On a control computer the loop runs with ``SCHED_FIFO`` priority (it pre-empts o
 periodic system activity no longer delays ticks) and with its memory locked (no page fault in the
 middle of a tick). Both need privileges; without them the loop still runs, the refusal is logged,
 and the overrun watchdog still guards the pilot. Measured effect on the CI VM: overruns per 15 s
-at 1 kHz from 7-12 (up to 3 ms late) to 2-3 (up to 1.7 ms), docs/performance.md.
+at 1 kHz from 7-12 (up to 3 ms late) to 2-3 (up to 1.7 ms), docs/performance.md. ``daror
+rt-check`` (:mod:`daror_runtime.rt_check`) measures what a PC gives.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
 @dataclass(frozen=True)
 class RealtimeGrant:
+    """What the OS granted (:func:`request_realtime`)."""
+
     fifo_priority: int | None  # the SCHED_FIFO priority obtained, None if refused
     memory_locked: bool
-    refusals: tuple[str, ...]
+    refusals: tuple[str, ...]  # what was refused, and the OS's reason
 
 
 def request_realtime(priority: int = 50, lock_memory: bool = True) -> RealtimeGrant:
@@ -55,8 +58,18 @@ def request_realtime(priority: int = 50, lock_memory: bool = True) -> RealtimeGr
 
 
 def release_realtime() -> None:
-    """Back to ordinary scheduling (after a real-time run in a process that goes on)."""
+    """Back to ordinary scheduling, memory no longer locked (after a real-time run in a process that goes on).
+
+    Never raises: what cannot be undone is logged. Unlocking memory that was not locked is harmless.
+    """
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, PermissionError, OSError) as exc:
         log.warning("could not return to ordinary scheduling", reason=str(exc))
+    try:
+        # mlockall(MCL_FUTURE) would otherwise lock every page the process allocates from now on
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        if libc.munlockall() != 0:
+            log.warning("could not unlock memory", errno=ctypes.get_errno())
+    except OSError as exc:
+        log.warning("could not unlock memory", reason=str(exc))

@@ -18,7 +18,10 @@ Two ways to drive the loop, chosen by the backend (:attr:`hal.interface.Hal.virt
   ticks, so a session is deterministic whatever the machine's speed. Refused on hardware;
 * **real time** (hardware, or a simulated plant at wall-clock rate): :meth:`Runtime.start_background`
   runs the loop on its own thread (with real-time scheduling when the OS grants it) and a service
-  thread collects finished runs; :meth:`Runtime.wait` waits for a ticket with a timeout.
+  thread collects finished runs; :meth:`Runtime.wait` waits for a ticket with a timeout. A
+  simulated plant a person watches runs the same way on a paced clock
+  (:class:`~daror_runtime.clocks.PacedClock`): its virtual time follows the wall clock, and a
+  stall of the process delays the simulated world instead of faulting it.
 
 Raises on construction: :class:`~daror_runtime.fsm.spec.FsmSpecError` for a bad spec (the
 runtime refuses to start), :class:`~daror_runtime.errors.ConfigurationError` for a spec whose
@@ -249,7 +252,7 @@ class Runtime:
             "session started",
             hal=core.hal.kind,
             rate_hz=core.hal.rate_hz,
-            clock="lock-step" if core.lock_step else "real time",
+            clock=core.clock.name,
             state=core.supervisor.state_name,
             directory=str(core.session_dir),
         )
@@ -412,12 +415,21 @@ class Runtime:
             raise DarorError(f"request {ticket.request!r} was not applied within {timeout_s} s: is the loop running?")
         return response
 
-    def start_background(self, realtime: bool = True) -> None:
-        """Run the loop on its own thread (and a service thread) until :meth:`stop_background`."""
+    def start_background(self, realtime: bool | None = None) -> None:
+        """Run the loop on its own thread (and a service thread) until :meth:`stop_background`.
+
+        Args:
+            realtime: ask the OS for real-time scheduling for the loop's thread (``SCHED_FIFO``,
+                ``mlockall``: :mod:`daror_runtime.realtime`); None: only on a clock whose stalls
+                are faults (the real-time clock), not on a paced one, whose stalls only delay the
+                simulated world (D142).
+        """
         if self._thread is not None:
             return
         loop_ = self._core.loop
         self._stop.clear()
+        if realtime is None:
+            realtime = not self._core.clock.needs_virtual_time
         if loop_.stats.ticks > 0:  # a restart: a new grid, so the pause is not counted as a stall
             self._core.clock.start()
 
