@@ -842,7 +842,7 @@ def cmd_rt_check(args: argparse.Namespace, console: Console) -> int:
         soft_wrap=True,
     )
     for refusal in report.refusals:
-        console.print(f"  {refusal}", soft_wrap=True)
+        console.print(f"  {refusal}", soft_wrap=True, markup=False)  # the OS's reason may hold brackets
     console.print(report.verdict.line, soft_wrap=True)
     if args.json is not None:
         _write_json(args.json, report.as_dict())
