@@ -31,6 +31,8 @@ DAROR = [sys.executable, "-m", "daror_runtime.cli"]
 NOT_RUN = {
     "daror console --hal-config robot.yaml": "drives the lab's robot over a real CAN interface",
     "daror bench": "runs every benchmark (many minutes; docs/performance.md has their figures)",
+    "daror rt-check --hal-config robot.yaml": "the lab's robot file; its verdict (exit 0 or 1) is the machine's "
+    "(tests/test_rt_check.py runs the command for 1 s)",
 }
 
 
