@@ -279,28 +279,10 @@ def _unique_recording(out: Path) -> Path:
 # --- fit / evaluate / cvf ---------------------------------------------------------------
 
 
-#: The ``daror fit`` flag of each model option (a field of the kinds' options models), for messages.
-FIT_OPTION_FLAGS = {
-    "name": "--name",
-    "dummy_arm": "--dummy-arm",
-    "elbow_stiffness": "--elbow-stiffness/--no-elbow-stiffness",
-    "seed": "--seed",
-    "thesis": "--thesis",
-    "layers": "--layers",
-    "width": "--width",
-    "activation": "--activation",
-    "inputs": "--inputs",
-    "l1": "--l1",
-    "inits": "--inits",
-    "folds": "--folds",
-    "adam_steps": "--adam-steps",
-    "lbfgs": "--lbfgs/--no-lbfgs",
-    "base": "--base",
-}
-
-
 def _fit_options_given(args: argparse.Namespace) -> dict[str, Any]:
     """The model options given on the ``daror fit`` command line, by field name (flags left out are absent)."""
+    from daror_runtime.models.registry import FIT_OPTION_FLAGS
+
     given = {field: getattr(args, field) for field in FIT_OPTION_FLAGS}
     return {field: value for field, value in given.items() if value is not None}
 
@@ -308,7 +290,7 @@ def _fit_options_given(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_fit(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.data.load import load_stationary
     from daror_runtime.models.files import save_model, training_summary
-    from daror_runtime.models.registry import fit_model, kind_entry, options_for
+    from daror_runtime.models.registry import FIT_OPTION_FLAGS, fit_model, kind_entry, options_for
     from hal.robot import load_description
 
     kind = args.kind.lower()
@@ -969,7 +951,7 @@ def _console_session(
     out.mkdir(parents=True, exist_ok=True)
     configure_logging(
         args.log_level or "critical",  # the console announces what the operator must see
-        args.log_json if args.log_json is not None else out / "audit.jsonl",
+        [out / "audit.jsonl", *([args.log_json] if args.log_json is not None else [])],  # the session keeps its own
     )
     runtime.open()
     web = None
