@@ -89,6 +89,16 @@ class Models:
     validation: Path
 
 
+def recorded_by_an_earlier_session(path: Path, scenario: Scenario, run: str) -> None:
+    """Give ``path`` the provenance an earlier session of ``scenario``'s simulated pilot would have written.
+
+    A session validates a model only on data recorded from its pilot on its robot (issue 24): the
+    simulated datasets the tests use stand for such a recording.
+    """
+    robot = simulated_robot(scenario.description().name, scenario.name)
+    write_provenance(path, "session", robot, simulated_pilot(scenario.name), "earlier-session", run, scenario.name)
+
+
 @pytest.fixture(scope="session")
 def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) -> Models:
     folder = tmp_path_factory.mktemp("models")
@@ -100,13 +110,8 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
 
     write_dataset(files.training, dataset(points))
     write_dataset(files.validation, dataset(generate_stationary(exo_dummy_arm, "validation")))
-    # as an earlier session of the scenario's simulated pilot would have recorded them: a session validates a
-    # model only on data recorded from its pilot on its robot (issue 24)
-    robot = simulated_robot(exo_dummy_arm.description().name, exo_dummy_arm.name)
     for path, run in ((files.training, "training"), (files.validation, "validation")):
-        write_provenance(
-            path, "session", robot, simulated_pilot(exo_dummy_arm.name), "earlier-session", run, exo_dummy_arm.name
-        )
+        recorded_by_an_earlier_session(path, exo_dummy_arm, run)
     for path, scale in ((files.good, 1.0), (files.tripled, 3.0)):
         data = dataset(points, scale)
         result = fit_model("plf+", data, exo_dummy_arm.description(), installation_options("plf+", dummy_arm=True))

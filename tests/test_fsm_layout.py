@@ -42,7 +42,12 @@ def _extra_state() -> dict[str, Any]:
     """One more state at the end of operative, and guarded resets (the first state's own included)."""
     data = _base()
     data["states"].append(
-        _state(len(data["states"]) + 1, "parking", "operative", guards={"revert": ["compensation_model_approved"]})
+        _state(
+            len(data["states"]) + 1,
+            "parking",
+            "operative",
+            guards={"revert": ["compensation_model_approved", "arm_inside_isb_limits"]},
+        )
     )
     by_name = {s["name"]: s for s in data["states"]}
     for name, guards in {
@@ -64,7 +69,7 @@ def _extra_superstate() -> dict[str, Any]:
             len(data["states"]) + 1,
             "pilot_removal_and_shutdown_of_drives",
             "shutdown_and_removal_of_the_pilot",
-            guards={"revert": ["compensation_model_approved", "robot_at_rest"]},
+            guards={"revert": ["compensation_model_approved", "robot_at_rest", "arm_inside_isb_limits"]},
         )
     )
     return data

@@ -53,6 +53,7 @@ from hal.robot import FloatArray
 from hal.sim.backend import SimHal
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
+from tests.conftest import recorded_by_an_earlier_session
 
 SCENARIO = "exo_dummy_arm"
 SPEC = load_fsm_spec()
@@ -125,6 +126,7 @@ def model_files(tmp_path_factory: pytest.TempPathFactory) -> ModelFiles:
     training = _dataset(generate_stationary(scenario, "training"))
     files = ModelFiles(folder / "plf_plus.json", folder / "validation.csv")
     write_dataset(files.validation, _dataset(generate_stationary(scenario, "validation")))
+    recorded_by_an_earlier_session(files.validation, scenario, "validation")
     result = fit_model("plf+", training, scenario.description(), installation_options("plf+", dummy_arm=True))
     save_model(files.model, result.model, training_summary(training))
     return files
