@@ -1557,6 +1557,10 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--hal-config", type=Path, metavar="FILE", help="HAL configuration YAML: its backend's rate")
     rt.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON here")
     rt.set_defaults(handler=cmd_rt_check, scenario=None)
+
+    from daror_runtime.commissioning.commands import add_can_parser  # daror can scan|check|zero|tare
+
+    add_can_parser(commands)
     return parser
 
 
@@ -1589,6 +1593,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             getattr(args, "fsm_command", None),
             getattr(args, "study_command", None),
             getattr(args, "protocol_command", None),
+            getattr(args, "can_command", None),
         )
         if x
     )
