@@ -29,6 +29,7 @@ master configures it at start-up where a drive supports it and says per drive wh
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -40,10 +41,10 @@ import can
 import numpy as np
 
 from hal.canopen.bus import FrameSource, ListenedFrames, PolledFrames, TrafficLog
-from hal.canopen.busload import bus_load, check_bus_load, highest_rate
-from hal.canopen.dictionary import DriveDictionary, load_dictionary
-from hal.canopen.mapping import DAROR_MAPPING
+from hal.canopen.busload import CANDIDATE_RATES_HZ, LOAD_BUDGET, BusLoad, check_bus_load
+from hal.canopen.dictionary import load_dictionary
 from hal.canopen.master import CanMaster, MasterSettings
+from hal.canopen.profile import DriveProfile, resolve_profiles, robot_bus_load
 from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig
 from hal.errors import HalConfigError, HalError, HalNotOpenError, ShapeError
 from hal.interface import CheckedCommand, CheckedSample, Command, DriveReaction, Hal, HalFaultError, Sample
@@ -61,19 +62,24 @@ _new_tuple = tuple.__new__
 _CHANNELS = itertools.count(1)
 
 
-def _rate(config: CanHalConfig | CanSimHalConfig, where: str) -> float:
-    """The configured rate, or the highest the mapping allows; refused over the bus-load budget.
+def _rate(config: CanHalConfig | CanSimHalConfig, profiles: tuple[DriveProfile, ...], where: str) -> float:
+    """The configured rate, or the highest the drives' PDOs allow; refused over the bus-load budget.
 
     Raises:
         HalConfigError: the load of the configured rate exceeds the budget (the message has the numbers).
     """
-    pdos, n = DAROR_MAPPING.all, len(config.node_ids)
-    rate = (
-        float(config.rate_hz)
-        if config.rate_hz is not None
-        else highest_rate(pdos, n, config.bitrate, config.heartbeat_producer_ms)
-    )
-    check_bus_load(bus_load(pdos, n, rate, config.bitrate, config.heartbeat_producer_ms), where)
+
+    def load(rate_hz: float) -> BusLoad:
+        return robot_bus_load(profiles, rate_hz, config.bitrate, config.heartbeat_producer_ms)
+
+    if config.rate_hz is not None:
+        rate = float(config.rate_hz)
+    else:
+        fitting = [r for r in CANDIDATE_RATES_HZ if load(r).total <= LOAD_BUDGET]
+        if not fitting:
+            raise HalConfigError(f"{where}: no loop rate fits the bus: even {load(CANDIDATE_RATES_HZ[-1]).describe()}")
+        rate = fitting[0]
+    check_bus_load(load(rate), where)
     return rate
 
 
@@ -86,9 +92,12 @@ class CanHal(Hal):
         bus: an already open python-can bus to use instead of opening one from ``config`` (it is
             not shut down by :meth:`close`).
         traffic_log: where to log every frame in candump format (None: no log).
+        profiles: the drives, resolved (None: resolved from ``config`` and ``description``,
+            :func:`hal.canopen.profile.resolve_profiles`).
 
     Raises:
-        HalConfigError: the EDS cannot be read or lacks an object; the bus would be over its load budget.
+        HalConfigError: an EDS cannot be read or lacks an object the robot file names; the bus
+            would be over its load budget.
     """
 
     kind = "can"
@@ -101,11 +110,14 @@ class CanHal(Hal):
         description: RobotDescription | None = None,
         bus: can.BusABC | None = None,
         traffic_log: Path | None = None,
+        profiles: tuple[DriveProfile, ...] | None = None,
     ) -> None:
         super().__init__(description or load_description())
         self.config = config
-        self.dictionary: DriveDictionary = load_dictionary(config.eds)
-        self._rate_hz = _rate(config, f"HAL backend {self.kind}")
+        self.profiles: tuple[DriveProfile, ...] = profiles or resolve_profiles(
+            config, self.description.sea.spring_stiffness_nm_per_rad
+        )
+        self._rate_hz = _rate(config, self.profiles, f"HAL backend {self.kind}")
         self._given_bus = bus
         self._bus: can.BusABC | None = None
         self._source: FrameSource | None = None
@@ -260,7 +272,7 @@ class CanHal(Hal):
     def bus_report(self) -> dict[str, object]:
         """The bus of this backend: rate, bit rate, worst-case load, frames, the log (:class:`hal.capabilities.BusStatistics`)."""
         c = self.config
-        load = bus_load(DAROR_MAPPING.all, len(c.node_ids), self._rate_hz, c.bitrate, c.heartbeat_producer_ms)
+        load = robot_bus_load(self.profiles, self._rate_hz, c.bitrate, c.heartbeat_producer_ms)
         report: dict[str, object] = {
             "backend": self.kind,
             "rate_hz": self._rate_hz,
@@ -288,7 +300,7 @@ class CanHal(Hal):
         return ListenedFrames(bus, now)  # type: ignore[arg-type]
 
     def _make_master(self, bus: can.BusABC, source: FrameSource, now: object) -> CanMaster:
-        return CanMaster(bus, source, self.dictionary, self.settings(), now, wait=time.sleep, traffic=self._traffic)  # type: ignore[arg-type]
+        return CanMaster(bus, source, self.profiles, self.settings(), now, wait=time.sleep, traffic=self._traffic)  # type: ignore[arg-type]
 
     def close(self) -> None:
         """Torque off, every drive to pre-operational, the receive thread stopped, the bus closed. Safe twice.
@@ -443,14 +455,23 @@ class SimulatedCanHal(CanHal):
         # The drives quantise their encoders in the units of their EDS: the plant's sensors do not.
         scenario = scenario.model_copy(update={"sensors": scenario.sensors.model_copy(update={"quantise": False})})
         self._scenario = scenario
-        rate = _rate(config, "HAL backend can-sim")
-        self._plant = SimHal(scenario, rate, description)
-        super().__init__(config, self._plant.description, None, traffic_log)
+        robot = description or scenario.description()
+        profiles = resolve_profiles(config, robot.sea.spring_stiffness_nm_per_rad)
+        rate = _rate(config, profiles, "HAL backend can-sim")
+        self._plant = SimHal(scenario, rate, robot)
+        super().__init__(config, self._plant.description, None, traffic_log, profiles)
         self._channel = f"{config.channel}-{next(_CHANNELS)}"
         unknown = sorted(set(drive_eds or {}) - set(config.node_ids))
         if unknown:
             raise HalConfigError(f"HAL backend can-sim: drive_eds names node(s) {unknown}, which are not the drives'")
         self._drive_dictionaries = {node: load_dictionary(path) for node, path in (drive_eds or {}).items()}
+        # A drive of another firmware: the profile its master expects, on another EDS (tests).
+        self._drive_profiles = tuple(
+            dataclasses.replace(p, dictionary=self._drive_dictionaries[p.node_id])
+            if p.node_id in self._drive_dictionaries
+            else p
+            for p in self.profiles
+        )
         self._drive_bus: can.BusABC | None = None
         self._drives: SimulatedDriveSet | None = None
         self._world: CanSimWorld | None = None
@@ -468,14 +489,7 @@ class SimulatedCanHal(CanHal):
         from hal.canopen.sim.drives import SimulatedDriveSet
 
         if self._drives is None:
-            self._drives = SimulatedDriveSet(
-                None,
-                self._plant,
-                tuple(self.config.node_ids),
-                self.dictionary,
-                self.config.master_node_id,
-                self._drive_dictionaries,
-            )
+            self._drives = SimulatedDriveSet(None, self._plant, self._drive_profiles, self.config.master_node_id)
         return self._drives
 
     @property
@@ -536,7 +550,7 @@ class SimulatedCanHal(CanHal):
         self._source = PolledFrames(self._bus, self._now)
         self._start(
             CanMaster(
-                self._bus, self._source, self.dictionary, self.settings(), self._now,
+                self._bus, self._source, self.profiles, self.settings(), self._now,
                 pump=drives.step, wait=lambda s: None, traffic=self._traffic,
             )
         )  # fmt: skip

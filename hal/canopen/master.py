@@ -62,18 +62,15 @@ from hal.canopen.cia301.sdo import SdoClient, SdoTransfer
 from hal.canopen.cia402.statemachine import (
     CW_DISABLE_VOLTAGE,
     CW_ENABLE_OPERATION,
-    SW_ESTOP_OPERATOR,
-    SW_ESTOP_PILOT,
     PowerState,
     PowerStepper,
     decode_statusword,
     drive_state,
 )
 from hal.canopen.cia402.torque_slope import SlopeFollower
-from hal.canopen.dictionary import DriveDictionary
-from hal.canopen.mapping import DAROR_MAPPING, DrivePdos
+from hal.canopen.profile import DriveProfile, UnitCheck, decode_supported_modes
 from hal.canopen.reaction import ReactionPlan, format_ramp_s, plan_reaction
-from hal.errors import HalError
+from hal.errors import HalConfigError, HalError
 from hal.interface import DriveState
 
 __all__ = ["LOST_CODES", "CanMaster", "MasterSettings"]
@@ -104,7 +101,6 @@ class MasterSettings:
         master_node_id: the node id the master's heartbeat uses (0x700 + id).
         peak_torque_nm: the drives' peak torque: commands are saturated there (0x6072 too).
         stale_syncs: a drive whose TPDOs miss this many SYNCs in a row is lost.
-        transition_timeout_s: how long one power state transition may take before it is a fault.
         velocity_filter_hz: first-order low-pass of the link velocity estimated from the load encoder.
         sdo_timeout_s: how long an SDO transfer may wait for its answer.
         boot_timeout_s: how long a drive may take to send its boot-up message after a reset.
@@ -122,7 +118,6 @@ class MasterSettings:
     master_node_id: int = 127
     peak_torque_nm: float = 40.0
     stale_syncs: int = 3
-    transition_timeout_s: float = 0.02
     velocity_filter_hz: float = 50.0
     sdo_timeout_s: float = 0.5
     boot_timeout_s: float = 2.0
@@ -143,15 +138,16 @@ class _Recovery:
 class _Drive:
     """What the master knows of one drive."""
 
-    node_id: int
+    profile: DriveProfile
     stepper: PowerStepper
+    node_id: int = 0
     statusword: int | None = None
     power: PowerState | None = None
     motor_counts: int = 0
     load_counts: int = 0
-    torque_permille: int = 0
-    status_sync: int = -1  # the SYNC whose TPDO1 arrived last
-    load_sync: int = -1  # the SYNC whose TPDO2 arrived last
+    torque_counts: int = 0
+    estop_word: int = 0
+    tpdo_syncs: list[int] = field(default_factory=list)  # per TPDO: the SYNC whose TPDO arrived last
     lost: str | None = None  # a key of LOST_CODES while lost
     lost_why: str = ""
     emcy: EmcyMessage | None = None  # an error reported by EMCY and not reset yet
@@ -163,6 +159,25 @@ class _Drive:
     slope: SlopeFollower | None = None  # while it ramps when it loses the master: its torque slope, followed
     slope_write: tuple[SdoTransfer, int] | None = None  # a slope write in flight and its value
 
+    def __post_init__(self) -> None:
+        self.node_id = self.profile.node_id
+        self.tpdo_syncs = [-1] * len(self.profile.pdos.tpdos)
+
+    @property
+    def last_sync(self) -> int:
+        """The SYNC all of whose TPDOs arrived last (-1: none yet)."""
+        return min(self.tpdo_syncs)
+
+
+#: The field of :class:`_Drive` each object a TPDO may carry goes to, by the profile's role for it.
+def _tpdo_fields(profile: DriveProfile) -> tuple[tuple[str, ...], ...]:
+    roles = {(obj.STATUSWORD, 0): "statusword"}
+    for mapped, name in ((profile.motor, "motor_counts"), (profile.link, "load_counts"),
+                         (profile.torque, "torque_counts"), (profile.estop, "estop_word")):  # fmt: skip
+        if mapped is not None:
+            roles.setdefault((mapped.index, mapped.sub), name)
+    return tuple(tuple(roles[(m.index, m.sub)] for m in pdo.objects) for pdo in profile.pdos.tpdos)
+
 
 class CanMaster:
     """The protocol engine of the backend: no HAL types beyond the drive states; see the module docstring.
@@ -170,62 +185,79 @@ class CanMaster:
     Args:
         bus: the open python-can bus (the master's handle).
         source: where received frames come from (:mod:`hal.canopen.bus`).
-        dictionary: the drives' EDS.
-        settings: see :class:`MasterSettings`.
+        profiles: the drives of joints 1-4, resolved (:mod:`hal.canopen.profile`): their EDS,
+            objects, scales, PDOs, e-stop bits, start-up writes and timeouts.
+        settings: see :class:`MasterSettings` (its ``node_ids`` are the profiles').
         now: the master's clock, s (robot time on a simulated bus, wall time since open on hardware).
         pump: called after the master sent frames, before it expects answers (lock-step simulated
             drives process the bus then; None on hardware).
         wait: how start-up waits for answers between polls (``time.sleep`` on hardware).
         traffic: the bus log (None: no log).
-        mapping: the PDOs configured on every drive.
 
     Raises:
-        HalConfigError: the mapping does not fit the EDS (an object missing, of another size or not mappable).
+        HalConfigError: the profiles' node ids are not the settings', or a PDO does not fit its EDS.
     """
 
     def __init__(
         self,
         bus: can.BusABC,
         source: FrameSource,
-        dictionary: DriveDictionary,
+        profiles: tuple[DriveProfile, ...],
         settings: MasterSettings,
         now: Callable[[], float],
         pump: Callable[[], None] | None = None,
         wait: Callable[[float], None] | None = None,
         traffic: TrafficLog | None = None,
-        mapping: DrivePdos = DAROR_MAPPING,
     ) -> None:
+        if tuple(p.node_id for p in profiles) != tuple(settings.node_ids):
+            raise HalConfigError(
+                f"the drive profiles' node ids {[p.node_id for p in profiles]} are not the settings' "
+                f"{list(settings.node_ids)}"
+            )
         self.bus = bus
         self.source = source
-        self.dictionary = dictionary
+        self.profiles = tuple(profiles)
         self.settings = settings
-        self.mapping = mapping
         self._now = now
         self._pump = pump
         self._wait = wait or (lambda s: None)
         self.traffic = traffic
-        self.units = dictionary.units
         self.n = len(settings.node_ids)
-        self._codecs = {pdo.name: self._codec(pdo) for pdo in mapping.all}
-        self._pack_rpdo = self._codecs[mapping.rpdo.name].pack
-        ticks = max(2, math.ceil(settings.transition_timeout_s / settings.period_s))
-        self.drives = [_Drive(node_id, PowerStepper(ticks)) for node_id in settings.node_ids]
+        self.drives = [
+            _Drive(p, PowerStepper(max(2, math.ceil(p.enable_timeout_s / settings.period_s)))) for p in profiles
+        ]
         self._by_node = {d.node_id: d for d in self.drives}
-        # COB-ID -> (drive, what): one dict lookup per received frame
-        self._routes: dict[int, tuple[_Drive, str]] = {}
+        # COB-ID -> (drive, what, TPDO number - 1): one dict lookup per received frame
+        self._routes: dict[int, tuple[_Drive, str, int]] = {}
+        self._tpdo_decoders: dict[
+            int, tuple[Callable[[bytes], tuple[int | float | bool, ...] | None], tuple[str, ...], int]
+        ] = {}
         for drive in self.drives:
-            self._routes[mapping.tpdo_status.cob_id(drive.node_id)] = (drive, "status")
-            self._routes[mapping.tpdo_load.cob_id(drive.node_id)] = (drive, "load")
-            self._routes[HEARTBEAT_BASE + drive.node_id] = (drive, "heartbeat")
-            self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy")
-            self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo")
-        self._rpdo_cob = [mapping.rpdo.cob_id(d.node_id) for d in self.drives]
-        self._unpack_status = self._codecs[mapping.tpdo_status.name].decode
-        self._unpack_load = self._codecs[mapping.tpdo_load.name].decode
+            pdos = drive.profile.pdos
+            for k, (pdo, names) in enumerate(zip(pdos.tpdos, _tpdo_fields(drive.profile), strict=True)):
+                cob_id = pdo.cob_id(drive.node_id)
+                self._routes[cob_id] = (drive, "tpdo", k)
+                self._tpdo_decoders[cob_id] = (self._codec(drive.profile, pdo).decode, names, pdo.length)
+            self._routes[HEARTBEAT_BASE + drive.node_id] = (drive, "heartbeat", 0)
+            self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy", 0)
+            self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo", 0)
+        self._rpdo_cob = [d.profile.pdos.rpdo.cob_id(d.node_id) for d in self.drives]
+        self._pack_rpdo = [self._codec(d.profile, d.profile.pdos.rpdo).pack for d in self.drives]
         self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
         self.sdo = SdoClient(timeout_s=settings.sdo_timeout_s)
-        self._peak_permille = min(round(settings.peak_torque_nm / self.units.nm_per_permille), 32767)
+        self._nm_per_permille = [p.nm_per_permille for p in profiles]
+        self._peak_permille_of = [min(round(settings.peak_torque_nm / p.nm_per_permille), 32767) for p in profiles]
+        # The scales of the sample's arrays, one per joint (an array of equal scales multiplies as the scalar did).
+        self._rad_per_link = np.array([p.rad_per_link_count for p in profiles])
+        self._rad_per_motor = np.array([p.rad_per_motor_count for p in profiles])
+        self._nm_per_torque = np.array([p.nm_per_torque_count for p in profiles])
+        self._deflection = np.array([p.torque is None for p in profiles])
+        self._spring_k = np.array([p.spring_k_nm_per_rad or 0.0 for p in profiles])
+        self._any_deflection = bool(self._deflection.any())
         self._joint = {d.node_id: j + 1 for j, d in enumerate(self.drives)}
+        #: Per node: what its start-up reads must show (:meth:`_configuration`, :meth:`_check_configuration`).
+        self._expected: dict[int, list[tuple[str, tuple[SdoTransfer, ...], object]]] = {}
+        self._transfers: dict[int, list[SdoTransfer]] = {}
         self._latched: list[str] = []
         self.syncs = 0  # SYNCs sent
         self._last_sync_s = 0.0
@@ -245,20 +277,18 @@ class CanMaster:
         self._last_fresh_sync = -1
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * settings.velocity_filter_hz * settings.period_s)
 
-    def _codec(self, pdo: PdoMapping) -> PdoCodec:
-        from hal.errors import HalConfigError
-
+    @staticmethod
+    def _codec(profile: DriveProfile, pdo: PdoMapping) -> PdoCodec:
+        dictionary = profile.dictionary
         for mapped in pdo.objects:
-            if self.dictionary.size_bits(mapped.index, mapped.sub) != mapped.bits:
+            if dictionary.size_bits(mapped.index, mapped.sub) != mapped.bits:
                 raise HalConfigError(
-                    f"{self.dictionary.path}: {pdo.name} maps {mapped} but the EDS gives the object "
-                    f"{self.dictionary.size_bits(mapped.index, mapped.sub)} bits"
+                    f"{dictionary.path}: {pdo.name} maps {mapped} but the EDS gives the object "
+                    f"{dictionary.size_bits(mapped.index, mapped.sub)} bits"
                 )
-            if not self.dictionary.pdo_mappable(mapped.index, mapped.sub):
-                raise HalConfigError(
-                    f"{self.dictionary.path}: {pdo.name} maps {mapped}, which the EDS says is not mappable"
-                )
-        return PdoCodec(pdo, tuple(self.dictionary.data_type(m.index, m.sub) for m in pdo.objects))
+            if not dictionary.pdo_mappable(mapped.index, mapped.sub):
+                raise HalConfigError(f"{dictionary.path}: {pdo.name} maps {mapped}, which the EDS says is not mappable")
+        return PdoCodec(pdo, tuple(dictionary.data_type(m.index, m.sub) for m in pdo.objects))
 
     # --- frames out --------------------------------------------------------------------------
 
@@ -277,8 +307,10 @@ class CanMaster:
         """Reset, identify, configure and start every drive, then run the first cycle (may wait; see the module docstring).
 
         Raises:
-            HalError: a drive did not answer, refused a write, or reports units other than its EDS
-                (the message names the drive, the object and the values).
+            HalError: a drive did not answer, refused a write, lacks the robot file's mode (its
+                0x6502), reports another identity or other units than its robot file, does not keep
+                a value written, or did not report OPERATIONAL (the message names the drive, the
+                object and the values).
         """
         self.sdo.cancel()
         self._latched.clear()
@@ -291,29 +323,53 @@ class CanMaster:
             self._send(*nmt_frame(NmtCommand.RESET_COMMUNICATION, drive.node_id))
         self._collect(lambda frames: booted.update(self._boot_ups(frames)), lambda: len(booted) == self.n,
                       self.settings.boot_timeout_s, lambda: f"no boot-up message from node(s) {self._missing(booted)}")  # fmt: skip
-        transfers = [t for drive in self.drives for t in self._configuration(drive.node_id)]
-        self._run_sdo(transfers, "configuring the drives")
-        self._check_identity(transfers)
+        for drive in self.drives:
+            self._configuration(drive.node_id)
+        self._run_sdo()
+        self._check_configuration(self.drives)
         for drive in self.drives:
             self._reaction_configured(drive)
         for drive in self.drives:
             self._send(*nmt_frame(NmtCommand.START, drive.node_id))
+        # From NMT start on the master is a running master: its heartbeat and the SYNC at their periods
+        # (a drive whose consumer or RPDO deadline is armed must not find it silent while it starts).
         self._started_s = self._now()
         self.heartbeats.start(self._now())
         self._next_heartbeat_s = self._now()
         self._send_heartbeat_if_due()
         first = self.syncs
         self._sync()
-        self._collect(self._dispatch, lambda: all(d.status_sync >= first and d.load_sync >= first for d in self.drives),
-                      self.settings.boot_timeout_s,
-                      lambda: f"no TPDOs after the first SYNC from node(s) {self._missing_pdos(first)}")  # fmt: skip
+        operational: set[int] = set()
+
+        def handle(frames: list[Frame]) -> None:
+            self._dispatch(frames)
+            operational.update(self._operational(frames))
+
+        self._collect(handle, lambda: len(operational) == self.n and all(d.last_sync >= first for d in self.drives),
+                      self.settings.boot_timeout_s, lambda: self._not_running(operational, first), cyclic=True)  # fmt: skip
         self._latched.clear()  # what happened while starting is in the start's own errors
 
     def _missing(self, seen: set[int]) -> str:
         return ", ".join(str(d.node_id) for d in self.drives if d.node_id not in seen)
 
-    def _missing_pdos(self, sync: int) -> str:
-        return ", ".join(str(d.node_id) for d in self.drives if d.status_sync < sync or d.load_sync < sync)
+    def _not_running(self, operational: set[int], sync: int) -> str:
+        """What start-up still waits for: the OPERATIONAL heartbeats and the TPDOs of the first SYNC, naming the nodes."""
+        parts = []
+        silent = self._missing(operational)
+        if silent:
+            parts.append(f"no OPERATIONAL heartbeat from node(s) {silent}")
+        quiet = ", ".join(str(d.node_id) for d in self.drives if d.last_sync < sync)
+        if quiet:
+            parts.append(f"no TPDOs after the first SYNC from node(s) {quiet}")
+        return " and ".join(parts)
+
+    def _operational(self, frames: list[Frame]) -> list[int]:
+        """The nodes whose heartbeat among ``frames`` reports OPERATIONAL."""
+        return [
+            frame.cob_id - HEARTBEAT_BASE
+            for frame in frames
+            if frame.cob_id - HEARTBEAT_BASE in self._by_node and parse_heartbeat(frame.data) is NmtState.OPERATIONAL
+        ]
 
     def _boot_ups(self, frames: list[Frame]) -> list[int]:
         found = []
@@ -331,8 +387,13 @@ class CanMaster:
         done: Callable[[], bool],
         timeout_s: float,
         missing: Callable[[], str],
+        cyclic: bool = False,
     ) -> None:
-        """Start-up only: pump, drain and hand frames to ``handle`` until ``done`` or ``timeout_s`` of waiting."""
+        """Start-up only: pump, drain and hand frames to ``handle`` until ``done`` or ``timeout_s`` of waiting.
+
+        ``cyclic``: the drives are started; the master's heartbeat and the SYNC go on at their periods
+        of the master's clock (on a simulated bus robot time stands still meanwhile: none is due).
+        """
         waited = 0.0
         step = min(0.001, timeout_s)
         while True:
@@ -347,47 +408,91 @@ class CanMaster:
                 raise HalError(f"CAN bus: {missing()} within {timeout_s:g} s")
             self._wait(step)
             waited += step
+            if cyclic and self._now() - self._last_sync_s >= self.settings.period_s:
+                self._send_heartbeat_if_due()
+                self._sync()
 
     def _configuration(self, node_id: int) -> list[SdoTransfer]:
-        """Queue the SDO transfers that identify and configure ``node_id``; returns them all, in order.
+        """Queue the SDO transfers that identify, configure and check ``node_id``; returns them all, in order.
 
-        The identity reads first, then the writes; the drive's own reaction to losing the master
-        last (kept in its ``reaction``).
+        Reads (device type, identity, supported modes), then the writes (mode, peak torque where the
+        drive has 0x6072, heartbeats, cycle period, PDOs, the robot file's ``sdo_init``), the drive's
+        own reaction to losing the master (kept in its ``reaction``), then the reads that check:
+        the units its profile declares, 0x6061, every ``sdo_init`` value. What each read must show is kept in ``self._expected`` for
+        :meth:`_check_configuration`.
         """
-        s, d, sdo = self.settings, self.dictionary, self.sdo
-        reads = [
-            sdo.read(node_id, obj.DEVICE_TYPE, 0, "device type"),
-            sdo.read(node_id, obj.MOTOR_RATED_TORQUE, 0, "motor rated torque"),
-            sdo.read(node_id, obj.POSITION_ENCODER_RESOLUTION, 1, "position encoder increments"),
-            sdo.read(node_id, obj.POSITION_ENCODER_RESOLUTION, 2, "position encoder motor revolutions"),
-            sdo.read(node_id, obj.LOAD_ENCODER_RESOLUTION, 0, "load side encoder resolution"),
+        s, sdo = self.settings, self.sdo
+        drive = self._by_node[node_id]
+        profile = drive.profile
+        d = profile.dictionary
+        joint = self._joint[node_id]
+        peak = self._peak_permille_of[joint - 1]
+        expected: list[tuple[str, tuple[SdoTransfer, ...], object]] = [
+            ("device type", (sdo.read(node_id, obj.DEVICE_TYPE, 0, "device type"),), None)
         ]
+        if profile.identity is not None:
+            vendor, product = profile.identity
+            expected.append(("vendor id", (sdo.read(node_id, obj.IDENTITY, 1, "vendor id"),), vendor))
+            if product is not None:
+                expected.append(("product code", (sdo.read(node_id, obj.IDENTITY, 2, "product code"),), product))
+        if d.has(obj.SUPPORTED_DRIVE_MODES, 0):
+            modes = sdo.read(node_id, obj.SUPPORTED_DRIVE_MODES, 0, "supported drive modes")
+            expected.append(("modes", (modes,), profile.mode))
         writes = [
-            (obj.MODES_OF_OPERATION, 0, d.encode(obj.MODES_OF_OPERATION, 0, obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE),
-             "cyclic synchronous torque"),
-            (obj.MAX_TORQUE, 0, d.encode(obj.MAX_TORQUE, 0, self._peak_permille), "peak torque"),
-            (obj.PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", s.heartbeat_producer_ms), "heartbeat producer time"),
+            (obj.MODES_OF_OPERATION, 0, d.encode(obj.MODES_OF_OPERATION, 0, profile.mode), f"modes of operation {profile.mode}"),
+            (obj.PRODUCER_HEARTBEAT_TIME, 0, struct.pack("<H", profile.heartbeat_ms), "heartbeat producer time"),
             (obj.CONSUMER_HEARTBEAT_TIME, 1, struct.pack("<I", (s.master_node_id << 16) | s.heartbeat_consumer_ms),
              "the master's heartbeat, consumed"),
         ]  # fmt: skip
-        for pdo in self.mapping.all:
+        if d.writable(obj.MAX_TORQUE, 0):  # optional in CiA 402: the master saturates its commands either way
+            writes.insert(1, (obj.MAX_TORQUE, 0, d.encode(obj.MAX_TORQUE, 0, peak), "peak torque"))
+        writes += self._cycle_writes(profile)
+        for pdo in profile.pdos.all:
             writes += pdo.configuration(node_id, s.rpdo_deadline_ms if pdo.direction == "rpdo" else 0)
-        optional = {(pdo.communication_index, sub) for pdo in self.mapping.all for sub in OPTIONAL_SUBS}
-        transfers = reads + [
-            sdo.write(node_id, index, sub, data, what, optional=(index, sub) in optional)
-            for index, sub, data, what in writes
-        ]
-        drive = self._by_node[node_id]
-        drive.reaction = plan_reaction(sdo, d, self._joint[node_id], node_id, s.ramp_s, self._peak_permille)
+        for index, sub, value in profile.sdo_init:
+            writes.append((index, sub, d.encode(index, sub, value), f"sdo_init 0x{index:04X}:{sub} = {value}"))
+        optional = {(pdo.communication_index, sub) for pdo in profile.pdos.all for sub in OPTIONAL_SUBS}
+        transfers = [t for _, reads, _ in expected for t in reads]
+        for index, sub, data, what in writes:
+            transfers.append(sdo.write(node_id, index, sub, data, what, optional=(index, sub) in optional))
+        drive.reaction = plan_reaction(sdo, d, joint, node_id, s.ramp_s, peak)
+        transfers += drive.reaction.transfers
+        for check in profile.unit_checks:  # after sdo_init: a drive whose units the robot file writes (0x6076)
+            reads = tuple(sdo.read(node_id, check.index, sub, check.what) for sub in check.subs)
+            expected.append(("unit", reads, check))
+            transfers += reads
         drive.slope, drive.slope_write = None, None  # a new configuration: followed again once it is done
-        return transfers + list(drive.reaction.transfers)
+        display = sdo.read(node_id, obj.MODES_OF_OPERATION_DISPLAY, 0, "modes of operation display")
+        expected.append(("mode shown", (display,), profile.mode))
+        transfers.append(display)
+        for index, sub, value in profile.sdo_init:
+            read = sdo.read(node_id, index, sub, f"sdo_init 0x{index:04X}:{sub} read back")
+            expected.append(("kept", (read,), value))
+            transfers.append(read)
+        self._expected[node_id] = expected
+        self._transfers[node_id] = transfers
+        return transfers
 
-    def _run_sdo(self, transfers: list[SdoTransfer], doing: str) -> None:
-        """Start-up only: run the SDO client until every queued transfer is done.
+    def _cycle_writes(self, profile: DriveProfile) -> list[tuple[int, int, bytes, str]]:
+        """0x1006 (the SYNC period, us) and 0x60C2 (the interpolation period) where the EDS has them writable."""
+        d, period_s = profile.dictionary, self.settings.period_s
+        writes = []
+        if d.writable(obj.COMMUNICATION_CYCLE_PERIOD, 0):
+            period_us = round(period_s * 1e6)
+            writes.append((obj.COMMUNICATION_CYCLE_PERIOD, 0, d.encode(obj.COMMUNICATION_CYCLE_PERIOD, 0, period_us),
+                           f"communication cycle period {period_us} us"))  # fmt: skip
+        if d.writable(obj.INTERPOLATION_TIME_PERIOD, 1) and d.writable(obj.INTERPOLATION_TIME_PERIOD, 2):
+            value, exponent = interpolation_period(period_s)
+            writes += [
+                (obj.INTERPOLATION_TIME_PERIOD, 1, d.encode(obj.INTERPOLATION_TIME_PERIOD, 1, value),
+                 f"interpolation time period {value}"),
+                (obj.INTERPOLATION_TIME_PERIOD, 2, d.encode(obj.INTERPOLATION_TIME_PERIOD, 2, exponent),
+                 f"interpolation time index {exponent}"),
+            ]  # fmt: skip
+        return writes
 
-        Raises:
-            HalError: a transfer failed: aborted by the drive or unanswered (the first failure, and how many).
-        """
+    def _run_sdo(self) -> None:
+        """Start-up only: run the SDO client until every queued transfer is done (failures are judged by the caller)."""
         waited = 0.0
         # On a simulated bus (a pump) robot time stands still while nothing is synchronised, so the SDO
         # timeouts count the time waited here; on hardware the master's clock runs by itself.
@@ -406,40 +511,30 @@ class CanMaster:
             if self.sdo.busy:
                 self._wait(0.0005)
                 waited += 0.0005
-        failures = [t.error for t in transfers if t.error]
-        if failures:
-            more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
-            raise HalError(f"CAN bus: {doing}: {failures[0]}{more}")
 
-    def _check_identity(self, transfers: list[SdoTransfer]) -> None:
-        """Every drive is a CiA 402 drive with the units of its EDS, else refuse to run (wrong units = wrong torques)."""
-        for transfer in transfers:
-            if transfer.error:
-                raise HalError(f"CAN bus: configuring the drives: {transfer.error}")
-        u = self.units
-        expected = {
-            (obj.MOTOR_RATED_TORQUE, 0): u.rated_torque_mnm,
-            (obj.LOAD_ENCODER_RESOLUTION, 0): round(u.load_increments_per_rev),
-            (obj.POSITION_ENCODER_RESOLUTION, 1): self.dictionary.default(obj.POSITION_ENCODER_RESOLUTION, 1),
-            (obj.POSITION_ENCODER_RESOLUTION, 2): self.dictionary.default(obj.POSITION_ENCODER_RESOLUTION, 2),
-        }
-        for transfer in transfers:
-            if transfer.data is not None:
-                continue  # a write: its answer was all there was to check
-            value = int.from_bytes(transfer.value, "little")
-            if transfer.index == obj.DEVICE_TYPE:
-                if value & 0xFFFF != obj.CIA402_PROFILE:
-                    raise HalError(
-                        f"CAN bus: node {transfer.node_id} reports device type 0x{value:08X}; expected a CiA 402 drive "
-                        f"(low word 0x{obj.CIA402_PROFILE:04X})"
-                    )
-                continue
-            want = expected[(transfer.index, transfer.sub)]
-            if value != want:
-                raise HalError(
-                    f"CAN bus: node {transfer.node_id} reports {transfer.what} {value}, its EDS "
-                    f"({self.dictionary.path.name}) says {want}: torques and angles would be converted wrong"
-                )
+    def _check_configuration(self, drives: list[_Drive]) -> None:
+        """Every drive is a CiA 402 drive with the robot file's mode, identity and units and keeps what was written.
+
+        What a read found is judged first (a drive without the mode is refused for that, not for the
+        write of 0x6060 it then aborted); then any transfer that failed.
+
+        Raises:
+            HalError: one line naming the node, the object and both values.
+        """
+        for drive in drives:
+            profile = drive.profile
+            for kind, reads, want in self._expected.get(drive.node_id, []):
+                if not all(t.succeeded for t in reads):
+                    continue
+                raw = [profile.dictionary.decode(t.index, t.sub, t.value) for t in reads]
+                problem = _judge(profile, kind, raw, want)
+                if problem is not None:
+                    raise HalError(f"CAN bus: {profile.name}: {problem}")
+        for drive in drives:
+            failures = [t.error for t in self._transfers.get(drive.node_id, []) if t.error]
+            if failures:
+                more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
+                raise HalError(f"CAN bus: configuring the drives: {failures[0]}{more}")
 
     # --- the tick: read --------------------------------------------------------------------------
 
@@ -473,7 +568,7 @@ class CanMaster:
         last = self.syncs - 1
         fresh = True
         for drive in self.drives:
-            missed = last - min(drive.status_sync, drive.load_sync)
+            missed = last - drive.last_sync
             if missed > 0 and drive.lost is None and drive.recovery is None:
                 # A drive already lost (shown in FAULT, without torque) does not hold the others'
                 # readings back; one that just went quiet does, until it counts as lost.
@@ -496,20 +591,21 @@ class CanMaster:
         starts again from rest rather than differentiating across the gap (the arm may have moved
         while nobody saw it: that is a jump for the safety monitor to judge, not a speed).
         """
-        u = self.units
-        q_new = np.array([d.load_counts for d in self.drives], dtype=float) * u.rad_per_load_increment
+        q_new = np.array([d.load_counts for d in self.drives], dtype=float) * self._rad_per_link
         dq_new = np.zeros(self.n)
         if self._last_fresh_sync >= 0:
             cycles = sync - self._last_fresh_sync
             raw = (q_new - self.q_rad) / (cycles * self.settings.period_s)
             dq_new = self.dq_rad_s + self._alpha * (raw - self.dq_rad_s)
             for j, drive in enumerate(self.drives):
-                fresh_now = min(drive.status_sync, drive.load_sync) == sync
+                fresh_now = drive.last_sync == sync
                 if fresh_now and drive.was_stale:
                     dq_new[j] = 0.0
                 drive.was_stale = not fresh_now
-        theta = np.array([d.motor_counts for d in self.drives], dtype=float) * u.rad_per_motor_increment
-        tau = np.array([d.torque_permille for d in self.drives], dtype=float) * u.nm_per_permille
+        theta = np.array([d.motor_counts for d in self.drives], dtype=float) * self._rad_per_motor
+        tau = np.array([d.torque_counts for d in self.drives], dtype=float) * self._nm_per_torque
+        if self._any_deflection:  # the spring torque of the encoders around the spring: k (theta - q)
+            tau = np.where(self._deflection, self._spring_k * (theta - q_new), tau)
         for array in (q_new, dq_new, theta, tau):
             array.flags.writeable = False
         self.q_rad, self.dq_rad_s, self.theta_rad, self.tau_nm = q_new, dq_new, theta, tau
@@ -543,32 +639,22 @@ class CanMaster:
                 if frame.cob_id != SYNC_COB_ID:
                     self.unknown_frames += 1
                 continue
-            drive, what = route
-            if what == "status":
-                values = self._unpack_status(frame.data)
+            drive, what, k = route
+            if what == "tpdo":
+                decode, names, length = self._tpdo_decoders[frame.cob_id]
+                values = decode(frame.data)
                 if values is None:
-                    self._latch(
-                        f"drive {drive.node_id}: TPDO1 of {len(frame.data)} bytes; expected {self.mapping.tpdo_status.length}"
-                    )
+                    self._latch(f"drive {drive.node_id}: TPDO{k + 1} of {len(frame.data)} bytes; expected {length}")
                     continue
-                drive.statusword, drive.motor_counts = int(values[0]), int(values[1])
-                power = decode_statusword(drive.statusword)
-                if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
-                    drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
-                drive.power = power
+                for name, value in zip(names, values, strict=True):
+                    setattr(drive, name, int(value))
+                if "statusword" in names:
+                    power = decode_statusword(drive.statusword or 0)
+                    if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
+                        drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
+                    drive.power = power
                 if frame.t_s >= sync_s:
-                    drive.status_sync = sync
-                    latency = max(latency, frame.t_s - sync_s)
-            elif what == "load":
-                values = self._unpack_load(frame.data)
-                if values is None:
-                    self._latch(
-                        f"drive {drive.node_id}: TPDO2 of {len(frame.data)} bytes; expected {self.mapping.tpdo_load.length}"
-                    )
-                    continue
-                drive.load_counts, drive.torque_permille = int(values[0]), int(values[1])
-                if frame.t_s >= sync_s:
-                    drive.load_sync = sync
+                    drive.tpdo_syncs[k] = sync
                     latency = max(latency, frame.t_s - sync_s)
             elif what == "heartbeat":
                 self._on_heartbeat(drive, frame)
@@ -644,9 +730,13 @@ class CanMaster:
                     code = 0x1000  # a fault the drive shows without (yet) an EMCY: generic error
             states.append(state)
             codes.append(code)
-            word = drive.statusword or 0
-            operator = operator or bool(word & SW_ESTOP_OPERATOR)
-            pilot = pilot or bool(word & SW_ESTOP_PILOT)
+            profile = drive.profile
+            if profile.estop is not None:
+                word = (drive.statusword or 0) if profile.estop_in_statusword else drive.estop_word
+                if profile.estop_pressed_when_clear:
+                    word = ~word
+                operator = operator or bool(word & profile.estop_operator_mask)
+                pilot = pilot or bool(word & profile.estop_pilot_mask)
         return tuple(states), tuple(codes), (operator, pilot)
 
     # --- the tick: write ---------------------------------------------------------------------------
@@ -661,9 +751,9 @@ class CanMaster:
         Raises:
             HalError: the bus refused a frame (torque cannot be commanded: the caller reports it).
         """
-        nm_per_permille = self.units.nm_per_permille
-        peak = self._peak_permille
-        pack = self._pack_rpdo
+        nm_per_permille = self._nm_per_permille
+        peaks = self._peak_permille_of
+        packs = self._pack_rpdo
         following = self.settings.ramp_s is not None
         commanded: list[int | None] = []
         for j, drive in enumerate(self.drives):
@@ -676,8 +766,9 @@ class CanMaster:
             drive.controlword = outcome.controlword
             permille = 0
             if wanted and healthy and torque_nm is not None:
-                permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille)))
-            self._send(self._rpdo_cob[j], pack(outcome.controlword, permille))
+                peak = peaks[j]
+                permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille[j])))
+            self._send(self._rpdo_cob[j], packs[j](outcome.controlword, permille))
             if following:
                 commanded.append(
                     permille if outcome.controlword == CW_ENABLE_OPERATION and wanted and healthy else None
@@ -695,7 +786,7 @@ class CanMaster:
         for j, drive in enumerate(self.drives):
             drive.stepper.step(None, False)
             drive.controlword = CW_DISABLE_VOLTAGE
-            self._send(self._rpdo_cob[j], self._pack_rpdo(CW_DISABLE_VOLTAGE, 0))
+            self._send(self._rpdo_cob[j], self._pack_rpdo[j](CW_DISABLE_VOLTAGE, 0))
         self._sync()
 
     def _sync(self) -> None:
@@ -737,7 +828,9 @@ class CanMaster:
         drive.reaction_sentence = plan.sentence()
         ramp_s = self.settings.ramp_s
         if plan.ramps and ramp_s is not None:
-            drive.slope = SlopeFollower(ramp_s, self._peak_permille, plan.slope_permille_per_s)
+            drive.slope = SlopeFollower(
+                ramp_s, self._peak_permille_of[self._joint[drive.node_id] - 1], plan.slope_permille_per_s
+            )
 
     def _follow_slopes(self, commanded: list[int | None], now: float) -> None:
         """Rewrite the torque slope of drives that ramp, as the torque they are commanded changes (never waits).
@@ -767,7 +860,7 @@ class CanMaster:
                 continue
             slope = follower.due(torque, now)
             if slope is not None:
-                data = self.dictionary.encode(obj.TORQUE_SLOPE, 0, slope)
+                data = drive.profile.dictionary.encode(obj.TORQUE_SLOPE, 0, slope)
                 drive.slope_write = (sdo.write(drive.node_id, obj.TORQUE_SLOPE, 0, data, "torque slope"), slope)
 
     def _drop_slope_write(self, drive: _Drive) -> None:
@@ -828,17 +921,17 @@ class CanMaster:
                 )
             elif recovery.phase == "configure" and not self.sdo.node_busy(drive.node_id):
                 try:
-                    self._check_identity(recovery.transfers)  # every transfer answered, the units its EDS's
+                    self._check_configuration([drive])  # every transfer answered, the robot file's units and mode
                 except HalError as exc:
                     self._recovery_failed(drive, str(exc))
                     continue
                 self._reaction_configured(drive)
                 self._send(*nmt_frame(NmtCommand.START, drive.node_id))
                 recovery.phase, recovery.since_s = "start", now
-                drive.status_sync = drive.load_sync = -1
+                drive.tpdo_syncs = [-1] * len(drive.tpdo_syncs)
                 drive.power = None
             elif recovery.phase == "start":
-                if min(drive.status_sync, drive.load_sync) >= self.syncs - 1 >= 0:
+                if drive.last_sync >= self.syncs - 1 >= 0:
                     drive.recovery = None
                     drive.lost, drive.lost_why = None, ""
                 elif now - recovery.since_s > self.settings.boot_timeout_s:
@@ -849,3 +942,60 @@ class CanMaster:
         drive.lost, drive.lost_why = "recovery", why
         self.sdo.cancel_node(drive.node_id)
         self._latch(f"drive {drive.node_id}: bringing it back failed: {why}")
+
+
+def interpolation_period(period_s: float) -> tuple[int, int]:
+    """0x60C2's (value, index) of ``period_s``: ``value * 10**index`` s, value 1-255, the largest index that is exact.
+
+    Raises:
+        HalConfigError: no whole value of at most 255 units of 1 us or more expresses it.
+    """
+    for exponent in range(-3, -7, -1):
+        value = round(period_s / 10.0**exponent)
+        if 1 <= value <= 255 and math.isclose(value * 10.0**exponent, period_s, rel_tol=1e-9):
+            return value, exponent
+    raise HalConfigError(f"a cycle of {period_s} s is no whole number of 1-255 ms, 100 us, 10 us or us (0x60C2)")
+
+
+_MODE_NAMES = {obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE: "cst (cyclic synchronous torque)", obj.MODE_PROFILE_TORQUE: "tq (profile torque)"}  # fmt: skip
+
+
+def _judge(profile: DriveProfile, kind: str, raw: list[int], want: object) -> str | None:
+    """What is wrong with a start-up read of ``profile``'s drive (None: as expected)."""
+    value = raw[0]
+    if kind == "device type":
+        if value & 0xFFFF != obj.CIA402_PROFILE:
+            return f"reports device type 0x{value:08X}; expected a CiA 402 drive (low word 0x{obj.CIA402_PROFILE:04X})"
+        return None
+    if kind in ("vendor id", "product code"):
+        if value != want:
+            return f"0x1018 {kind} is 0x{value:X}; its robot file expects 0x{want:X}"
+        return None
+    if kind == "modes":
+        if value >> (int(want) - 1) & 1:  # type: ignore[call-overload]
+            return None
+        names = ", ".join(decode_supported_modes(value)) or "none"
+        torque = [name for code, name in _MODE_NAMES.items() if value >> (code - 1) & 1]
+        if not torque:
+            return f"its 0x6502 supported drive modes are {names}: no cst (cyclic synchronous torque) or tq (profile torque)"
+        return (
+            f"its 0x6502 supported drive modes are {names}: no {_MODE_NAMES[int(want)]}, the robot file's mode; "  # type: ignore[call-overload]
+            f"expected mode: {torque[0].split()[0]}"
+        )
+    if kind == "unit":
+        check = want
+        assert isinstance(check, UnitCheck)
+        got = check.value(raw)
+        if got != check.expected:
+            return (
+                f"reports {check.what} {got:g}, its robot file says {check.expected:g}: torques and angles "
+                "would be converted wrong"
+            )
+        return None
+    if kind == "mode shown":
+        if value != want:
+            return f"0x6061 modes of operation display is {value} after 0x6060 was written {want}"
+        return None
+    if value != want:  # "kept": an sdo_init value read back
+        return f"does not keep its sdo_init value: read back {value}, written {want}"
+    return None

@@ -249,16 +249,26 @@ class SdoClient:
         """True while a transfer is queued or in flight."""
         return bool(self._in_flight) or any(self._queues.values())
 
-    def frames_due(self, now_s: float) -> list[tuple[int, bytes]]:
-        """Time out what waited too long; start the next transfer of every idle node: ``(COB-ID, data)`` to send."""
+    def startable(self) -> int:
+        """How many nodes have a transfer queued and none in flight: the most :meth:`frames_due` would start."""
+        return sum(1 for node_id, queue in self._queues.items() if queue and node_id not in self._in_flight)
+
+    def frames_due(self, now_s: float, limit: int | None = None) -> list[tuple[int, bytes]]:
+        """Time out what waited too long; start the next transfer of idle nodes: ``(COB-ID, data)`` to send.
+
+        ``limit``: start at most this many (None: one per idle node). The nodes take turns: the one
+        that started last goes to the back, so a limit never starves a node.
+        """
         for node_id, transfer in list(self._in_flight.items()):
             if transfer.sent_at_s is not None and now_s - transfer.sent_at_s > self.timeout_s:
                 transfer.done = True
                 transfer.error = f"{transfer.target}: no SDO response within {self.timeout_s * 1e3:.0f} ms"
                 del self._in_flight[node_id]
-        frames = []
-        for node_id, queue in self._queues.items():
-            if node_id in self._in_flight:
+        frames: list[tuple[int, bytes]] = []
+        for node_id, queue in list(self._queues.items()):
+            if limit is not None and len(frames) >= limit:
+                break
+            if node_id in self._in_flight or not queue:
                 continue
             transfer = self._next(queue)
             if transfer is None:
@@ -271,6 +281,8 @@ class SdoClient:
                 else download_request(transfer.index, transfer.sub, transfer.data)
             )
             frames.append((SDO_REQUEST_BASE + node_id, payload))
+            if limit is not None:
+                self._queues[node_id] = self._queues.pop(node_id)  # to the back of the turn
         return frames
 
     @staticmethod

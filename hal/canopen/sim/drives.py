@@ -33,14 +33,14 @@ the run is deterministic).
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 import can
 import numpy as np
 
 from hal.canopen.cia301.nmt import SDO_REQUEST_BASE, SYNC_COB_ID
 from hal.canopen.cia402.statemachine import PowerState
-from hal.canopen.dictionary import DriveDictionary
+from hal.canopen.profile import DriveProfile
 from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
 from hal.capabilities import BUS_FAULT_KINDS
 from hal.errors import HalError, InputError
@@ -61,26 +61,23 @@ class SimulatedDriveSet:
         bus: the drives' handle on the virtual bus (created with ``preserve_timestamps=True``), or
             None until :meth:`attach`.
         plant: the simulated plant, opened by :meth:`power_on`.
-        node_ids: the node id of the drive of joints 1-4.
-        dictionary: the drives' EDS.
+        profiles: the drives of joints 1-4 (:mod:`hal.canopen.profile`): each is built from its
+            profile's EDS and reads its sensors into its profile's objects.
         master_node_id: the node id whose heartbeat the drives consume.
-        dictionaries: node id -> another EDS that drive is built from (a drive of another firmware).
     """
 
     def __init__(
         self,
         bus: can.BusABC | None,
         plant: SimHal,
-        node_ids: tuple[int, ...],
-        dictionary: DriveDictionary,
+        profiles: tuple[DriveProfile, ...],
         master_node_id: int,
-        dictionaries: Mapping[int, DriveDictionary] | None = None,
     ) -> None:
         self.bus = bus
         self.plant = plant
-        self.dictionary = dictionary
-        own = dict(dictionaries or {})
-        self.drives = [SimulatedSeaDrive(n, own.get(n, dictionary), self._send, master_node_id) for n in node_ids]
+        self.drives = [
+            SimulatedSeaDrive(p.node_id, p.dictionary, self._send, master_node_id, profile=p) for p in profiles
+        ]
         self._by_node = {d.node_id: d for d in self.drives}
         self._torques = np.zeros(N_JOINTS)
         self._scheduled: list[tuple[float, str, int, float | None]] = []
