@@ -1047,19 +1047,17 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.util.atomic import write_text_atomic
     from daror_runtime.util.outputs import output_lock
     from hal.capabilities import BUS_FAULT_KINDS, BusStatistics, FaultSchedule
-    from hal.config import hal_config
     from hal.interface import open_hal
 
     spec = load_fsm_spec(args.spec)
     settings = load_session_settings(args.settings)
     out = _output_dir(args.out, args.script)
+        hil_config,
     traffic = out / "can.log.gz"  # compressed as it is written (D137): zcat can.log.gz | canplayer
     for name in (traffic, out / "can.log", out / "hil.json"):
         if name.exists():
             raise UsageError(f"{name}: exists; a HIL run writes a new one: expected another --out")
-    config = hal_config(
-        "can-sim", "--scenario/--rate-hz", scenario=args.scenario, rate_hz=args.rate_hz, traffic_log=str(traffic)
-    )
+    config = hil_config(args.hal_config, args.scenario, args.rate_hz, traffic)
     faults = [_parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS) for text in args.fault or []]
     hal = open_hal(config)
     world = hal.world
@@ -1536,6 +1534,12 @@ def build_parser() -> argparse.ArgumentParser:
     schema.add_argument("--out", type=Path, help="write here instead of standard output")
     schema.set_defaults(handler=cmd_fsm_schema)
 
+    hil.add_argument(
+        "--hal-config",
+        type=Path,
+        help="robot file (backend can or can-sim): its nodes run on simulated drives built from their EDS "
+        "(default: the DAROR-01's four drives)",
+    )
     bench = commands.add_parser(
         "bench",
         help="run the benchmarks of docs/performance.md",

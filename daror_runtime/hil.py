@@ -30,12 +30,14 @@ from daror_runtime.safety.faults import FaultKind
 if TYPE_CHECKING:
     from daror_runtime.runtime import Runtime
 
+    from hal.config import CanSimHalConfig
 __all__ = [
     "REACTION_LIMIT_S",
     "ScheduledFault",
     "fault_lines",
     "fault_summaries",
     "let_the_reaction_play_out",
+    "hil_config",
     "read_audit",
 ]
 
@@ -279,3 +281,38 @@ def let_the_reaction_play_out(
         if reaction is None or not reaction.arm_held or reaction.phase in ("held", "rested"):
             return
     say(f"the reaction still moves the arm after {limit_s:g} s (phase {reaction.phase}): the session ends")
+
+
+def hil_config(robot_file: Path | None, scenario: str | None, rate_hz: float | None, traffic: Path) -> CanSimHalConfig:
+    """The ``can-sim`` configuration of a HIL run: a robot file's nodes on simulated drives, or the DAROR-01's.
+
+    A ``backend: can`` robot file runs its nodes as they are (EDS, objects, units, PDOs) on python-can's
+    virtual bus, with simulated drives built from each node's EDS and profile, in front of the
+    simulated plant; a ``can-sim`` file likewise. ``scenario`` and ``rate_hz`` (the flags) replace
+    the file's; the bus log goes to ``traffic``.
+
+    Raises:
+        HalConfigError: the file cannot be read, is not a CAN robot file, or a field is wrong (one line).
+    """
+    from hal.config import CanHalConfig, CanSimHalConfig, hal_config, load_hal_config
+    from hal.errors import HalConfigError
+
+    flags = {"scenario": scenario, "rate_hz": rate_hz, "traffic_log": str(traffic)}
+    if robot_file is None:
+        config = hal_config("can-sim", "--scenario/--rate-hz", **flags)
+        assert isinstance(config, CanSimHalConfig)
+        return config
+    loaded = load_hal_config(robot_file)
+    if not isinstance(loaded, CanHalConfig | CanSimHalConfig):
+        raise HalConfigError(
+            f"{robot_file}: backend {loaded.backend}; expected a CAN robot file (backend: can or can-sim) for daror hil"
+        )
+    hardware_only = {"backend", "interface", "channel", "velocity_filter_hz", "traffic_log"}
+    if loaded.nodes is not None:
+        hardware_only |= {"node_ids", "eds"}  # the nodes' own (a robot file gives one of the two)
+    fields = loaded.model_dump(by_alias=True, exclude=hardware_only)
+    fields.update({k: v for k, v in flags.items() if v is not None})
+    try:
+        return CanSimHalConfig.model_validate(fields)
+    except ValueError as exc:  # a field of the file that only hardware takes: said in one line
+        raise HalConfigError(f"{robot_file}: {' '.join(str(exc).split())}") from None

@@ -28,11 +28,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from hal.errors import HalConfigError
 from hal.robot import N_JOINTS
-from hal.yamlfile import Integer, Number, format_validation_error, line_of, read_yaml
+from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
 
 __all__ = [
     "BACKEND_NAMES",
@@ -41,8 +50,14 @@ __all__ = [
     "AnyHalConfig",
     "CanHalConfig",
     "CanSimHalConfig",
+    "EstopInput",
     "HalConfig",
+    "IdentityCheck",
+    "NodeConfig",
+    "PositionObject",
+    "SdoInitWrite",
     "SimHalConfig",
+    "SpringTorque",
     "hal_config",
     "load_hal_config",
 ]
@@ -87,6 +102,139 @@ class SimHalConfig(_Config):
     robot: Text | None = None
 
 
+#: An object dictionary index (CiA 301: 16 bits) and a sub-index (8 bits).
+ObjectIndex = Annotated[Integer, Field(ge=0x1000, le=0xFFFF)]
+SubIndex = Annotated[Integer, Field(ge=0, le=0xFF)]
+#: A count that scales a position: increments per revolution, positive.
+CountsPerRev = Annotated[Number, Field(gt=0, le=2.0**32)]
+
+
+class IdentityCheck(_Config):
+    """The identity object 0x1018 a node must report at start-up (sub 1 vendor id, sub 2 product code).
+
+    Attributes:
+        vendor_id: 0x1018:1, the CiA-assigned vendor id.
+        product_code: 0x1018:2; None: not checked.
+    """
+
+    vendor_id: Annotated[Integer, Field(ge=0, le=0xFFFF_FFFF)]
+    product_code: Annotated[Integer, Field(ge=0, le=0xFFFF_FFFF)] | None = None
+
+
+class PositionObject(_Config):
+    """An encoder the drive reports in a PDO: its object and its scale.
+
+    Attributes:
+        index, subindex: the object (e.g. 0x6064:0 position actual value, 0x60E4:1 an additional position).
+        counts_per_rev: increments per revolution of the shaft the encoder sits on.
+        gear_ratio: revolutions of that shaft per revolution of the joint side it stands for (the
+            motor encoder behind a gearbox: the gearbox's ratio); 1.0 for an encoder on the joint side.
+            The motor position's ratio also scales the torque: the arm gets ``gear_ratio`` times the
+            motor torque the target torque 0x6071 commands.
+        resolution_index: an object of the drive that holds ``counts_per_rev`` (the DAROR drive's
+            0x2011), read at start-up and compared; None: none (0x6064's 0x608F is checked by itself).
+    """
+
+    index: ObjectIndex
+    subindex: SubIndex = 0
+    counts_per_rev: CountsPerRev
+    gear_ratio: Annotated[Number, Field(gt=0, le=1e6)] = 1.0
+    resolution_index: ObjectIndex | None = None
+
+
+class SpringTorque(_Config):
+    """Where the spring torque comes from: the encoders' deflection, or an object the drive reports.
+
+    ``{from: deflection}``: ``k (theta - q)``, k the robot description's spring stiffness, theta the
+    motor position (joint side), q the link position. ``{index: 0x6077, nm_per_count: 0.01}``: the
+    object, in N m per count; without ``nm_per_count`` the object is in per mille of the rated
+    torque (``rated_torque_mnm``), as CiA 402's torque objects are.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, populate_by_name=True)
+
+    source: Literal["deflection", "object"] = Field("object", alias="from")
+    index: ObjectIndex | None = None
+    subindex: SubIndex = 0
+    nm_per_count: Annotated[Number, Field(gt=0, le=1e3)] | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> SpringTorque:
+        if self.source == "deflection" and (self.index is not None or self.nm_per_count is not None):
+            raise ValueError("from: deflection takes no index or nm_per_count; expected one of the two forms")
+        if self.source == "object" and self.index is None:
+            raise ValueError("expected {from: deflection} or {index: ..., nm_per_count: ...}")
+        return self
+
+
+class EstopInput(_Config):
+    """Where a node reports the e-stop buttons: two bits of one object it sends in a PDO.
+
+    Attributes:
+        index, subindex: the object (0x6041 the statusword, 0x60FD the digital inputs).
+        operator_bit, pilot_bit: the bit of each button (0 = the lowest).
+        pressed_when_clear: True for inputs wired normally closed (the bit is 1 while the button is
+            released: a cut wire reads as pressed); False: the bit is 1 while it is pressed.
+    """
+
+    index: ObjectIndex
+    subindex: SubIndex = 0
+    operator_bit: Annotated[Integer, Field(ge=0, le=63)]
+    pilot_bit: Annotated[Integer, Field(ge=0, le=63)]
+    pressed_when_clear: Flag = False
+
+    @model_validator(mode="after")
+    def _two_bits(self) -> EstopInput:
+        if self.operator_bit == self.pilot_bit:
+            raise ValueError(f"operator_bit and pilot_bit are both {self.pilot_bit}; expected two different bits")
+        return self
+
+
+class SdoInitWrite(_Config):
+    """One SDO write of a node's start-up (after the master's own), read back and compared."""
+
+    index: ObjectIndex
+    subindex: SubIndex = 0
+    value: Annotated[Integer, Field(ge=-(2**31), le=2**32 - 1)]
+
+
+class NodeConfig(_Config):
+    """One drive of the robot file: which joint, which node, its EDS and how its objects are read.
+
+    Attributes:
+        joint: the joint it drives, 1-4.
+        node_id: its CANopen node id.
+        eds: its EDS file (relative to the robot file).
+        identity: 0x1018 checked at start-up; None: not checked.
+        mode: ``cst`` (cyclic synchronous torque, 10) or ``tq`` (profile torque, 4): written to
+            0x6060, read back from 0x6061, refused at start-up if the drive's 0x6502 lacks it.
+        rated_torque_mnm: the motor rated torque 0x6076, mNm: the target torque 0x6071 is in per
+            mille of it; None: the EDS's default. Compared with the drive's 0x6076 at start-up.
+        motor_position: the motor side encoder (SEA: the gearbox output, theta).
+        link_position: the link side encoder (q).
+        spring_torque: see :class:`SpringTorque`.
+        estop: the e-stop inputs, or None: this node reports none (another node does).
+        sdo_init: writes at start-up, after the master's own, each read back.
+        enable_timeout_ms: how long one CiA 402 power state transition may take, ms.
+        heartbeat_ms: the node's heartbeat producer time 0x1017, ms; None: the file's
+            ``heartbeat_producer_ms``.
+    """
+
+    joint: Annotated[Integer, Field(ge=1, le=N_JOINTS)]
+    node_id: NodeId
+    eds: Text
+    identity: IdentityCheck | None = None
+    mode: Literal["cst", "tq"] = "cst"
+    rated_torque_mnm: Annotated[Integer, Field(ge=1, le=0xFFFF_FFFF)] | None = None
+    motor_position: PositionObject
+    link_position: PositionObject
+    spring_torque: SpringTorque
+    estop: EstopInput | Literal["none"] | None = None
+    sdo_init: Annotated[list[SdoInitWrite], Field(max_length=64)] = []
+    enable_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 200
+    heartbeat_ms: HeartbeatMs | None = None
+
+
 class _CanFields(_Config):
     """What a CANopen backend needs (``hal/canopen``, issue 12).
 
@@ -111,6 +259,10 @@ class _CanFields(_Config):
         eds: the drives' EDS file (object dictionary); None: the backend's own.
         traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
             not exist yet; a name ending in ``.gz`` is written gzip-compressed); None: no log.
+        nodes: the robot file's drives, one per joint (:class:`NodeConfig`; docs/canopen.md,
+            "Robot file"); None: the short form, four DAROR SEA drives on ``node_ids`` with ``eds``.
+            With ``nodes``, ``node_ids`` is theirs (joint 1-4 in order) and neither ``node_ids``
+            nor ``eds`` may be given.
     """
 
     interface: Text
@@ -126,6 +278,38 @@ class _CanFields(_Config):
     rpdo_deadline_ms: Annotated[Integer, Field(ge=0, le=65_535)] | None = None
     eds: Text | None = None
     traffic_log: Text | None = None
+    nodes: Annotated[list[NodeConfig], Field(min_length=N_JOINTS, max_length=N_JOINTS)] | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _node_ids_of_the_nodes(cls, data: Any) -> Any:
+        """With ``nodes``: ``node_ids`` is theirs, joint 1-4 in order (given both ways, refused)."""
+        if not isinstance(data, dict) or data.get("nodes") is None:
+            return data
+        for name in ("node_ids", "eds"):
+            if data.get(name) is not None:
+                raise ValueError(f"{name} and nodes both given; expected one: each node names its node_id and eds")
+        nodes = data["nodes"]
+        if isinstance(nodes, list) and all(isinstance(n, dict) for n in nodes):
+            by_joint = {n.get("joint"): n.get("node_id") for n in nodes}
+            if sorted(by_joint, key=repr) == list(range(1, N_JOINTS + 1)) and len(by_joint) == len(nodes):
+                data = {**data, "node_ids": [by_joint[j] for j in range(1, N_JOINTS + 1)]}
+        return data
+
+    @field_validator("nodes")
+    @classmethod
+    def _one_node_a_joint(cls, nodes: list[NodeConfig] | None) -> list[NodeConfig] | None:
+        if nodes is None:
+            return None
+        joints = [n.joint for n in nodes]
+        if sorted(joints) != list(range(1, N_JOINTS + 1)):
+            raise ValueError(f"joints {joints}: expected each of joints 1-{N_JOINTS} once")
+        ids = [n.node_id for n in nodes]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"node ids {ids}: expected four different node ids, one per drive")
+        if all(n.estop in (None, "none") for n in nodes):
+            raise ValueError("no node reports the e-stop buttons; expected estop: on at least one node")
+        return sorted(nodes, key=lambda n: n.joint)
 
     @field_validator("node_ids")
     @classmethod
@@ -227,11 +411,16 @@ def load_hal_config(path: Path | str) -> AnyHalConfig:
         config = model.model_validate(data)
     except ValidationError as exc:
         raise HalConfigError(format_validation_error(str(path), exc, root)) from None
-    updates = {}
+    updates: dict[str, Any] = {}
     for name in _PATH_FIELDS:
         value = getattr(config, name, None)
         if isinstance(value, str) and _looks_like_path(value) and not Path(value).is_absolute():
             updates[name] = str(path.parent / value)
+    nodes = getattr(config, "nodes", None)
+    if nodes is not None:  # each node's EDS is relative to the robot file, as every path in it is
+        updates["nodes"] = [
+            n if Path(n.eds).is_absolute() else n.model_copy(update={"eds": str(path.parent / n.eds)}) for n in nodes
+        ]
     return config.model_copy(update=updates) if updates else config  # type: ignore[return-value]
 
 

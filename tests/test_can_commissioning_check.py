@@ -250,3 +250,20 @@ def test_daror_can_check_exit_1_when_an_item_fails(tmp_path: Path) -> None:
     rows = json.loads(out.read_text())["rows"]
     vendor = [r for r in rows if r["item"] == "vendor 0x1018:1"]
     assert {(r["found"], r["expected"], r["verdict"]) for r in vendor} == {("0x00000000", "0x000001A3", "FAIL")}
+
+
+@pytest.mark.parametrize(("supported", "verdict"), [(0x00000208, "PASS"), (0x00000008, "FAIL")])
+def test_supported_modes_must_hold_the_mode_written(tmp_path: Path, supported: int, verdict: str) -> None:
+    """A drive whose EDS has 0x6502: its bit 9 (cyclic synchronous torque) must be set, else FAIL."""
+    from hal.canopen.dictionary import DEFAULT_EDS
+
+    eds = tmp_path / "with_6502.eds"
+    eds.write_text(
+        DEFAULT_EDS.read_text()
+        + "\n[6502]\nParameterName=Supported drive modes\nObjectType=0x7\nDataType=0x0007\nAccessType=ro\n"
+        f"DefaultValue=0x{supported:08X}\nPDOMapping=0\n"
+    )
+    config = hal_config("can-sim", eds=str(eds))
+    hal = commissioning_backend(config, 2.0)
+    report = _check(BusSession(hal, LockStepClock(1.0 / hal.rate_hz)))
+    assert _rows(report, "supported modes 0x6502") == [(j, f"0x{supported:08X}", verdict) for j in range(1, 5)]

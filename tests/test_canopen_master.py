@@ -18,8 +18,9 @@ import pytest
 
 from hal.canopen.bus import Frame, FrameSource
 from hal.canopen.cia402.statemachine import PowerState, statusword_of
-from hal.canopen.dictionary import load_dictionary
 from hal.canopen.master import LOST_CODES, CanMaster, MasterSettings
+from hal.canopen.profile import resolve_profiles
+from hal.config import hal_config
 from hal.interface import DriveState
 
 NODES = (1, 2, 3, 4)
@@ -53,7 +54,8 @@ Rig = tuple[CanMaster, ScriptedFrames, Clock]
 def rig() -> Iterator[Rig]:
     bus = can.Bus(interface="virtual", channel=f"master-test-{next(_CHANNELS)}")
     source, clock = ScriptedFrames(), Clock()
-    master = CanMaster(bus, source, load_dictionary(), MasterSettings(node_ids=NODES, period_s=PERIOD_S), clock)
+    profiles = resolve_profiles(hal_config("can-sim", node_ids=list(NODES)), 289.0)
+    master = CanMaster(bus, source, profiles, MasterSettings(node_ids=NODES, period_s=PERIOD_S), clock)
     yield master, source, clock
     bus.shutdown()
 

@@ -484,7 +484,8 @@ def test_heartbeats_come_exactly_at_the_producer_period_in_robot_time() -> None:
         bench.drive.advance(now)
         times += [(ms, data) for cob, data in bench.take() if cob == HEARTBEAT]
     pre, op = b"\x7f", b"\x05"
-    assert times == [(150, pre), (250, pre), (350, pre), (450, op), (550, op), (650, op)]
+    # One more at NMT start (a heartbeat at every NMT state change, as CANopenNode sends): the grid stays.
+    assert times == [(150, pre), (250, pre), (350, pre), (400, op), (450, op), (550, op), (650, op)]
 
 
 def test_a_late_advance_sends_one_heartbeat_and_keeps_the_period_grid() -> None:

@@ -8,16 +8,17 @@ what was expected and PASS, FAIL or INFO (a value with nothing to compare it wit
    torque limit;
 2. per drive, by SDO while every drive is disabled: 0x1000 (a CiA 402 device), 0x1018:1-4 (vendor
    and product against the EDS's ``[DeviceInfo]``; revision and serial shown), the units (0x6076,
-   0x608F:1/2, 0x2011 against the EDS), the mode (0x6061 against cyclic synchronous torque, 10;
-   0x6502 bit 9 where the EDS has it), 0x6072 (the check's torque limit in force);
+   0x608F:1/2, 0x2011 against what the backend converts with), the mode (0x6061 against the mode
+   the master wrote, 10: cyclic synchronous torque; 0x6502's bit of it where the EDS has 0x6502),
+   0x6072 (the check's torque limit in force);
 3. the arm at rest (every joint slower than ``rest_speed_rad_s``), no e-stop pressed, no drive in
    fault: else nothing is enabled;
 4. per joint, the others disabled: enabled at zero torque until OPERATION ENABLED, its motor and
    link encoders and spring torque read for ``window_s`` (mean, spread), then disabled and seen
    disabled. A joint that moves more than ``max_motion_rad`` while enabled, another drive that
    shows enabled, or a latched fault stops the check there: torque off at once;
-5. every drive disabled, confirmed by a fresh sample, whatever happened (Ctrl-C included), then the
-   bus closed.
+5. every drive disabled, confirmed by each drive's own statusword (three SYNCs in a row), whatever
+   happened (Ctrl-C included), then the bus closed.
 
 Units: angles in rad, torques in N m, times in s (shown in ms where short).
 """
@@ -38,9 +39,6 @@ __all__ = ["CheckLimits", "CheckReport", "CheckRow", "Verdict", "run_check"]
 
 Verdict = Literal["PASS", "FAIL", "INFO"]
 
-#: CiA 402 modes of operation: cyclic synchronous torque, and its bit in 0x6502 (supported drive modes).
-MODE_CST = 10
-_CST_SUPPORTED_BIT = 1 << 9
 #: The low word of 0x1000 of a CiA 402 drive.
 _CIA402_PROFILE = 0x0192
 
@@ -107,7 +105,8 @@ class CheckReport:
         rows: the table, in the order found.
         readings: joint -> {"motor_rad", "link_rad", "spring_nm"} -> :class:`Stats` over its window.
         interrupted: Ctrl-C stopped the check (every drive was disabled all the same).
-        disabled_confirmed: a fresh sample showed no drive enabled before the bus was closed.
+        disabled_confirmed: every drive's own statusword said its power stage was off, three SYNCs in a
+            row, before the bus was closed.
     """
 
     rows: list[CheckRow] = field(default_factory=list)
@@ -195,8 +194,8 @@ def run_check(
         for fault in session.faults:
             add(0, 0, "fault latched", fault, "no fault", "FAIL")
         add(0, 0, "every drive disabled",
-            "confirmed by a fresh sample" if report.disabled_confirmed else "NOT confirmed",
-            "no drive enabled at the end", "PASS" if report.disabled_confirmed else "FAIL")  # fmt: skip
+            "every statusword: power stage off" if report.disabled_confirmed else "NOT confirmed",
+            "3 SYNCs in a row, then the bus closed", "PASS" if report.disabled_confirmed else "FAIL")  # fmt: skip
     return report
 
 
@@ -209,63 +208,55 @@ def _read_objects(
 ) -> None:
     """Identity, units, mode and the torque limit of every drive, by SDO through the master, drives disabled."""
     probe = session.probe
-    items: list[tuple[int, int, str]] = [
-        (0x1000, 0, "device type 0x1000"),
-        (0x1018, 1, "vendor 0x1018:1"),
-        (0x1018, 2, "product 0x1018:2"),
-        (0x1018, 3, "revision 0x1018:3"),
-        (0x1018, 4, "serial 0x1018:4"),
-        (0x6076, 0, "rated torque 0x6076 (mNm)"),
-        (0x608F, 1, "motor encoder increments 0x608F:1"),
-        (0x608F, 2, "motor revolutions 0x608F:2"),
-        (0x2011, 0, "link encoder increments/rev 0x2011"),
-        (0x6061, 0, "mode display 0x6061"),
-        (0x6072, 0, "max torque 0x6072 (per mille)"),
-    ]
-    if probe.has_object(0x6502, 0):
-        items.append((0x6502, 0, "supported modes 0x6502"))
-    reads = {node: [probe.read(node, index, sub, what) for index, sub, what in items] for node in node_ids}
+    peak_counts = round(limits.torque_limit_nm / probe.nm_per_torque_count)
+    reads: dict[int, list[tuple[Any, tuple[str, Callable[[int], tuple[str, Verdict]]]]]] = {}
+    for node in node_ids:
+        want = expected_identity(node)
+        mode = probe.mode(node)
+        items: list[tuple[int, int, str, tuple[str, Callable[[int], tuple[str, Verdict]]]]] = [
+            (0x1000, 0, "device type 0x1000", _cia402()),
+            (0x1018, 1, "vendor 0x1018:1", _equal(want.get("vendor_id"), "0x{:08X}")),
+            (0x1018, 2, "product 0x1018:2", _equal(want.get("product_code"), "0x{:08X}")),
+            (0x1018, 3, "revision 0x1018:3", _equal(None, "0x{:08X}")),
+            (0x1018, 4, "serial 0x1018:4", _equal(None, "0x{:08X}")),
+            *((u.index, u.sub, u.what, _equal(u.expected, "{}")) for u in probe.unit_objects(node)),
+            (0x6061, 0, "mode display 0x6061", _equal(mode, "{}")),
+            (0x6072, 0, "max torque 0x6072 (per mille)", _equal(peak_counts, "{}")),
+        ]
+        if probe.has_object(node, 0x6502, 0):
+            items.append((0x6502, 0, "supported modes 0x6502", _bit(mode - 1)))
+        reads[node] = [(probe.read(node, index, sub, what), judge) for index, sub, what, judge in items]
     for _ in range(session.ticks_for(limits.sdo_timeout_s)):
         session.tick(Command.torque_off())
-        if all(read.done for node_reads in reads.values() for read in node_reads):
+        if all(read.done for node_reads in reads.values() for read, _ in node_reads):
             break
-    peak_counts = round(limits.torque_limit_nm / probe.nm_per_torque_count)
     for joint, node in enumerate(node_ids, start=1):
-        want = expected_identity(node)
-        for read in reads[node]:
+        for read, (expected, judge) in reads[node]:
             if read.value is None:
                 add(joint, node, read.what, read.error, "an answer", "FAIL")
                 continue
-            value = read.signed_value if read.index == 0x6061 else read.value
-            add(joint, node, read.what, *_judge(read.index, read.sub, value, want, probe, peak_counts))
+            found, verdict = judge(read.signed_value if read.index == 0x6061 else read.value)
+            add(joint, node, read.what, found, expected, verdict)
 
 
-def _judge(
-    index: int, sub: int, value: int, want: dict[str, int | None], probe: Any, peak_counts: int
-) -> tuple[str, str, Verdict]:
-    """``(found, expected, verdict)`` of one object read from a drive."""
+def _equal(expected: int | None, shown: str) -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
+    """The value must be ``expected`` (None: shown, not compared: INFO)."""
+    if expected is None:
+        return "-", lambda value: (shown.format(value), "INFO")
+    return shown.format(expected), lambda value: (shown.format(value), "PASS" if value == expected else "FAIL")
 
-    def compare(expected: int | None, shown: str = "0x{:08X}") -> tuple[str, str, Verdict]:
-        if expected is None:
-            return shown.format(value), "-", "INFO"
-        return shown.format(value), shown.format(expected), "PASS" if value == expected else "FAIL"
 
-    if index == 0x1000:
-        return (
-            f"0x{value:08X}",
-            f"low word 0x{_CIA402_PROFILE:04X} (CiA 402)",
-            ("PASS" if value & 0xFFFF == _CIA402_PROFILE else "FAIL"),
-        )
-    if index == 0x1018:
-        key = {1: "vendor_id", 2: "product_code"}.get(sub)
-        return compare(want.get(key) if key else None)
-    if index == 0x6061:
-        return compare(MODE_CST, "{}")
-    if index == 0x6072:
-        return compare(peak_counts, "{}")
-    if index == 0x6502:
-        return f"0x{value:08X}", "bit 9 (cyclic synchronous torque)", "PASS" if value & _CST_SUPPORTED_BIT else "FAIL"
-    return compare(probe.eds_default(index, sub), "{}")
+def _cia402() -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
+    """0x1000's low word must name the CiA 402 profile."""
+    return f"low word 0x{_CIA402_PROFILE:04X} (CiA 402)", lambda value: (
+        f"0x{value:08X}",
+        "PASS" if value & 0xFFFF == _CIA402_PROFILE else "FAIL",
+    )
+
+
+def _bit(bit: int) -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
+    """0x6502 must have the mode's bit (CiA 402: bit n is mode n + 1)."""
+    return f"bit {bit} (the mode written)", lambda value: (f"0x{value:08X}", "PASS" if value >> bit & 1 else "FAIL")
 
 
 def _wait_for_rest(session: BusSession, limits: CheckLimits, add: Callable[..., None]) -> None:
@@ -371,15 +362,15 @@ def _judge_readings(
     for name, s in (("motor encoder", motor), ("link encoder", link)):
         inside = lower <= s.mean <= upper
         steady = s.spread <= spread
-        add(joint, node, f"{name} (rad)", f"{s.mean:+.4f} +- {s.spread:.4f} ({s.n} samples)",
-            f"in [{lower:+.3f}, {upper:+.3f}] (range + {margin:g}), spread <= {spread:g}", "PASS" if inside and steady else "FAIL")  # fmt: skip
+        add(joint, node, f"{name} (rad)", f"{s.mean:+.4f} +- {s.spread:.4f}",
+            f"in [{lower:+.2f}, {upper:+.2f}], +- <= {spread:g}", "PASS" if inside and steady else "FAIL")  # fmt: skip
     deflection = motor.mean - link.mean
     max_deflection = float(description.sea.max_spring_deflection_rad)
-    add(joint, node, "encoders agree (motor - link, rad)", f"{deflection:+.4f}",
-        f"|.| <= {max_deflection:g} (the spring's end stop)", "PASS" if abs(deflection) <= max_deflection else "FAIL")  # fmt: skip
+    add(joint, node, "motor - link (rad)", f"{deflection:+.4f}",
+        f"|.| <= {max_deflection:g} (spring end stop)", "PASS" if abs(deflection) <= max_deflection else "FAIL")  # fmt: skip
     tol = limits.torque_tolerance_nm
     add(joint, node, "spring torque (N m)", f"{spring.mean:+.3f} +- {spring.spread:.3f}",
-        f"|mean| <= {tol:g} (zero torque commanded)", "PASS" if abs(spring.mean) <= tol else "FAIL")  # fmt: skip
+        f"|mean| <= {tol:g} (zero torque)", "PASS" if abs(spring.mean) <= tol else "FAIL")  # fmt: skip
 
 
 def _disable_one(session: BusSession, limits: CheckLimits, joint: int, node: int, add: Callable[..., None]) -> None:

@@ -23,11 +23,12 @@ from typing import Any
 from hal.canopen.cia301.sdo import SdoTransfer
 from hal.canopen.cia402.statemachine import PowerState
 from hal.canopen.dictionary import DEFAULT_EDS
+from hal.canopen.objects import MODE_CYCLIC_SYNCHRONOUS_TORQUE
 from hal.canopen.scan import eds_identity
 from hal.errors import HalError
 from hal.interface import Hal, Sample
 
-__all__ = ["BusProbe", "ObjectRead", "RawCounts", "eds_of", "identity_of"]
+__all__ = ["BusProbe", "ObjectRead", "RawCounts", "UnitObject", "eds_of", "identity_of"]
 
 #: Power states in which a drive's power stage applies torque: commanded, or ramping down by itself.
 _STAGE_ON = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
@@ -68,6 +69,16 @@ class ObjectRead:
         text = t.error or "no answer yet"
         marker = "the drive aborted the transfer: "
         return text.split(marker, 1)[1] if marker in text else text.split(": ", 1)[-1]
+
+
+@dataclass(frozen=True)
+class UnitObject:
+    """An object that holds one of a drive's units, and the value the backend converts with."""
+
+    index: int
+    sub: int
+    what: str
+    expected: int
 
 
 @dataclass(frozen=True)
@@ -121,17 +132,30 @@ class BusProbe:
         """Every drive's motor and link encoder counts of its last TPDOs, joint 1-4."""
         return [RawCounts(d.node_id, int(d.motor_counts), int(d.load_counts)) for d in self._master.drives]
 
-    def has_object(self, index: int, sub: int = 0) -> bool:
-        """True if the drives' EDS defines ``index:sub``."""
+    def has_object(self, node_id: int, index: int, sub: int = 0) -> bool:
+        """True if the EDS of ``node_id`` defines ``index:sub``."""
         return bool(self._hal.dictionary.has(index, sub))
 
-    def eds_default(self, index: int, sub: int = 0) -> int:
-        """The EDS's factory value of ``index:sub`` (what the backend converts with, for its units).
+    def unit_objects(self, node_id: int) -> list[UnitObject]:
+        """The objects that hold ``node_id``'s units and the values the backend converts with (its EDS's).
 
         Raises:
-            HalConfigError: the EDS has no such object or no default for it.
+            HalConfigError: the EDS gives one of them no default.
         """
-        return int(self._hal.dictionary.default(index, sub))
+        d = self._hal.dictionary
+        return [
+            UnitObject(index, sub, what, int(d.default(index, sub)))
+            for index, sub, what in (
+                (0x6076, 0, "rated torque 0x6076 (mNm)"),
+                (0x608F, 1, "motor encoder increments 0x608F:1"),
+                (0x608F, 2, "motor revolutions 0x608F:2"),
+                (0x2011, 0, "link encoder increments/rev 0x2011"),
+            )
+        ]
+
+    def mode(self, node_id: int) -> int:
+        """The modes of operation code the master writes to ``node_id`` (0x6060): 10, cyclic synchronous torque."""
+        return MODE_CYCLIC_SYNCHRONOUS_TORQUE
 
     @property
     def nm_per_torque_count(self) -> float:

@@ -88,23 +88,33 @@ class DriveDictionary:
                 raise HalConfigError(
                     f"{self.path}: object 0x{index:04X}:{sub} ({what}) is missing; the backend needs it"
                 )
-        rated = self.default(obj.MOTOR_RATED_TORQUE, 0)
-        increments = self.default(obj.POSITION_ENCODER_RESOLUTION, 1)
-        revolutions = self.default(obj.POSITION_ENCODER_RESOLUTION, 2)
-        load = self.default(obj.LOAD_ENCODER_RESOLUTION, 0)
-        for value, what in ((rated, "0x6076 motor rated torque"), (increments, "0x608F:1 encoder increments"),
-                            (revolutions, "0x608F:2 motor revolutions"), (load, "0x2011 load encoder increments")):  # fmt: skip
+
+    @property
+    def units(self) -> DriveUnits:
+        """The DAROR SEA drive's units, from this EDS's defaults (0x6076, 0x608F, 0x2011): the short form's.
+
+        Raises:
+            HalConfigError: the EDS lacks one of them or gives it no positive whole number.
+        """
+        values = []
+        for index, sub, what in ((obj.MOTOR_RATED_TORQUE, 0, "0x6076 motor rated torque"),
+                                 (obj.POSITION_ENCODER_RESOLUTION, 1, "0x608F:1 encoder increments"),
+                                 (obj.POSITION_ENCODER_RESOLUTION, 2, "0x608F:2 motor revolutions"),
+                                 (obj.LOAD_ENCODER_RESOLUTION, 0, "0x2011 load encoder increments")):  # fmt: skip
+            value = self.default(index, sub) if self.has(index, sub) else None
             if not isinstance(value, int) or value <= 0:
-                raise HalConfigError(f"{self.path}: {what} is {value!r}; expected a positive whole number")
-        self.units = DriveUnits(int(rated), increments / revolutions, float(load))
-        if (
-            self.units.rated_torque_mnm <= 0
-            or self.units.motor_increments_per_rev <= 0
-            or self.units.load_increments_per_rev <= 0
-        ):
-            raise HalConfigError(
-                f"{self.path}: the rated torque and the encoder resolutions must be positive; got {self.units}"
-            )
+                raise HalConfigError(
+                    f"{self.path}: {what} is {value!r}; expected a positive whole number (the DAROR SEA drive's "
+                    "units: a drive of another make is described by a robot file's nodes)"
+                )
+            values.append(value)
+        rated, increments, revolutions, load = values
+        return DriveUnits(int(rated), increments / revolutions, float(load))
+
+    def device_info(self) -> tuple[int | None, int | None, int | None]:
+        """The EDS's [DeviceInfo] vendor number, product number and revision number (None where it gives none)."""
+        info = self._od.device_information
+        return (info.vendor_number, info.product_number, info.revision_number)
 
     def _find(self, index: int, sub: int) -> Any:
         try:

@@ -1,4 +1,4 @@
-"""The DAROR-01 drives' PDOs: what the master sends each drive and what each drive sends back, every SYNC.
+"""The PDOs of a drive, and the DAROR-01 drives' own: what the master sends each drive and what each drive sends back, every SYNC.
 
 Sixteen bytes a drive a cycle, so that four drives and the SYNC fit a 1 Mbit/s bus at 500 Hz under
 a 70 % load budget (hal/canopen/busload.py, docs/canopen.md)::
@@ -10,6 +10,8 @@ a 70 % load budget (hal/canopen/busload.py, docs/canopen.md)::
 All three are synchronous (transmission type 1): the drive applies the RPDO's values at the next
 SYNC and samples what its TPDOs carry at every SYNC. The link velocity is not sent: the backend
 differentiates the load-side position (the bytes a velocity would take do not fit the budget).
+
+Other drives' PDOs are derived from their robot file (:func:`hal.canopen.profile.derive_pdos`).
 """
 
 from __future__ import annotations
@@ -24,22 +26,31 @@ __all__ = ["DAROR_MAPPING", "DrivePdos"]
 
 @dataclass(frozen=True)
 class DrivePdos:
-    """The PDOs of one drive: the RPDO the master writes and the two TPDOs it reads."""
+    """The PDOs of one drive: the RPDO the master writes and the TPDOs it reads, in number order."""
 
     rpdo: PdoMapping
-    tpdo_status: PdoMapping  # statusword, motor-side position
-    tpdo_load: PdoMapping  # load-side position, spring torque
+    tpdos: tuple[PdoMapping, ...]
 
     @property
     def all(self) -> tuple[PdoMapping, ...]:
-        return (self.rpdo, self.tpdo_status, self.tpdo_load)
+        return (self.rpdo, *self.tpdos)
+
+    @property
+    def tpdo_status(self) -> PdoMapping:
+        """TPDO1 (the DAROR drive's statusword and motor-side position)."""
+        return self.tpdos[0]
+
+    @property
+    def tpdo_load(self) -> PdoMapping:
+        """TPDO2 (the DAROR drive's load-side position and spring torque)."""
+        return self.tpdos[1]
 
 
-#: The mapping the backend configures on every drive.
+#: The mapping of the DAROR SEA drive (what hal.canopen.profile derives for it; a test holds them equal).
 DAROR_MAPPING = DrivePdos(
     rpdo=PdoMapping("rpdo", 1, (MappedObject(obj.CONTROLWORD, 0, 16), MappedObject(obj.TARGET_TORQUE, 0, 16))),
-    tpdo_status=PdoMapping("tpdo", 1, (MappedObject(obj.STATUSWORD, 0, 16), MappedObject(obj.POSITION_ACTUAL, 0, 32))),
-    tpdo_load=PdoMapping(
-        "tpdo", 2, (MappedObject(obj.LOAD_POSITION_ACTUAL, 0, 32), MappedObject(obj.TORQUE_ACTUAL, 0, 16))
+    tpdos=(
+        PdoMapping("tpdo", 1, (MappedObject(obj.STATUSWORD, 0, 16), MappedObject(obj.POSITION_ACTUAL, 0, 32))),
+        PdoMapping("tpdo", 2, (MappedObject(obj.LOAD_POSITION_ACTUAL, 0, 32), MappedObject(obj.TORQUE_ACTUAL, 0, 16))),
     ),
 )

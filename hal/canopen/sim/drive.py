@@ -81,6 +81,7 @@ from hal.canopen.cia301.nmt import (
 from hal.canopen.cia301.pdo import COB_ID_INVALID, MappedObject, PdoCodec, PdoMapping, struct_format
 from hal.canopen.cia402.statemachine import PowerState, device_next_state, statusword_of
 from hal.canopen.dictionary import DriveDictionary
+from hal.canopen.profile import DriveProfile, daror_node, profile_of
 from hal.canopen.sim.stop_ramp import StopRamp
 from hal.errors import HalConfigError
 
@@ -196,6 +197,9 @@ class SimulatedSeaDrive:
         send: called with ``(COB-ID, data)`` for every frame the drive puts on the bus.
         master_node_id: the master's node id, 1-127 (the node whose heartbeat the master configures
             in 0x1016:1; the consumer watches whichever node 0x1016:1 names, as CiA 301 says).
+        profile: which objects its sensors and e-stop inputs are read into, in which units
+            (:class:`hal.canopen.profile.DriveProfile`; its EDS is ``dictionary``); None: the DAROR
+            SEA drive's (0x6064, 0x2010, 0x6077, statusword bits 14 and 15, units of the EDS).
 
     Raises:
         ValueError: a node id out of 1-127, or the master's id equal to the drive's.
@@ -208,6 +212,7 @@ class SimulatedSeaDrive:
         dictionary: DriveDictionary,
         send: Callable[[int, bytes], None],
         master_node_id: int = 127,
+        profile: DriveProfile | None = None,
     ) -> None:
         for name, value in (("node_id", node_id), ("master_node_id", master_node_id)):
             if not 1 <= value <= 127:
@@ -218,9 +223,29 @@ class SimulatedSeaDrive:
         self._master_node_id = master_node_id
         self._dictionary = dictionary
         self._send = send
-        self._units = dictionary.units
-        # The one object the drive writes that obj.REQUIRED (checked by the dictionary) does not list.
-        dictionary.variable(obj.MODES_OF_OPERATION_DISPLAY, 0)
+        self._missing_cache: dict[tuple[int, int], int | None] = {}
+        if profile is None:
+            profile = profile_of(daror_node(1, node_id, dictionary, 100), dictionary, 1.0, 100)
+        self._profile = profile
+        self._nm_per_permille = profile.nm_per_permille
+        # What a SYNC samples: (object, scale, the object type's bounds), resolved once.
+        sensors = (
+            (profile.motor, profile.rad_per_motor_count),
+            (profile.link, profile.rad_per_link_count),
+            (profile.torque, profile.nm_per_torque_count),
+        )
+        self._sensors = tuple(
+            ((m.index, m.sub), scale, _bounds(dictionary, m.index, m.sub)) for m, scale in sensors if m is not None
+        )
+        self._estop_key = (profile.estop.index, profile.estop.sub) if profile.estop is not None else None
+        self._estop_in_statusword = profile.estop_in_statusword
+        self._estop_factory = (
+            int(_default_or(dictionary, *self._estop_key, node_id))
+            if self._estop_key is not None and not self._estop_in_statusword
+            else 0
+        )
+        self._has_max_torque = dictionary.has(obj.MAX_TORQUE, 0)
+        self._modes = _supported_modes(dictionary)
         self._rpdos = self._find_pdos("rpdo", 0x1400, 0x1600)
         self._tpdos = self._find_pdos("tpdo", 0x1800, 0x1A00)
         self._slots = {index: slot for slot in (*self._rpdos, *self._tpdos) for index in (slot.comm, slot.mapping)}
@@ -267,9 +292,10 @@ class SimulatedSeaDrive:
             (obj.CONSUMER_HEARTBEAT_TIME, 1),
             (obj.CONTROLWORD, 0),
             (obj.TARGET_TORQUE, 0),
-            (obj.MAX_TORQUE, 0),
             (obj.ERROR_CODE, 0),
         ]
+        if self._has_max_torque:
+            objects.append((obj.MAX_TORQUE, 0))
         if self._exists(_COB_ID_EMCY, 0):
             objects.append((_COB_ID_EMCY, 0))
         for index in _STOP_OBJECTS:  # optional: a drive without them stops at once
@@ -325,13 +351,13 @@ class SimulatedSeaDrive:
         the ramp's torque as of the last :meth:`on_sync`, :meth:`on_inputs` or :meth:`advance`;
         else, and whenever the power is cut, 0.0.
         """
-        return self._applied_permille() * self._units.nm_per_permille
+        return self._applied_permille() * self._nm_per_permille
 
     def _applied_permille(self) -> float:
         if not self._powered or self._power_cut:
             return 0.0
         if self._power is PowerState.OPERATION_ENABLED:
-            limit = int(self._get(obj.MAX_TORQUE, 0))
+            limit = int(self._get(obj.MAX_TORQUE, 0)) if self._has_max_torque else _INT16[1]
             return float(max(-limit, min(limit, int(self._get(obj.TARGET_TORQUE, 0)))))
         if self._ramp is not None and self._power in _RAMPING_STATES:
             return self._ramp.torque_permille
@@ -557,7 +583,13 @@ class SimulatedSeaDrive:
         return self._missing(index, sub) is None
 
     def _missing(self, index: int, sub: int) -> int | None:
-        """The SDO abort code for an object the dictionary lacks (object or sub-index), None if it exists."""
+        """The SDO abort code for an object the dictionary lacks (object or sub-index), None if it exists (cached)."""
+        key = (index, sub)
+        if key not in self._missing_cache:
+            self._missing_cache[key] = self._look_up_missing(index, sub)
+        return self._missing_cache[key]
+
+    def _look_up_missing(self, index: int, sub: int) -> int | None:
         try:
             self._dictionary.variable(index, sub)
         except HalConfigError:
@@ -571,14 +603,17 @@ class SimulatedSeaDrive:
     def _get(self, index: int, sub: int) -> Any:
         """The current value of an object that exists (statusword and error register computed from the state)."""
         if index == obj.STATUSWORD and sub == 0:
-            return statusword_of(self._power, self._estop_operator, self._estop_pilot)
+            word = statusword_of(self._power)
+            return self._with_estop(word) if self._estop_in_statusword else word
         if index == obj.ERROR_REGISTER and sub == 0:
             return self._error_register()
         key = (index, sub)
+        if key == self._estop_key:
+            return self._with_estop(self._estop_factory)
         if key in self._values:
             return self._values[key]
         if key not in self._factory:
-            self._factory[key] = self._dictionary.default(index, sub, self._node_id)
+            self._factory[key] = _default_or(self._dictionary, index, sub, self._node_id)
         return self._factory[key]
 
     def _error_register(self) -> int:
@@ -587,12 +622,22 @@ class SimulatedSeaDrive:
         )
         return self._fault_register | communication
 
+    def _with_estop(self, word: int) -> int:
+        """``word`` with the e-stop buttons in the profile's bits (cleared for a pressed one when wired normally closed)."""
+        profile = self._profile
+        for pressed, mask in ((self._estop_operator, profile.estop_operator_mask),
+                              (self._estop_pilot, profile.estop_pilot_mask)):  # fmt: skip
+            if pressed != profile.estop_pressed_when_clear:
+                word |= mask
+            else:
+                word &= ~mask
+        return word
+
     def _sample(self, q_rad: float, theta_rad: float, tau_nm: float) -> None:
-        """The actual values at a SYNC: increments and per mille, saturated at their types' ranges."""
-        units = self._units
-        self._values[(obj.POSITION_ACTUAL, 0)] = _clamp(round(theta_rad / units.rad_per_motor_increment), _INT32)
-        self._values[(obj.LOAD_POSITION_ACTUAL, 0)] = _clamp(round(q_rad / units.rad_per_load_increment), _INT32)
-        self._values[(obj.TORQUE_ACTUAL, 0)] = _clamp(round(tau_nm / units.nm_per_permille), _INT16)
+        """The actual values at a SYNC, in the profile's objects and counts, saturated at their types' ranges."""
+        values = self._values
+        for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):
+            values[key] = _clamp(round(x / scale), bounds)
 
     def _write(self, index: int, sub: int, value: Any, now_s: float) -> None:
         """Store a value already checked (:meth:`_write_problem`) and do what writing it means."""
@@ -623,8 +668,8 @@ class SimulatedSeaDrive:
             return self._communication_problem(slot, sub, int(value))
         if slot is not None:
             return self._mapping_problem(slot, sub, int(value))
-        if index == obj.MODES_OF_OPERATION and value != obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE:
-            return _ABORT_INVALID_VALUE  # the DAROR drives run cyclic synchronous torque only
+        if index == obj.MODES_OF_OPERATION and value not in self._modes:
+            return _ABORT_INVALID_VALUE  # a mode its 0x6502 does not offer (the DAROR drive: cst only)
         if index == obj.CONSUMER_HEARTBEAT_TIME and sub >= 1:
             node, reserved = (int(value) >> 16) & 0xFF, int(value) >> 24
             if reserved or node > 127 or (node == self._node_id and int(value) & 0xFFFF):
@@ -772,6 +817,10 @@ class SimulatedSeaDrive:
         elif self._nmt is NmtState.OPERATIONAL or state is NmtState.STOPPED:
             self._lose_pdos()  # STOPPED: no SDO either, the drive could not be commanded at all
         self._nmt = state
+        if self._hb_period_s is not None and not self._heartbeat_stopped:
+            # A heartbeat at every NMT state change, as CANopenNode's producer sends one (the grid stays):
+            # the master sees the drive OPERATIONAL at once, not up to a period later.
+            self._emit(*heartbeat_frame(self._node_id, self._nmt), now_s)
 
     def _lose_pdos(self) -> None:
         """The PDOs stop: buffered RPDO data are dropped, and a drive that was being commanded stops.
@@ -1102,6 +1151,55 @@ class SimulatedSeaDrive:
         """A frame to the bus (lost while ``drop_frames`` lasts)."""
         if not self._dropping(now_s):
             self._send(cob_id, data)
+
+
+#: EDS data types that are signed integers (CiA 301): INTEGER8, 16, 32, 64.
+_SIGNED = frozenset({0x0002, 0x0003, 0x0004, 0x0015})
+
+
+def _bounds(dictionary: DriveDictionary, index: int, sub: int) -> tuple[int, int]:
+    """The range a counter of ``index:sub``'s type can show."""
+    bits = dictionary.size_bits(index, sub)
+    if dictionary.data_type(index, sub) in _SIGNED:
+        return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1)
+    return (0, (1 << bits) - 1)
+
+
+#: 0x6502 of a drive whose EDS gives it no value: the torque modes the simulated drive implements (tq, cst).
+_SIMULATED_MODES = 1 << (obj.MODE_PROFILE_TORQUE - 1) | 1 << (obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE - 1)
+#: A CiA 402 servo drive's device type (0x1000: profile 402, additional information 2 = servo drive).
+_SERVO_DEVICE_TYPE = 0x0002_0192
+
+
+def _default_or(dictionary: DriveDictionary, index: int, sub: int, node_id: int) -> Any:
+    """The EDS's factory value of ``index:sub``, or what the device reports where its EDS gives none.
+
+    An EDS exported from a real drive leaves out the values the device itself knows (maxon's leave
+    0x1000, 0x1018, 0x603F, 0x6502 without one): the simulated drive reports a CiA 402 servo drive,
+    the EDS's [DeviceInfo] identity, the torque modes it implements, and 0 for the rest.
+
+    Raises:
+        HalConfigError: the EDS has no such object.
+    """
+    try:
+        return dictionary.default(index, sub, node_id)
+    except HalConfigError:
+        dictionary.variable(index, sub)  # an object it lacks is still refused
+    if (index, sub) == (obj.DEVICE_TYPE, 0):
+        return _SERVO_DEVICE_TYPE
+    if index == obj.IDENTITY and 1 <= sub <= 3:
+        return dictionary.device_info()[sub - 1] or 0
+    if (index, sub) == (obj.SUPPORTED_DRIVE_MODES, 0):
+        return _SIMULATED_MODES
+    return 0
+
+
+def _supported_modes(dictionary: DriveDictionary) -> frozenset[int]:
+    """The modes of operation the drive takes: its EDS's 0x6502 (bit n = mode n + 1); without the object, cst only."""
+    if not dictionary.has(obj.SUPPORTED_DRIVE_MODES, 0):
+        return frozenset({obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE})
+    value = int(_default_or(dictionary, obj.SUPPORTED_DRIVE_MODES, 0, 0))
+    return frozenset(bit + 1 for bit in range(32) if value >> bit & 1)
 
 
 def _clamp(value: int, bounds: tuple[int, int]) -> int:

@@ -1,0 +1,89 @@
+"""What "bit for bit" compares of a ``daror hil`` run (D143): one sha256 per stream of its output folder.
+
+The streams, each independent of the wall clock, the session id and the output folder:
+
+* ``cyclic``: the process data, in bus order from the first SYNC on: every SYNC (with its robot time
+  in microseconds) and every RPDO and TPDO frame (COB-ID 0x181-0x57F: PDOs of the pre-defined
+  connection set) with its payload. Start-up SDO, NMT, heartbeats and EMCY are not in it;
+* ``arrays:<file>:<name>``: every array of every ``*.raw.npz`` (dtype, shape and bytes);
+* ``dataset:<file>``: every ``*.csv`` dataset, byte for byte;
+* ``session``: session.json's state, robot time, joints, model numbers, ISB limits and handover;
+* ``audit``: the audit log's events in order (event, robot time, source, destination, fault kind, joint).
+
+``python -m tests.golden_streams OUT_DIR`` prints them as JSON (how tests/data/daror01_golden.json was made).
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["streams"]
+
+#: PDO COB-IDs of the pre-defined connection set: TPDO1 0x181 .. RPDO4 0x57F.
+_PDO_IDS = range(0x181, 0x580)
+_SYNC = 0x080
+#: session.json's fields that say what the session did (not where or when it was written).
+_SESSION_FIELDS = ("t_s", "state", "joints", "isb_limits_deg", "handover_nm", "support_level", "faults")
+_MODEL_FIELDS = ("name", "kind", "validated", "validation_rmse_nm", "validation_rmse_per_joint_nm", "closed_path_energy_j")
+_AUDIT_FIELDS = ("event", "t_s", "source", "dest", "kind", "joint", "reaction", "request")
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def cyclic_stream(log: Path, epoch_s: int) -> tuple[str, int]:
+    """The sha256 of the process data of a candump ``-L`` log (gzip), and how many SYNCs it has."""
+    digest = hashlib.sha256()
+    syncs = 0
+    started = False
+    with gzip.open(log, "rt", encoding="ascii") as lines:
+        for line in lines:
+            stamp, _, frame = line.split(" ", 3)[:3]
+            cob_text, _, data = frame.partition("#")
+            cob_id = int(cob_text, 16)
+            if cob_id == _SYNC:
+                started = True
+                syncs += 1
+                t_us = round((float(stamp[1:-1]) - epoch_s) * 1e6)
+                digest.update(f"S{t_us}\n".encode())
+            elif started and cob_id in _PDO_IDS:
+                digest.update(f"{cob_id:03X}#{data}\n".encode())
+    return digest.hexdigest(), syncs
+
+
+def streams(out: Path) -> dict[str, Any]:
+    """Every stream of the run in ``out`` (see the module docstring)."""
+    out = Path(out)
+    hil = json.loads((out / "hil.json").read_text(encoding="utf-8"))
+    cyclic, syncs = cyclic_stream(out / "can.log.gz", int(hil["bus"]["traffic_log_epoch_s"]))
+    found: dict[str, Any] = {"cyclic": cyclic, "syncs": syncs}
+    for npz in sorted(out.glob("*.raw.npz")):
+        with np.load(npz) as arrays:
+            for name in arrays.files:
+                a = arrays[name]
+                found[f"arrays:{npz.name}:{name}"] = _sha(f"{a.dtype.str}{a.shape}".encode() + a.tobytes())
+    for csv in sorted(out.glob("*.csv")):
+        found[f"dataset:{csv.name}"] = _sha(csv.read_bytes())
+    session = json.loads((out / "session.json").read_text(encoding="utf-8"))
+    kept = {k: session.get(k) for k in _SESSION_FIELDS}
+    model = session.get("model") or {}
+    kept["model"] = {k: model.get(k) for k in _MODEL_FIELDS}
+    found["session"] = _sha(json.dumps(kept, sort_keys=True).encode())
+    events = []
+    for line in (out / "audit.jsonl").read_text(encoding="utf-8").splitlines():
+        event = json.loads(line)
+        events.append({k: event.get(k) for k in _AUDIT_FIELDS})
+    found["audit"] = _sha(json.dumps(events, sort_keys=True).encode())
+    return found
+
+
+if __name__ == "__main__":
+    print(json.dumps(streams(Path(sys.argv[1])), indent=1, sort_keys=True))
