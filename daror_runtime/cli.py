@@ -1040,6 +1040,7 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
         ScheduledFault,
         fault_lines,
         fault_summaries,
+        hil_config,
         let_the_reaction_play_out,
         read_audit,
     )
@@ -1052,7 +1053,6 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     spec = load_fsm_spec(args.spec)
     settings = load_session_settings(args.settings)
     out = _output_dir(args.out, args.script)
-        hil_config,
     traffic = out / "can.log.gz"  # compressed as it is written (D137): zcat can.log.gz | canplayer
     for name in (traffic, out / "can.log", out / "hil.json"):
         if name.exists():

@@ -29,15 +29,15 @@ from daror_runtime.safety.faults import FaultKind
 
 if TYPE_CHECKING:
     from daror_runtime.runtime import Runtime
-
     from hal.config import CanSimHalConfig
+
 __all__ = [
     "REACTION_LIMIT_S",
     "ScheduledFault",
     "fault_lines",
     "fault_summaries",
-    "let_the_reaction_play_out",
     "hil_config",
+    "let_the_reaction_play_out",
     "read_audit",
 ]
 
