@@ -31,7 +31,14 @@ _PDO_IDS = range(0x181, 0x580)
 _SYNC = 0x080
 #: session.json's fields that say what the session did (not where or when it was written).
 _SESSION_FIELDS = ("t_s", "state", "joints", "isb_limits_deg", "handover_nm", "support_level", "faults")
-_MODEL_FIELDS = ("name", "kind", "validated", "validation_rmse_nm", "validation_rmse_per_joint_nm", "closed_path_energy_j")
+_MODEL_FIELDS = (
+    "name",
+    "kind",
+    "validated",
+    "validation_rmse_nm",
+    "validation_rmse_per_joint_nm",
+    "closed_path_energy_j",
+)
 _AUDIT_FIELDS = ("event", "t_s", "source", "dest", "kind", "joint", "reaction", "request")
 
 
@@ -86,4 +93,4 @@ def streams(out: Path) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    print(json.dumps(streams(Path(sys.argv[1])), indent=1, sort_keys=True))
+    sys.stdout.write(json.dumps(streams(Path(sys.argv[1])), indent=1, sort_keys=True) + "\n")

@@ -1300,18 +1300,18 @@ def test_an_eds_missing_a_required_object_is_refused_in_one_line(
 def test_a_zero_unit_is_refused(tmp_path: Path, eds_text: str, section: str, key: str) -> None:
     # The DAROR SEA drive's units (the short form's) are its EDS's defaults: read when a profile is resolved.
     with pytest.raises(HalConfigError, match="expected a positive whole number") as info:
-        DriveDictionary(_eds(tmp_path, _set_value(eds_text, section, key, "0"))).units
+        _ = DriveDictionary(_eds(tmp_path, _set_value(eds_text, section, key, "0"))).units
     assert str(tmp_path / "drive.eds") in str(info.value)
 
 
 def test_zero_motor_revolutions_are_refused(tmp_path: Path, eds_text: str) -> None:
     with pytest.raises(HalConfigError, match="expected a positive whole number"):
-        DriveDictionary(_eds(tmp_path, _set_value(eds_text, "608Fsub2", "DefaultValue", "0"))).units
+        _ = DriveDictionary(_eds(tmp_path, _set_value(eds_text, "608Fsub2", "DefaultValue", "0"))).units
 
 
 def test_a_required_object_without_a_default_is_refused(tmp_path: Path, eds_text: str) -> None:
     with pytest.raises(HalConfigError, match=r"0x6076:0 has no default value"):
-        DriveDictionary(_eds(tmp_path, _set_value(eds_text, "6076", "DefaultValue", None))).units
+        _ = DriveDictionary(_eds(tmp_path, _set_value(eds_text, "6076", "DefaultValue", None))).units
 
 
 @pytest.mark.parametrize("content", ["hello, I am not an EDS\n", "\x00\x01\x02 binary", "[1000\nbroken"])

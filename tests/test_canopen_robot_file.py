@@ -88,7 +88,8 @@ def test_the_epos4_pdos_are_derived_from_what_the_node_sends() -> None:
         [(0x6041, 0, 16), (0x6064, 0, 32)],
         [(0x60E4, 2, 32), (0x60FD, 0, 32)],
     ]
-    assert profiles[0].torque is None and profiles[0].spring_k_nm_per_rad == K_NM_PER_RAD
+    assert profiles[0].torque is None
+    assert profiles[0].spring_k_nm_per_rad == K_NM_PER_RAD
     assert profiles[0].nm_per_permille == pytest.approx(0.160 * 100 / 1000)
 
 
@@ -97,7 +98,8 @@ def test_a_rate_over_the_bus_budget_is_refused_with_the_numbers() -> None:
     with pytest.raises(HalConfigError) as info:
         SimulatedCanHal(config)
     message = str(info.value)
-    assert "72.1 % loaded" in message and "expected rate_hz at most 485 Hz" in message, message
+    assert "72.1 % loaded" in message, message
+    assert "expected rate_hz at most 485 Hz" in message, message
     assert SimulatedCanHal(_sim_config(EPOS4)).rate_hz == 400.0  # the default: the highest that fits
 
 
@@ -133,7 +135,9 @@ def test_units_other_than_the_robot_files_are_refused_naming_both(tmp_path: Path
 
 def test_another_identity_is_refused(tmp_path: Path) -> None:
     path = _robot_file(tmp_path, {4: {"identity": "{vendor_id: 0x1A3}"}})
-    with pytest.raises(HalError, match=re.escape("CAN bus: node 4 (joint 4): 0x1018 vendor id is 0x0; its robot file expects 0x1A3")):
+    with pytest.raises(
+        HalError, match=re.escape("CAN bus: node 4 (joint 4): 0x1018 vendor id is 0x0; its robot file expects 0x1A3")
+    ):
         _open(load_hal_config(path))  # type: ignore[arg-type]
 
 
@@ -143,7 +147,10 @@ def test_the_epos4_drives_get_the_cycle_the_mode_and_the_sdo_init_and_report_the
         drive = hal.drive_set.drives[0]
         with pytest.raises(KeyError):  # this EDS has no 0x1006 (the master writes it only where the EDS has it)
             drive.value(obj.COMMUNICATION_CYCLE_PERIOD)
-        assert (drive.value(obj.INTERPOLATION_TIME_PERIOD, 1), drive.value(obj.INTERPOLATION_TIME_PERIOD, 2)) == (25, -4)
+        assert (drive.value(obj.INTERPOLATION_TIME_PERIOD, 1), drive.value(obj.INTERPOLATION_TIME_PERIOD, 2)) == (
+            25,
+            -4,
+        )
         assert drive.value(obj.MODES_OF_OPERATION_DISPLAY) == obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE
         assert drive.value(obj.MOTOR_RATED_TORQUE) == 160
         assert drive.value(obj.DIGITAL_INPUTS) == 0b11 << 16  # normally closed, nothing pressed
@@ -176,7 +183,10 @@ def test_the_epos4_drives_get_the_cycle_the_mode_and_the_sdo_init_and_report_the
             {1: {"sdo_init": "[{index: 0x6007, value: 2}]"}},
             "node 1 (joint 1): sdo_init writes 0x6007:0, the drive's reaction to losing the master",
         ),
-        ({3: {"estop": "{index: 0x6041, operator_bit: 14, pilot_bit: 16}"}}, "estop bit 16 of 0x6041:0, which has 16 bits"),
+        (
+            {3: {"estop": "{index: 0x6041, operator_bit: 14, pilot_bit: 16}"}},
+            "estop bit 16 of 0x6041:0, which has 16 bits",
+        ),
     ],
 )
 def test_a_node_the_eds_cannot_serve_is_refused_in_one_line(
@@ -184,7 +194,8 @@ def test_a_node_the_eds_cannot_serve_is_refused_in_one_line(
 ) -> None:
     with pytest.raises(HalConfigError) as info:
         SimulatedCanHal(load_hal_config(_robot_file(tmp_path, changes)))  # type: ignore[arg-type]
-    assert expected in str(info.value) and "\n" not in str(info.value)
+    assert expected in str(info.value)
+    assert "\n" not in str(info.value)
 
 
 def test_a_robot_file_with_a_joint_twice_is_refused_naming_file_line_and_field(tmp_path: Path) -> None:
