@@ -20,14 +20,14 @@ import can
 import pytest
 
 from daror_runtime.cli import main
+from hal.canopen.backend import SimulatedCanHal
 from hal.canopen.cia301.nmt import NmtCommand, NmtState
 from hal.canopen.cia301.sdo import download_request
-from hal.canopen.dictionary import DEFAULT_EDS, load_dictionary
+from hal.canopen.dictionary import DEFAULT_EDS
 from hal.canopen.scan import eds_catalogue, eds_identity, open_bus, scan_bus, sdo_probe_timeout_s
 from hal.canopen.sim.bus import SimulationBus
-from hal.canopen.sim.drives import SimulatedDriveSet
+from hal.config import hal_config
 from hal.errors import HalConfigError
-from hal.sim.backend import SimHal
 
 _CHANNELS = itertools.count(1)
 NODES = (5, 9, 12, 100)
@@ -38,7 +38,9 @@ class Rig:
 
     def __init__(self, node_ids: tuple[int, ...]) -> None:
         self.channel = f"scan-test-{next(_CHANNELS)}"
-        self.drives = SimulatedDriveSet(None, SimHal("exo_dummy_arm"), node_ids, load_dictionary(), 127)
+        self.drives = SimulatedCanHal(
+            hal_config("can-sim", node_ids=list(node_ids))
+        ).drive_set  # as can-sim builds them
         self.bus = SimulationBus(channel=self.channel, preserve_timestamps=True)
         self.sniffer = can.Bus(interface="virtual", channel=self.channel)
         self.drives.attach(self.bus)

@@ -207,12 +207,13 @@ class BusSession:
     def disable_all(self, confirm_s: float = 1.0) -> bool:
         """Torque off until every drive's own statusword shows its power stage off (three SYNCs in a row), then close.
 
-        True if that was seen (a drive that said nothing of a SYNC breaks the row).
+        True if that was seen (a drive that said nothing of a SYNC breaks the row), or if the bus never
+        started (nothing was enabled: the start-up enables no drive).
 
         Runs whatever happened before; a second failure while disabling is not allowed to stop
         the close (which sends torque off once more and every drive to pre-operational).
         """
-        confirmed = False
+        confirmed = not self._started
         try:
             if self._started:
                 in_a_row = 0

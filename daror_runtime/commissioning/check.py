@@ -11,8 +11,9 @@ what was expected and PASS, FAIL or INFO (a value with nothing to compare it wit
    0x608F:1/2, 0x2011 against what the backend converts with), the mode (0x6061 against the mode
    the master wrote, 10: cyclic synchronous torque; 0x6502's bit of it where the EDS has 0x6502),
    0x6072 (the check's torque limit in force);
-3. the arm at rest (every joint slower than ``rest_speed_rad_s``), no e-stop pressed, no drive in
-   fault: else nothing is enabled;
+3. every item of step 2 passed (a drive that is not what the robot file says, or in another mode,
+   is not enabled at all), the arm at rest (every joint slower than ``rest_speed_rad_s``), no
+   e-stop pressed, no drive in fault: else nothing is enabled;
 4. per joint, the others disabled: enabled at zero torque until OPERATION ENABLED, its motor and
    link encoders and spring torque read for ``window_s`` (mean, spread), then disabled and seen
    disabled. A joint that moves more than ``max_motion_rad`` while enabled, another drive that
@@ -181,6 +182,11 @@ def run_check(
             for item, value in calibration_rows(node):
                 add(joint, node, item, value, "-", "INFO")
         try:
+            failed = [row.item for row in report.rows if row.verdict == "FAIL"]
+            if failed:  # a drive that is not what the file says, or in another mode, is not enabled at all
+                add(0, 0, "enable", f"not tried: {len(failed)} item(s) above failed", "identity, units, mode right",
+                    "FAIL")  # fmt: skip
+                raise _StopError
             _wait_for_rest(session, limits, add)
             for joint, node in enumerate(node_ids, start=1):
                 report.readings[joint] = _enable_one(session, limits, joint, node, add)
@@ -190,12 +196,16 @@ def run_check(
         report.interrupted = True
         add(0, 0, "interrupted", "Ctrl-C", "the check to run to its end", "FAIL")
     finally:
+        booted = session.probe is not None
         report.disabled_confirmed = session.disable_all()
         for fault in session.faults:
             add(0, 0, "fault latched", fault, "no fault", "FAIL")
-        add(0, 0, "every drive disabled",
-            "every statusword: power stage off" if report.disabled_confirmed else "NOT confirmed",
-            "3 SYNCs in a row, then the bus closed", "PASS" if report.disabled_confirmed else "FAIL")  # fmt: skip
+        if not booted:  # the start-up failed or was interrupted: no enable was ever sent
+            add(0, 0, "every drive disabled", "nothing was enabled (no start-up)", "-", "INFO")
+        else:
+            add(0, 0, "every drive disabled",
+                "every statusword: power stage off" if report.disabled_confirmed else "NOT confirmed",
+                "3 SYNCs in a row, then the bus closed", "PASS" if report.disabled_confirmed else "FAIL")  # fmt: skip
     return report
 
 
@@ -206,57 +216,84 @@ def _read_objects(
     expected_identity: Callable[[int], dict[str, int | None]],
     add: Callable[..., None],
 ) -> None:
-    """Identity, units, mode and the torque limit of every drive, by SDO through the master, drives disabled."""
+    """Identity, units, mode and the torque limit of every drive, by SDO through the master, drives disabled.
+
+    One row per item; an item may need several reads (a ratio of two subs), judged together.
+    """
     probe = session.probe
-    peak_counts = round(limits.torque_limit_nm / probe.nm_per_torque_count)
-    reads: dict[int, list[tuple[Any, tuple[str, Callable[[int], tuple[str, Verdict]]]]]] = {}
+    rows: dict[int, list[tuple[str, list[Any], str, Callable[[list[int]], tuple[str, Verdict]]]]] = {}
     for node in node_ids:
         want = expected_identity(node)
         mode = probe.mode(node)
-        items: list[tuple[int, int, str, tuple[str, Callable[[int], tuple[str, Verdict]]]]] = [
-            (0x1000, 0, "device type 0x1000", _cia402()),
-            (0x1018, 1, "vendor 0x1018:1", _equal(want.get("vendor_id"), "0x{:08X}")),
-            (0x1018, 2, "product 0x1018:2", _equal(want.get("product_code"), "0x{:08X}")),
-            (0x1018, 3, "revision 0x1018:3", _equal(None, "0x{:08X}")),
-            (0x1018, 4, "serial 0x1018:4", _equal(None, "0x{:08X}")),
-            *((u.index, u.sub, u.what, _equal(u.expected, "{}")) for u in probe.unit_objects(node)),
-            (0x6061, 0, "mode display 0x6061", _equal(mode, "{}")),
-            (0x6072, 0, "max torque 0x6072 (per mille)", _equal(peak_counts, "{}")),
+        peak_counts = round(limits.torque_limit_nm / probe.nm_per_torque_count(node))
+        items: list[tuple[str, list[tuple[int, int]], tuple[str, Callable[[list[int]], tuple[str, Verdict]]]]] = [
+            ("device type 0x1000", [(0x1000, 0)], _cia402()),
+            ("vendor 0x1018:1", [(0x1018, 1)], _equal(want.get("vendor_id"), "0x{:08X}")),
+            ("product 0x1018:2", [(0x1018, 2)], _equal(want.get("product_code"), "0x{:08X}")),
+            ("revision 0x1018:3", [(0x1018, 3)], _equal(None, "0x{:08X}")),
+            ("serial 0x1018:4", [(0x1018, 4)], _equal(None, "0x{:08X}")),
+            *((u.what, [(u.index, sub) for sub in u.subs], _unit(u)) for u in probe.unit_objects(node)),
+            ("mode display 0x6061", [(0x6061, 0)], _equal(mode, "{}", signed=True)),
+            ("max torque 0x6072 (per mille)", [(0x6072, 0)], _equal(peak_counts, "{}")),
         ]
         if probe.has_object(node, 0x6502, 0):
-            items.append((0x6502, 0, "supported modes 0x6502", _bit(mode - 1)))
-        reads[node] = [(probe.read(node, index, sub, what), judge) for index, sub, what, judge in items]
+            items.append(("supported modes 0x6502", [(0x6502, 0)], _bit(mode - 1)))
+        rows[node] = [
+            (what, [probe.read(node, index, sub, what) for index, sub in objects], expected, judge)
+            for what, objects, (expected, judge) in items
+        ]
     for _ in range(session.ticks_for(limits.sdo_timeout_s)):
         session.tick(Command.torque_off())
-        if all(read.done for node_reads in reads.values() for read, _ in node_reads):
+        if all(read.done for node_rows in rows.values() for _, reads, _, _ in node_rows for read in reads):
             break
     for joint, node in enumerate(node_ids, start=1):
-        for read, (expected, judge) in reads[node]:
-            if read.value is None:
-                add(joint, node, read.what, read.error, "an answer", "FAIL")
+        for what, reads, expected, judge in rows[node]:
+            failed = [read for read in reads if read.value is None]
+            if failed:
+                add(joint, node, what, failed[0].error, "an answer", "FAIL")
                 continue
-            found, verdict = judge(read.signed_value if read.index == 0x6061 else read.value)
-            add(joint, node, read.what, found, expected, verdict)
+            found, verdict = judge([read.value for read in reads])
+            add(joint, node, what, found, expected, verdict)
 
 
-def _equal(expected: int | None, shown: str) -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
-    """The value must be ``expected`` (None: shown, not compared: INFO)."""
-    if expected is None:
-        return "-", lambda value: (shown.format(value), "INFO")
-    return shown.format(expected), lambda value: (shown.format(value), "PASS" if value == expected else "FAIL")
+def _equal(
+    expected: int | None, shown: str, signed: bool = False
+) -> tuple[str, Callable[[list[int]], tuple[str, Verdict]]]:
+    """The value must be ``expected`` (None: shown, not compared: INFO). ``signed``: a one-byte value read as i8."""
+
+    def judge(values: list[int]) -> tuple[str, Verdict]:
+        value = values[0] - 256 if signed and values[0] > 127 else values[0]
+        if expected is None:
+            return shown.format(value), "INFO"
+        return shown.format(value), "PASS" if value == expected else "FAIL"
+
+    return ("-" if expected is None else shown.format(expected)), judge
 
 
-def _cia402() -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
+def _unit(unit: Any) -> tuple[str, Callable[[list[int]], tuple[str, Verdict]]]:
+    """A unit (one value, or a ratio of two) must be what the backend converts with."""
+
+    def judge(values: list[int]) -> tuple[str, Verdict]:
+        value = unit.value(values)
+        return f"{value:g}", "PASS" if abs(value - unit.expected) <= 1e-9 * max(1.0, abs(unit.expected)) else "FAIL"
+
+    return f"{unit.expected:g}", judge
+
+
+def _cia402() -> tuple[str, Callable[[list[int]], tuple[str, Verdict]]]:
     """0x1000's low word must name the CiA 402 profile."""
-    return f"low word 0x{_CIA402_PROFILE:04X} (CiA 402)", lambda value: (
-        f"0x{value:08X}",
-        "PASS" if value & 0xFFFF == _CIA402_PROFILE else "FAIL",
+    return f"low word 0x{_CIA402_PROFILE:04X} (CiA 402)", lambda values: (
+        f"0x{values[0]:08X}",
+        "PASS" if values[0] & 0xFFFF == _CIA402_PROFILE else "FAIL",
     )
 
 
-def _bit(bit: int) -> tuple[str, Callable[[int], tuple[str, Verdict]]]:
+def _bit(bit: int) -> tuple[str, Callable[[list[int]], tuple[str, Verdict]]]:
     """0x6502 must have the mode's bit (CiA 402: bit n is mode n + 1)."""
-    return f"bit {bit} (the mode written)", lambda value: (f"0x{value:08X}", "PASS" if value >> bit & 1 else "FAIL")
+    return f"bit {bit} (the mode written)", lambda values: (
+        f"0x{values[0]:08X}",
+        "PASS" if values[0] >> bit & 1 else "FAIL",
+    )
 
 
 def _wait_for_rest(session: BusSession, limits: CheckLimits, add: Callable[..., None]) -> None:

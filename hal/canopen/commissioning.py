@@ -55,12 +55,6 @@ class ObjectRead:
         return int.from_bytes(t.value, "little") if t.succeeded else None
 
     @property
-    def signed_value(self) -> int | None:
-        """The value read as a signed number of its size (an i8 mode, an i16 option code), None unless it succeeded."""
-        t = self._transfer
-        return int.from_bytes(t.value, "little", signed=True) if t.succeeded else None
-
-    @property
     def error(self) -> str:
         """Why it failed ("" if it did not): the abort code's meaning, or no answer in time."""
         t = self._transfer
@@ -73,12 +67,17 @@ class ObjectRead:
 
 @dataclass(frozen=True)
 class UnitObject:
-    """An object that holds one of a drive's units, and the value the backend converts with."""
+    """A drive's unit: the subs of ``index`` read (one, or two for a ratio: sub 1 / sub 2), the value the backend
+    converts with."""
 
     index: int
-    sub: int
+    subs: tuple[int, ...]
     what: str
-    expected: int
+    expected: float
+
+    def value(self, raw: list[int]) -> float:
+        """The unit from the values read of ``subs``, in order."""
+        return raw[0] / raw[1] if len(raw) == 2 and raw[1] else float(raw[0])
 
 
 @dataclass(frozen=True)
@@ -132,34 +131,46 @@ class BusProbe:
         """Every drive's motor and link encoder counts of its last TPDOs, joint 1-4."""
         return [RawCounts(d.node_id, int(d.motor_counts), int(d.load_counts)) for d in self._master.drives]
 
+    def _profile(self, node_id: int) -> Any:
+        """The node's resolved drive profile (robot files, issue 25), None on a backend that has one EDS for all."""
+        for profile in getattr(self._hal, "profiles", None) or ():
+            if profile.node_id == node_id:
+                return profile
+        return None
+
     def has_object(self, node_id: int, index: int, sub: int = 0) -> bool:
         """True if the EDS of ``node_id`` defines ``index:sub``."""
-        return bool(self._hal.dictionary.has(index, sub))
+        profile = self._profile(node_id)
+        dictionary = profile.dictionary if profile is not None else self._hal.dictionary
+        return bool(dictionary.has(index, sub))
 
     def unit_objects(self, node_id: int) -> list[UnitObject]:
-        """The objects that hold ``node_id``'s units and the values the backend converts with (its EDS's).
+        """The objects that hold ``node_id``'s units and the values the backend converts with.
 
         Raises:
             HalConfigError: the EDS gives one of them no default.
         """
+        profile = self._profile(node_id)
+        if profile is not None:
+            return [UnitObject(c.index, tuple(c.subs), c.what, float(c.expected)) for c in profile.unit_checks]
         d = self._hal.dictionary
         return [
-            UnitObject(index, sub, what, int(d.default(index, sub)))
-            for index, sub, what in (
-                (0x6076, 0, "rated torque 0x6076 (mNm)"),
-                (0x608F, 1, "motor encoder increments 0x608F:1"),
-                (0x608F, 2, "motor revolutions 0x608F:2"),
-                (0x2011, 0, "link encoder increments/rev 0x2011"),
-            )
-        ]
+            UnitObject(0x6076, (0,), "rated torque 0x6076 (mNm)", float(d.default(0x6076, 0))),
+            UnitObject(0x608F, (1, 2), "motor counts/rev 0x608F:1/0x608F:2",
+                       d.default(0x608F, 1) / d.default(0x608F, 2)),
+            UnitObject(0x2011, (0,), "link counts/rev 0x2011", float(d.default(0x2011, 0))),
+        ]  # fmt: skip
 
     def mode(self, node_id: int) -> int:
-        """The modes of operation code the master writes to ``node_id`` (0x6060): 10, cyclic synchronous torque."""
-        return MODE_CYCLIC_SYNCHRONOUS_TORQUE
+        """The modes of operation code the master writes to ``node_id`` (0x6060; 10: cyclic synchronous torque)."""
+        profile = self._profile(node_id)
+        return int(profile.mode) if profile is not None else MODE_CYCLIC_SYNCHRONOUS_TORQUE
 
-    @property
-    def nm_per_torque_count(self) -> float:
-        """N m per count of the torque objects (0x6071, 0x6072, 0x6077: per mille of 0x6076)."""
+    def nm_per_torque_count(self, node_id: int) -> float:
+        """N m per count of ``node_id``'s torque objects (0x6071, 0x6072: per mille of its rated torque 0x6076)."""
+        profile = self._profile(node_id)
+        if profile is not None:
+            return float(profile.nm_per_permille)
         return float(self._hal.dictionary.units.nm_per_permille)
 
 

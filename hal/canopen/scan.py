@@ -375,17 +375,14 @@ def simulated_drives(config: CanSimHalConfig) -> Iterator[str]:
         HalConfigError: the EDS of the configuration cannot be read.
         DescriptionError: the scenario cannot be loaded.
     """
-    from hal.canopen.dictionary import load_dictionary
+    from hal.canopen.backend import SimulatedCanHal
     from hal.canopen.sim.bus import SimulationBus
-    from hal.canopen.sim.drives import SimulatedDriveSet
-    from hal.sim.backend import SimHal
 
     channel = f"{config.channel}-scan-{next(_SIM_CHANNELS)}"
-    plant = SimHal(config.scenario)
-    drives = SimulatedDriveSet(None, plant, tuple(config.node_ids), load_dictionary(config.eds), config.master_node_id)
+    drives = SimulatedCanHal(config).drive_set  # built as the backend builds them, never opened by it
     bus = SimulationBus(channel=channel, preserve_timestamps=True)
     drives.attach(bus)
-    drives.power_on()
+    drives.power_on()  # the plant at rest, every drive's boot-up message, pre-operational
     started = time.monotonic()
     drives.start_thread(lambda: time.monotonic() - started)
     try:
