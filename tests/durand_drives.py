@@ -1,11 +1,18 @@
-"""Four DAROR SEA drives on an independent CANopen stack (durand), knowing only the EDS: a test harness.
+"""CiA 402 drives on an independent CANopen stack (durand), knowing only their EDS: a test harness.
 
 The drives share nothing with ``hal.canopen`` but the EDS file and the bus: their object
-dictionary is built from ``hal/canopen/daror_sea.eds`` (parsed by ``canopen``, served by durand's
-SDO server, sent and received by durand's PDOs, NMT, heartbeat and EMCY), and the CiA 402
-application behind it is written here, from the standard's tables, without importing the
-backend's own state machine. A master that talks to these drives correctly talks CANopen, not
-merely to itself.
+dictionary is built from the EDS (``hal/canopen/daror_sea.eds`` for the DAROR SEA drives, or each
+node's EDS of a robot file; parsed by ``canopen``, served by durand's SDO server, sent and
+received by durand's PDOs, NMT, heartbeat and EMCY), and the CiA 402 application behind it is
+written here, from the standard's tables, without importing the backend's own state machine. A
+master that talks to these drives correctly talks CANopen, not merely to itself.
+
+Which objects a drive reports its encoders, its spring torque and its e-stop inputs in is its
+:class:`DriveWiring`: the DAROR SEA drive's (0x6064, 0x2010, 0x6077, statusword bits 14/15,
+:meth:`DriveWiring.daror`), or a robot file node's, read here from the YAML itself
+(:func:`robot_file_drives`, not through ``hal``). Values an EDS leaves open (a vendor's EDS has no
+0x1000, 0x1018 or 0x6502 value: the device knows them) are a CiA 402 servo drive's: the EDS's
+[DeviceInfo] identity and the torque modes the application implements (cst, tq).
 
 Threads (durand is not thread-safe; all of its processing is serialised by one lock)::
 
@@ -18,9 +25,9 @@ The test's own thread never touches durand: :meth:`DurandDrives.call` runs a fun
 scheduler thread and returns its result. Errors durand swallows (its callbacks run in "ignore"
 mode, its listener logs and goes on) are collected in :attr:`DurandDrives.errors`.
 
-Units are the EDS's: torques in per mille of the rated torque 0x6076 (mNm); the motor-side
-position 0x6064 in 0x608F:1 increments per 0x608F:2 revolutions; the load-side position 0x2010
-in 0x2011 increments per revolution.
+Units are the EDS's for the DAROR drive: torques in per mille of the rated torque 0x6076 (mNm);
+the motor-side position 0x6064 in 0x608F:1 increments per 0x608F:2 revolutions; the load-side
+position 0x2010 in 0x2011 increments per revolution. A robot file's drive: its node's scales.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from typing import Any, NamedTuple, TypeVar
 import can
 import canopen
 import durand
+import yaml
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from durand.object_dictionary import ObjectDictionary
 from durand.scheduler import AbstractScheduler, VirtualScheduler
@@ -51,6 +59,7 @@ __all__ = [
     "DURAND_TPDO_SYNC_WHILE_INACTIVE",
     "EDS_PATH",
     "DevicePower",
+    "DriveWiring",
     "DurandDrives",
     "EdsUnits",
     "JointCounts",
@@ -58,6 +67,7 @@ __all__ = [
     "TimedFrame",
     "WallClockScheduler",
     "durand_dictionary",
+    "robot_file_drives",
     "sdo_requests",
     "sdo_responses",
 ]
@@ -98,8 +108,13 @@ POSITION_ENCODER_RESOLUTION = 0x608F
 LOAD_POSITION_ACTUAL = 0x2010
 LOAD_ENCODER_RESOLUTION = 0x2011
 PRODUCER_HEARTBEAT_TIME = 0x1017
-#: Modes of operation: cyclic synchronous torque; the drive applies 0x6071 only in this mode.
+#: Modes of operation: cyclic synchronous torque, profile torque; the drive applies 0x6071 only in these.
 MODE_CST = 10
+MODE_TQ = 4
+#: Values the device knows where its EDS gives none: a CiA 402 servo drive, its torque modes (tq, cst).
+SERVO_DEVICE_TYPE = 0x0002_0192
+SUPPORTED_DRIVE_MODES = 0x6502
+TORQUE_MODES = 1 << (MODE_TQ - 1) | 1 << (MODE_CST - 1)
 
 # Statusword bits (CiA 402-2 table 30) and the DAROR manufacturer bits 14/15 (the e-stop inputs).
 SW_VOLTAGE_ENABLED = 0x0010
@@ -176,6 +191,80 @@ class EdsUnits:
 
     def load_increments(self, angle_rad: float) -> int:
         return round(angle_rad * self.load_increments_per_rev / (2.0 * math.pi))
+
+
+@dataclass(frozen=True)
+class DriveWiring:
+    """Which objects a drive reports its sensors in, and in which units.
+
+    Attributes:
+        motor: the motor-side position object (index, sub); ``rad_per_motor_count`` its scale.
+        link: the link-side position object (index, sub); ``rad_per_link_count`` its scale.
+        torque: the spring torque object (index, sub), or None (the master computes it from the
+            encoders); ``nm_per_torque_count`` its scale.
+        estop: the e-stop object (index, sub) or None; ``operator_mask``/``pilot_mask`` its bits;
+            ``pressed_when_clear``: wired normally closed.
+    """
+
+    motor: tuple[int, int]
+    rad_per_motor_count: float
+    link: tuple[int, int]
+    rad_per_link_count: float
+    torque: tuple[int, int] | None
+    nm_per_torque_count: float
+    estop: tuple[int, int] | None
+    operator_mask: int = 0
+    pilot_mask: int = 0
+    pressed_when_clear: bool = False
+
+    @classmethod
+    def daror(cls, od: canopen.ObjectDictionary) -> DriveWiring:
+        """The DAROR SEA drive's: 0x6064, 0x2010, 0x6077 in its EDS's units, the e-stops in statusword bits 14, 15."""
+        units = EdsUnits.from_eds(od)
+        return cls(
+            (POSITION_ACTUAL, 0), 2.0 * math.pi / units.motor_increments_per_rev,
+            (LOAD_POSITION_ACTUAL, 0), 2.0 * math.pi / units.load_increments_per_rev,
+            (TORQUE_ACTUAL, 0), units.rated_torque_mnm / 1e6,
+            (STATUSWORD, 0), SW_ESTOP_OPERATOR, SW_ESTOP_PILOT,
+        )  # fmt: skip
+
+    @property
+    def estop_in_statusword(self) -> bool:
+        return self.estop == (STATUSWORD, 0)
+
+
+def robot_file_drives(path: Path) -> dict[int, tuple[Path, DriveWiring]]:
+    """Node id -> (its EDS, its wiring) of every node of a robot file, read from the YAML (the schema of docs/canopen.md).
+
+    The motor position's ``gear_ratio`` scales it; a spring torque object without ``nm_per_count``
+    is in per mille of ``rated_torque_mnm`` times that ratio.
+    """
+    data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    drives = {}
+    for node in data["nodes"]:
+        motor, link, spring, estop = (
+            node["motor_position"],
+            node["link_position"],
+            node["spring_torque"],
+            node.get("estop"),
+        )
+        gear = float(motor.get("gear_ratio", 1.0))
+        torque = (spring["index"], spring.get("subindex", 0)) if "index" in spring else None
+        nm_per_count = spring.get("nm_per_count") or node["rated_torque_mnm"] / 1e6 * gear
+        wired = isinstance(estop, dict)
+        drives[int(node["node_id"])] = (
+            Path(path).parent / node["eds"],
+            DriveWiring(
+                (motor["index"], motor.get("subindex", 0)), 2.0 * math.pi / (motor["counts_per_rev"] * gear),
+                (link["index"], link.get("subindex", 0)),
+                2.0 * math.pi / (link["counts_per_rev"] * link.get("gear_ratio", 1.0)),
+                torque, nm_per_count if torque is not None else 0.0,
+                (estop["index"], estop.get("subindex", 0)) if wired else None,
+                1 << estop["operator_bit"] if wired else 0, 1 << estop["pilot_bit"] if wired else 0,
+                bool(estop.get("pressed_when_clear", False)) if wired else False,
+            ),
+        )  # fmt: skip
+    return drives
 
 
 class DevicePower(Enum):
@@ -474,7 +563,8 @@ def durand_dictionary(eds: canopen.ObjectDictionary) -> ObjectDictionary:
             first = entry.subindices[subs[0]]
             if any(entry.subindices[s].data_type != first.data_type for s in subs):
                 raise ValueError(f"EDS 0x{index:04X}: an array whose elements differ in type")
-            od[index] = durand.Array(_durand_variable(first), length=len(subs), name=entry.name)
+            # a vendor's arrays may skip sub-indices (maxon's 0x1011 has 1 and 4): up to the highest one
+            od[index] = durand.Array(_durand_variable(first), length=max(subs), name=entry.name)
             for sub in subs:  # durand's array has one descriptor; each element's default is a value
                 default = entry.subindices[sub].default
                 if default is not None:
@@ -492,8 +582,9 @@ class _Cia402Device:
     modes of operation display in the dictionary with ``od.write`` (so the TPDOs carry them).
     """
 
-    def __init__(self, node: durand.MinimalNode, errors: _Errors) -> None:
+    def __init__(self, node: durand.MinimalNode, errors: _Errors, wiring: DriveWiring) -> None:
         self.node = node
+        self.wiring = wiring
         self.od: ObjectDictionary = node.object_dictionary
         self.power = DevicePower.SWITCH_ON_DISABLED
         self.previous_controlword = 0
@@ -555,19 +646,29 @@ class _Cia402Device:
 
     def publish(self) -> None:
         """The statusword and the applied torque from the state (the only place either changes)."""
+        wiring = self.wiring
         word = self.power.value | SW_REMOTE
-        if self.estop_operator:
-            word |= SW_ESTOP_OPERATOR
-        if self.estop_pilot:
-            word |= SW_ESTOP_PILOT
+        if wiring.estop_in_statusword:
+            word = self._with_estop(word)
+        elif wiring.estop is not None:
+            inputs = self._with_estop(int(self.od.read(*wiring.estop)))
+            if self.od.read(*wiring.estop) != inputs:
+                self.od.write(*wiring.estop, inputs)
         if self.od.read(STATUSWORD, 0) != word:
             self.od.write(STATUSWORD, 0, word)
         torque_allowed = (
             self.power is DevicePower.OPERATION_ENABLED
-            and self.od.read(MODES_OF_OPERATION_DISPLAY, 0) == MODE_CST
+            and self.od.read(MODES_OF_OPERATION_DISPLAY, 0) in (MODE_CST, MODE_TQ)
             and not (self.estop_operator or self.estop_pilot)  # both e-stops drive the safe torque off input
         )
         self.applied_permille = int(self.od.read(TARGET_TORQUE, 0)) if torque_allowed else 0
+
+    def _with_estop(self, word: int) -> int:
+        """``word`` with the buttons in the wiring's bits (a pressed one clears its bit when wired normally closed)."""
+        wiring = self.wiring
+        for pressed, mask in ((self.estop_operator, wiring.operator_mask), (self.estop_pilot, wiring.pilot_mask)):
+            word = word | mask if pressed != wiring.pressed_when_clear else word & ~mask
+        return word
 
     def after_fault_reset(self) -> None:
         """Left FAULT by a fault reset: the error is gone (0x603F 0, EMCY "error reset", CiA 301 7.2.7)."""
@@ -586,9 +687,11 @@ class _Drive:
         lock: threading.RLock,
         synced: threading.Condition,
         errors: _Errors,
+        wiring: DriveWiring | None = None,
     ) -> None:
         self.node_id = node_id
         self.eds = canopen.import_od(str(eds_path), node_id)
+        self.wiring = wiring or DriveWiring.daror(self.eds)
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.network = _Network(self.bus, node_id, lock, synced, errors)
         self.node: durand.MinimalNode | None = None
@@ -600,18 +703,24 @@ class _Drive:
         self.node = durand.MinimalNode(self.network, self.node_id, durand_dictionary(self.eds))
         self._apply_owned_objects()
         self._apply_factory_pdos()
-        self.device = _Cia402Device(self.node, self._errors)
+        if SUPPORTED_DRIVE_MODES in self.eds and self.eds[SUPPORTED_DRIVE_MODES].default is None:
+            self.node.object_dictionary.write(SUPPORTED_DRIVE_MODES, 0, TORQUE_MODES)  # the device's own value
+        self.device = _Cia402Device(self.node, self._errors, self.wiring)
 
     def _apply_owned_objects(self) -> None:
         """The EDS's values of the objects durand made itself; the ones durand fixes must agree with the EDS."""
         assert self.node is not None
         od, eds = self.node.object_dictionary, self.eds
-        od.write(0x1000, 0, int(eds[0x1000].default))
-        od.write(0x1008, 0, str(eds[0x1008].default).encode())
+        device_type = eds[0x1000].default
+        od.write(0x1000, 0, SERVO_DEVICE_TYPE if device_type is None else int(device_type))
+        od.write(0x1008, 0, str(eds[0x1008].default or "").encode())
+        info = eds.device_information
+        known = {1: info.vendor_number, 2: info.product_number, 3: info.revision_number}
         for sub in range(1, 5):
-            od.write(0x1018, sub, int(eds[0x1018][sub].default))
+            value = eds[0x1018][sub].default if sub in eds[0x1018].subindices else None
+            od.write(0x1018, sub, int(value if value is not None else known.get(sub) or 0))
         for index in (0x1001, 0x1005, 0x1014, PRODUCER_HEARTBEAT_TIME):
-            if od.read(index, 0) != eds[index].default:
+            if index in eds and eds[index].default is not None and od.read(index, 0) != eds[index].default:
                 raise ValueError(
                     f"node {self.node_id}: durand's 0x{index:04X} is {od.read(index, 0)}, the EDS says {eds[index].default}"
                 )
@@ -637,17 +746,25 @@ class DurandDrives:
     Args:
         channel: the virtual bus channel (unique per test: a channel is process-global).
         node_ids: the drives' node ids.
-        eds: the EDS the drives are built from.
+        eds: the EDS the drives are built from (DAROR SEA drives: :meth:`DriveWiring.daror`).
+        drives: node id -> (its EDS, its wiring) instead (a robot file's: :func:`robot_file_drives`).
 
     Use as a context manager (or :meth:`start` / :meth:`stop`). Only one harness may run at a
     time in a process (durand's scheduler is process-global).
     """
 
-    def __init__(self, channel: str, node_ids: Iterable[int], eds: Path = EDS_PATH) -> None:
+    def __init__(
+        self,
+        channel: str,
+        node_ids: Iterable[int],
+        eds: Path = EDS_PATH,
+        drives: Mapping[int, tuple[Path, DriveWiring]] | None = None,
+    ) -> None:
         self.channel = channel
         self.node_ids = tuple(node_ids)
         self.eds_path = Path(eds)
-        self.units = EdsUnits.from_eds(canopen.import_od(str(self.eds_path)))
+        self._given = dict(drives or {})
+        self.units = EdsUnits.from_eds(canopen.import_od(str(self.eds_path))) if not self._given else None
         self._errors = _Errors()
         self._scheduler = WallClockScheduler(self._errors)
         self._lock = self._scheduler.lock
@@ -687,8 +804,9 @@ class DurandDrives:
             self._scheduler.start()
             self._running = True
             for node_id in self.node_ids:
+                eds, wiring = self._given.get(node_id, (self.eds_path, None))
                 self._drives[node_id] = _Drive(
-                    self.channel, node_id, self.eds_path, self._lock, self._synced, self._errors
+                    self.channel, node_id, eds, self._lock, self._synced, self._errors, wiring
                 )
             for drive in self._drives.values():
                 self.call(drive.create)
@@ -862,23 +980,28 @@ class DurandDrives:
     # --- what the test does to the drives -------------------------------------------------------------
 
     def set_joint(self, node_id: int, theta_rad: float, q_rad: float, tau_nm: float) -> JointCounts:
-        """The drive's measurements: motor-side angle (0x6064), load-side angle (0x2010), spring torque (0x6077).
+        """The drive's measurements: motor-side angle, link-side angle, spring torque, in its wiring's objects.
 
-        Converted with the EDS's units (rounded to the nearest increment / per mille) and written
-        with ``od.write``: the TPDOs of the next SYNC carry them.
+        The DAROR drive's: 0x6064, 0x2010, 0x6077. Converted with the wiring's scales (rounded to
+        the nearest count) and written with ``od.write``: the TPDOs of the next SYNC carry them. A
+        drive without a torque object reports none (``torque_permille`` 0).
 
         Raises:
             ValueError: a value out of its object's range.
         """
+        wiring = self._drive(node_id).wiring
         counts = JointCounts(
-            self.units.motor_increments(theta_rad), self.units.load_increments(q_rad), self.units.permille(tau_nm)
+            round(theta_rad / wiring.rad_per_motor_count),
+            round(q_rad / wiring.rad_per_link_count),
+            round(tau_nm / wiring.nm_per_torque_count) if wiring.torque is not None else 0,
         )
 
         def write() -> None:
             od = self.node(node_id).object_dictionary
-            od.write(POSITION_ACTUAL, 0, counts.motor_increments)
-            od.write(LOAD_POSITION_ACTUAL, 0, counts.load_increments)
-            od.write(TORQUE_ACTUAL, 0, counts.torque_permille)
+            od.write(*wiring.motor, counts.motor_increments)
+            od.write(*wiring.link, counts.load_increments)
+            if wiring.torque is not None:
+                od.write(*wiring.torque, counts.torque_permille)
 
         self.call(write)
         return counts

@@ -21,6 +21,7 @@ from __future__ import annotations
 import ast
 import itertools
 import math
+import re
 import struct
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -279,8 +280,14 @@ def test_start_up_sdo_traffic_is_cia_301_conform(rig: Rig) -> None:
         responses = list(sdo_responses(sent, n))
         assert len(responses) == len(requests), f"node {n}: every request answered once"
         reads = {(index, sub): value for kind, index, sub, value in responses if kind == "read"}
-        assert reads == {(0x1000, 0): 0x00020192, (0x6076, 0): 10000, (0x608F, 1): 65536, (0x608F, 2): 1,
-                         (0x2011, 0): 65536}  # fmt: skip
+        assert reads == {
+            (0x1000, 0): 0x00020192,
+            (0x6076, 0): 10000,
+            (0x608F, 1): 65536,
+            (0x608F, 2): 1,
+            (0x2011, 0): 65536,
+            (0x6061, 0): 10,
+        }  # fmt: skip (0x6061: the mode, read back)
         aborts = [(index, sub, code) for kind, index, sub, code in responses if kind == "abort"]
         # sub-index does not exist: durand's PDOs have no event timer (the RPDO's would be its deadline)
         assert aborts == [(0x1400, 5, 0x06090011), (0x1800, 5, 0x06090011), (0x1801, 5, 0x06090011)]
@@ -317,18 +324,19 @@ def test_start_up_sdo_traffic_is_cia_301_conform(rig: Rig) -> None:
     ("index", "value", "what"),
     [
         (0x1000, 0x00020191, "device type 0x00020191"),
-        (0x6076, 5000, "motor rated torque 5000"),
-        (0x2011, 4096, "load side encoder resolution 4096"),
+        (0x6076, 5000, "0x6076 motor rated torque (mNm) 5000, its robot file says 10000"),
+        (0x2011, 4096, "0x2011 link_position counts per rev 4096, its robot file says 65536"),
     ],
     ids=["not-cia402", "rated-torque", "load-encoder"],
 )
 def test_start_up_refuses_a_drive_whose_units_are_not_its_eds(
     make_rig: Callable[..., Rig], index: int, value: int, what: str
 ) -> None:
-    """A drive that reports another profile or other units than the EDS is refused, by node id."""
+    """A drive that reports another profile or other units than its robot file's (the short form: its EDS's) is
+    refused, by node id and joint, naming the object and both values."""
     rig = make_rig()
     rig.drives.call(lambda: rig.drives.node(42).object_dictionary.write(index, 0, value))
-    with pytest.raises(HalError, match=f"node 42 reports {what}"):
+    with pytest.raises(HalError, match=re.escape(f"node 42 (joint 3): reports {what}")):
         rig.hal.open()
 
 

@@ -7,6 +7,10 @@ runs with ``--hal-config examples/robot/daror01.yaml`` must give the same stream
 time and every RPDO and TPDO payload in bus order, every recorded array and dataset, the session's
 end state and the audit log's events. Start-up's SDO and NMT frames and the heartbeats are not
 compared (issue 25 added start-up steps and the heartbeat at NMT start).
+
+The second drive family (maxon EPOS4, ``examples/robot/epos4.yaml``), described by its vendor's EDS
+and its robot file only, runs the same demo session on simulated drives built from that EDS and
+ends as the DAROR-01's does: the same states in the same order, the model validated.
 """
 
 from __future__ import annotations
@@ -48,3 +52,33 @@ def test_the_daror01_robot_file_reproduces_the_golden_run_bit_for_bit(tmp_path: 
     assert sorted(found) == sorted(golden["streams"])  # the same files and arrays were recorded
     drifted = sorted(name for name, sha in golden["streams"].items() if found[name] != sha)
     assert drifted == [], f"streams that differ from the golden run: {drifted}"
+
+
+#: The demo session's path through the FSM (the DAROR-01's golden run).
+SESSION_PATH = [
+    ("startup", "safety_check"),
+    ("safety_check", "settings"),
+    ("settings", "pilot_installation"),
+    ("pilot_installation", "safety_experience"),
+    ("safety_experience", "rom_limits"),
+    ("rom_limits", "operative_check"),
+    ("operative_check", "identification"),
+    ("identification", "training"),
+    ("training", "compensation"),
+]
+
+
+@pytest.mark.slow
+def test_the_epos4_family_runs_the_demo_session_as_the_daror01_does(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    done = _hil(out, "--hal-config", str(ROOT / "examples" / "robot" / "epos4.yaml"))
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    audit = [json.loads(line) for line in (out / "audit.jsonl").read_text(encoding="utf-8").splitlines()]
+    assert [(e["source"], e["dest"]) for e in audit if e.get("event") == "transition"] == SESSION_PATH
+    session = json.loads((out / "session.json").read_text(encoding="utf-8"))
+    assert session["state"] == "compensation"
+    assert session["faults"] == []
+    assert session["model"]["validated"] is True
+    bus = json.loads((out / "hil.json").read_text(encoding="utf-8"))["bus"]
+    assert bus["rate_hz"] == 400.0  # its 8-byte TPDO2 fits the 70 % budget at 400 Hz, not 500 Hz
+    assert bus["node_ids"] == [11, 12, 13, 14]
