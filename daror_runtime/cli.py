@@ -1003,22 +1003,35 @@ _NO_TOKEN_NOTE = " (no token: any program on this computer can drive the robot)"
 
 # --- hil ------------------------------------------------------------------------------
 
-#: ``--fault KIND:NODE@T_S``: a bus fault, the drive's node id, the robot time it happens at.
-_FAULT_RE = re.compile(r"^(?P<kind>[a-z_]+):(?P<node>\d{1,3})@(?P<at>[0-9]+(?:\.[0-9]*)?)$")
+#: ``--fault KIND:NODE@T_S``: a drive's fault, its node id, the robot time it happens at; ``--fault KIND@T_S``:
+#: a fault of the bus itself (the master's controller: bus_off, error_passive).
+_FAULT_RE = re.compile(r"^(?P<kind>[a-z_]+)(?::(?P<node>\d{1,3}))?@(?P<at>[0-9]+(?:\.[0-9]*)?)$")
 
 
-def _parse_fault(text: str, node_ids: list[int], kinds: tuple[str, ...]) -> tuple[str, int, float]:
-    """``(kind, joint 1-4, robot time s)`` of one ``--fault KIND:NODE@T_S``.
+def _parse_fault(
+    text: str, node_ids: list[int], kinds: tuple[str, ...], bus_kinds: tuple[str, ...] = ()
+) -> tuple[str, int, float]:
+    """``(kind, joint 1-4, robot time s)`` of one ``--fault KIND:NODE@T_S``; joint 0 for ``--fault BUS_KIND@T_S``.
 
     Raises:
-        UsageError: not of that form, an unknown kind, or a node that is not one of the drives'.
+        UsageError: not of that form, an unknown kind, a node that is not one of the drives', a
+            drive's fault without a node or a bus fault with one.
     """
     match = _FAULT_RE.match(text)
     if match is None:
-        raise UsageError(f"--fault {text!r}: expected KIND:NODE@T_S, e.g. heartbeat_loss:2@30.5")
-    kind, node, at = match["kind"], int(match["node"]), float(match["at"])
-    if kind not in kinds:
-        raise UsageError(f"--fault {text!r}: unknown fault {kind!r}; expected one of {', '.join(kinds)}")
+        raise UsageError(
+            f"--fault {text!r}: expected KIND:NODE@T_S or a bus fault KIND@T_S, e.g. heartbeat_loss:2@30.5"
+        )
+    kind, at = match["kind"], float(match["at"])
+    if kind not in kinds and kind not in bus_kinds:
+        raise UsageError(f"--fault {text!r}: unknown fault {kind!r}; expected one of {', '.join((*kinds, *bus_kinds))}")
+    if kind in bus_kinds:
+        if match["node"] is not None:
+            raise UsageError(f"--fault {text!r}: {kind} is a fault of the bus, not of a node: expected {kind}@T_S")
+        return kind, 0, at
+    if match["node"] is None:
+        raise UsageError(f"--fault {text!r}: {kind} is a drive's fault: expected {kind}:NODE@T_S")
+    node = int(match["node"])
     if node not in node_ids:
         raise UsageError(f"--fault {text!r}: node {node} is not a drive; expected one of {node_ids}")
     return kind, node_ids.index(node) + 1, at
@@ -1047,6 +1060,7 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.atomic import write_text_atomic
     from daror_runtime.util.outputs import output_lock
+    from hal.canopen.sim.bus import LINE_FAULT_KINDS
     from hal.capabilities import BUS_FAULT_KINDS, BusStatistics, FaultSchedule
     from hal.interface import open_hal
 
@@ -1058,7 +1072,7 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
         if name.exists():
             raise UsageError(f"{name}: exists; a HIL run writes a new one: expected another --out")
     config = hil_config(args.hal_config, args.scenario, args.rate_hz, traffic)
-    faults = [_parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS) for text in args.fault or []]
+    faults = [_parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS, LINE_FAULT_KINDS) for text in args.fault or []]
     hal = open_hal(config)
     world = hal.world
     if not isinstance(world, FaultSchedule) or not isinstance(hal, BusStatistics):
@@ -1069,7 +1083,7 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     for kind, joint, at_s in faults:
         world.schedule_fault(kind, joint, at_s)
     clock = LockStepClock(1.0 / hal.rate_hz)
-    scheduled = [ScheduledFault(k, config.node_ids[j - 1], j, t) for k, j, t in faults]
+    scheduled = [ScheduledFault(k, config.node_ids[j - 1] if j else None, j, t) for k, j, t in faults]
     with output_lock(out):
         code, error = 1, None
         try:
@@ -1515,7 +1529,8 @@ def build_parser() -> argparse.ArgumentParser:
     hil.add_argument(
         "--fault", action="append", metavar="KIND:NODE@T_S",
         help="inject a bus fault into node NODE at robot time T_S (repeatable); KIND: " + ", ".join(
-            ("heartbeat_loss", "emcy", "frozen_pdo", "drive_fault", "drop_frames")),
+            ("heartbeat_loss", "emcy", "frozen_pdo", "drive_fault", "drop_frames"))
+            + "; or a fault of the bus itself, KIND@T_S: bus_off, error_passive",
     )  # fmt: skip
     hil.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
     hil.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")

@@ -19,6 +19,7 @@
     +-- HalError                       the hardware or its simulation failed (hal.errors)
     |   +-- HalNotOpenError            read or write before open or after close
     |   +-- HalFaultError              a backend fault latched outside the tick (hal.interface)
+    |       +-- HalBusFaultError       the field bus failed: bus-off, error-passive (hal.interface)
     +-- ModelKindPluginError           a registered model-kind plugin that cannot be loaded
     +-- ExtraMissingError              an optional extra (nn) is needed but not installed
 """

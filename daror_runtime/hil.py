@@ -1,8 +1,10 @@
 """What a ``daror hil`` run did with its faults: the summary in ``hil.json`` (docs/canopen.md).
 
 A HIL run injects faults into the simulated drives (``--fault KIND:NODE@T_S``, or a script's
-``sim fault`` lines) and records the session as every session does. This module reads the two
-records after the run, whatever the session or the script did, and says for every injection:
+``sim fault`` lines) or into the bus itself (``--fault bus_off@T_S``, ``error_passive@T_S``: the
+master's controller, no node; its summary has ``node`` and ``joint`` null) and records the session
+as every session does. This module reads the two records after the run, whatever the session or
+the script did, and says for every injection:
 
 * when it happened (the SYNC the drive got it at, robot time) and in which state;
 * what the runtime found (the audit log's faults), the state it went to and the reaction it took,
@@ -50,10 +52,13 @@ _FOUND_WITHIN_S = 1.0
 
 @dataclass(frozen=True)
 class ScheduledFault:
-    """One ``--fault KIND:NODE@T_S``: the kind, the drive's node id and joint (1-4), the robot time asked for (s)."""
+    """One ``--fault KIND:NODE@T_S``: the kind, the drive's node id and joint (1-4), the robot time asked for (s).
+
+    A fault of the bus itself (``--fault KIND@T_S``) has no node (None) and joint 0.
+    """
 
     kind: str
-    node: int
+    node: int | None
     joint: int
     at_s: float
 
@@ -91,11 +96,12 @@ def fault_summaries(
     node_ids: Sequence[int],
     rate_hz: float,
 ) -> list[dict[str, Any]]:
-    """One summary (JSON-ready) per fault injected into a drive, and per scheduled fault the run never reached.
+    """One summary (JSON-ready) per fault injected into a drive or the bus, and per scheduled fault the run never reached.
 
     Args:
         scheduled: the run's ``--fault`` options (a script's ``sim fault`` lines are found in ``drive_events``).
-        drive_events: the simulated drives' record (``FaultSchedule.drive_events``): robot time s, joint 1-4, what.
+        drive_events: the simulated drives' record (``FaultSchedule.drive_events``): robot time s, joint 1-4
+            (0: the bus itself), what.
         audit: the session's audit events (:func:`read_audit`).
         spec: the FSM spec the session ran (its first state, its reactions).
         node_ids: the drives' node ids, joint 1-4 in order.
@@ -133,8 +139,8 @@ def fault_summaries(
         summaries.append(
             {
                 "kind": kind,
-                "node": node_ids[joint - 1],
-                "joint": joint,
+                "node": node_ids[joint - 1] if joint else None,
+                "joint": joint or None,
                 "scheduled_at_s": origin.at_s if origin is not None else None,
                 "injected_s": round(t_inj, 6),
                 "state_before": state_before,
@@ -152,7 +158,7 @@ def fault_summaries(
             }
         )
     summaries.extend(
-        {"kind": s.kind, "node": s.node, "joint": s.joint, "scheduled_at_s": s.at_s, "injected_s": None}
+        {"kind": s.kind, "node": s.node, "joint": s.joint or None, "scheduled_at_s": s.at_s, "injected_s": None}
         for s in unmatched  # the session ended before their time
     )
     return summaries
@@ -222,7 +228,7 @@ def fault_lines(summaries: Sequence[dict[str, Any]]) -> list[str]:
     """One line per summary, for the console after the run."""
     lines = []
     for s in summaries:
-        head = f"fault {s['kind']} on node {s['node']} (joint {s['joint']})"
+        head = f"fault {s['kind']} " + (f"on node {s['node']} (joint {s['joint']})" if s["joint"] else "of the bus")
         if s["injected_s"] is None:
             lines.append(f"{head}: scheduled at {s['scheduled_at_s']:g} s, never injected (the session ended first)")
             continue

@@ -45,7 +45,7 @@ from daror_runtime.loop_batch import STOP_BUDGET, STOP_MONITOR, run_ticks_entry
 from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.errors import HalError
-from hal.interface import TORQUE_OFF, CheckedCommand, CheckedSample, Command, Hal, Sample
+from hal.interface import TORQUE_OFF, CheckedCommand, CheckedSample, Command, Hal, HalBusFaultError, Sample
 from hal.kernels import SAMPLE_VECTOR, entry_point
 
 log = structlog.get_logger(__name__)
@@ -286,7 +286,9 @@ class ControlLoop:
         except HalError as exc:
             sample = None
             faults: list[Fault] = []
-            self._report(faults, FaultKind.HAL, f"reading the hardware failed: {exc}")
+            # the bus itself failed (bus-off, error-passive): its own reaction, not a failed read's
+            kind = FaultKind.BUS if isinstance(exc, HalBusFaultError) else FaultKind.HAL
+            self._report(faults, kind, f"reading the hardware failed: {exc}")
         else:
             self._last_t_s = sample.t_s
             faults = monitor.check(sample)

@@ -189,6 +189,13 @@ class HalFaultError(HalError):
     """A backend fault latched outside the tick (bus error, lost heartbeat, thread crash)."""
 
 
+class HalBusFaultError(HalFaultError):
+    """The field bus itself failed (a CAN controller bus-off or error-passive): nothing can be commanded reliably.
+
+    The runtime meets it with the ``bus`` fault's reaction, not the ``hal`` one's (a read that failed once).
+    """
+
+
 #: How long consecutive enabled commands may take to bring every healthy drive to ENABLED, s
 #: (CiA 402: shutdown, switch on, enable operation; each one or two SYNC periods on a bus).
 ENABLE_WITHIN_S = 0.05

@@ -15,12 +15,12 @@ import numpy as np
 
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.limits import SafetyLimits
-from hal.interface import Sample
+from hal.interface import HalBusFaultError, HalFaultError, Sample
 from hal.isb import AngleRange, IsbLimits
 from hal.sim.backend import SimHal
 
 #: The kinds :func:`inject_in_plant` provokes.
-PLANT_KINDS = (FaultKind.STALE, FaultKind.HAL, FaultKind.DRIVE, FaultKind.NOT_FINITE, FaultKind.JUMP)
+PLANT_KINDS = (FaultKind.STALE, FaultKind.HAL, FaultKind.BUS, FaultKind.DRIVE, FaultKind.NOT_FINITE, FaultKind.JUMP)
 #: The kinds :func:`narrowed_limits` provokes.
 LIMIT_KINDS = (
     FaultKind.TORQUE,
@@ -65,8 +65,9 @@ def narrowed_limits(limits: SafetyLimits, sample: Sample, kind: FaultKind) -> Sa
 def inject_in_plant(hal: SimHal, kind: FaultKind, stale_ticks: int = 2000) -> None:
     """Inject in the simulated plant what the monitor finds as a fault of ``kind``.
 
-    STALE: ``stale_ticks`` samples without news; HAL: one failed read (the bus); DRIVE: joint 2's
-    drive faults; NOT_FINITE: joint 3 reads NaN; JUMP: joint 1's encoder slips 0.1 rad.
+    STALE: ``stale_ticks`` samples without news; HAL: one failed read (the bus); BUS: one read that
+    fails as a CAN bus gone bus-off does (:func:`fail_next_read_as_bus_off`); DRIVE: joint 2's drive
+    faults; NOT_FINITE: joint 3 reads NaN; JUMP: joint 1's encoder slips 0.1 rad.
 
     Raises:
         ValueError: a kind not in :data:`PLANT_KINDS`.
@@ -75,6 +76,8 @@ def inject_in_plant(hal: SimHal, kind: FaultKind, stale_ticks: int = 2000) -> No
         hal.inject_fault("stale", None, stale_ticks)
     elif kind == FaultKind.HAL:
         hal.inject_fault("bus")
+    elif kind == FaultKind.BUS:
+        fail_next_read_as_bus_off(hal)
     elif kind == FaultKind.DRIVE:
         hal.inject_fault("drive_fault", 2)
     elif kind == FaultKind.NOT_FINITE:
@@ -83,3 +86,24 @@ def inject_in_plant(hal: SimHal, kind: FaultKind, stale_ticks: int = 2000) -> No
         hal.inject_fault("jump", 1, 0.1)
     else:
         raise ValueError(f"{kind}: not a fault the plant injects")
+
+
+def fail_next_read_as_bus_off(hal: SimHal) -> None:
+    """The plant's next read fails as the CAN backend's does when its controller goes bus-off.
+
+    The plant has no bus: its own one-shot ``bus`` fault (which also stops its compiled batches
+    for that tick) is raised as :class:`hal.interface.HalBusFaultError`, the class the CAN backend
+    raises (hal/canopen/health.py; on the CAN bus itself: tests/test_canopen_bus_health.py).
+    """
+    hal.inject_fault("bus")
+    plant_read = type(hal).read
+
+    def read_bus_off() -> Sample:
+        try:
+            return plant_read(hal)
+        except HalFaultError as exc:
+            raise HalBusFaultError(f"CAN bus: bus-off (provoked: {exc})") from None
+        finally:
+            del hal.read  # once: the plant's own read again
+
+    hal.read = read_bus_off  # type: ignore[method-assign]

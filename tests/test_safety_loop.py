@@ -301,6 +301,30 @@ def test_recorder_failure() -> None:
     assert "No space left" in result.faults[0].message
 
 
+def test_a_bus_gone_error_passive_turns_the_torque_off_in_its_tick() -> None:
+    """The CAN bus's own fault, on the CAN backend over simulated drives: the read raises it, the command
+    of that tick is torque off, and it reaches the drives (frames still flow on an error-passive bus)."""
+    from hal.canopen.backend import SimulatedCanHal
+    from hal.config import hal_config
+    from hal.interface import open_hal
+
+    hal = open_hal(hal_config("can-sim"))
+    assert isinstance(hal, SimulatedCanHal)
+    hal.open()
+    try:
+        monitor = SafetyMonitor(SafetyLimits.from_description(hal.description))
+        clock = LockStepClock(1.0 / hal.rate_hz)
+        loop = ControlLoop(hal, monitor, FixedSupervisor(HoldController()), clock, None)  # type: ignore[arg-type]
+        settle(loop, 100)
+        assert np.any(hal.applied_motor_torque_nm != 0.0)  # the drives hold the arm
+        hal.drive_set.line.inject("error_passive", hal.plant.world.t_s)
+        result = run_until_fault(hal, loop, 3)  # type: ignore[arg-type]
+        assert [f.kind for f in result.faults] == [FaultKind.BUS]
+        assert "CAN bus: error-passive" in result.faults[0].message
+    finally:
+        hal.close()
+
+
 def test_every_fault_class_is_covered_here() -> None:
     """A new fault class must get its closed-loop test in this file."""
     source = Path(__file__).read_text(encoding="utf-8")

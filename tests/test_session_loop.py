@@ -54,6 +54,7 @@ from hal.sim.backend import SimHal
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
 from tests.conftest import recorded_by_an_earlier_session
+from tests.provoke import fail_next_read_as_bus_off
 
 SCENARIO = "exo_dummy_arm"
 SPEC = load_fsm_spec()
@@ -461,6 +462,19 @@ class BusFault(Condition):
         self.s.hal.clear_faults()
 
 
+class BusOff(Condition):
+    """The CAN bus's own fault (a read that fails as a bus-off controller's does, tests/provoke.py)."""
+
+    kind = FaultKind.BUS
+    persists = False
+
+    def start(self) -> None:
+        fail_next_read_as_bus_off(self.s.hal)
+
+    def clear(self) -> None:
+        self.s.hal.clear_faults()
+
+
 class Estop(Condition):
     kind = FaultKind.ESTOP
 
@@ -530,6 +544,7 @@ CONDITIONS: dict[FaultKind, Callable[[Session], Condition]] = {
     FaultKind.OVERRUN: Overrun,
     FaultKind.DRIVE: DriveFault,
     FaultKind.HAL: BusFault,
+    FaultKind.BUS: BusOff,
     FaultKind.SOFTWARE: SoftwareFault,
 }
 

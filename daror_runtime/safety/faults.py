@@ -26,7 +26,8 @@ class FaultKind(StrEnum):
     ESTOP = "estop"  # an e-stop is pressed
     OVERRUN = "overrun"  # too many deadlines missed in a row, or one long stall
     DRIVE = "drive"  # a drive reports a fault
-    HAL = "hal"  # the backend latched an error (bus, thread)
+    HAL = "hal"  # the backend latched an error (a drive lost, an EMCY, the receive thread)
+    BUS = "bus"  # the field bus itself failed (CAN bus-off, error-passive): nothing can be commanded reliably
     SOFTWARE = "software"  # the controller or recorder failed, or produced a non-finite command
 
 

@@ -47,7 +47,16 @@ from hal.canopen.master import CanMaster, MasterSettings
 from hal.canopen.profile import DriveProfile, resolve_profiles, robot_bus_load
 from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig
 from hal.errors import HalConfigError, HalError, HalNotOpenError, ShapeError
-from hal.interface import CheckedCommand, CheckedSample, Command, DriveReaction, Hal, HalFaultError, Sample
+from hal.interface import (
+    CheckedCommand,
+    CheckedSample,
+    Command,
+    DriveReaction,
+    Hal,
+    HalBusFaultError,
+    HalFaultError,
+    Sample,
+)
 from hal.robot import N_JOINTS, RobotDescription, load_description
 
 if TYPE_CHECKING:
@@ -247,6 +256,7 @@ class CanHal(Hal):
         self._is_open = True
         self._sample = None
         self._pending_fault = None
+        self._pending_bus = False
 
     def _now(self) -> float:
         return time.monotonic() - self._t0
@@ -294,6 +304,8 @@ class CanHal(Hal):
             "frames_sent": m.frames_sent,
             "frames_received": m.frames_received,
             "unknown_frames": m.unknown_frames,
+            "bus_health": m.health.report(),
+            "receive_times": m.source.receive_time_report(),
         }
 
     def _frame_source(self, bus: can.BusABC, now: object) -> FrameSource:
@@ -349,11 +361,16 @@ class CanHal(Hal):
             master.receive()
             sample = self._sample = self._build_sample(master)
             latched = master.take_latched()
+            bus = master.health.take_fault()
+            if bus is not None:  # the bus itself failed: its own fault kind (hal/canopen/health.py)
+                self._pending_bus = True
+                latched = bus if latched is None else f"{bus}; {latched}"
             if latched is not None:
                 self._pending_fault = latched
         if self._pending_fault is not None:
             message, self._pending_fault = self._pending_fault, None
-            raise HalFaultError(message)
+            bus_failed, self._pending_bus = self._pending_bus, False
+            raise (HalBusFaultError if bus_failed else HalFaultError)(message)
         return sample
 
     def _build_sample(self, master: CanMaster) -> Sample:
@@ -545,6 +562,7 @@ class SimulatedCanHal(CanHal):
         self._bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
         self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
         drives.attach(self._drive_bus)
+        drives.line.attach(self._bus)  # bus-off and error-passive of the master's controller
         drives.power_on()
         self._open_traffic()
         self._source = PolledFrames(self._bus, self._now)

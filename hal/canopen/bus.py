@@ -4,11 +4,20 @@ Two ways to receive, one interface (:class:`FrameSource`): drain what arrived si
 
 * :class:`PolledFrames` reads the bus in the tick (``recv(timeout=0)`` until empty): no thread at
   all, so a lock-step run over simulated drives processes every frame in one fixed order.
-* :class:`ListenedFrames` lets python-can's ``Notifier`` thread receive, as on real hardware (the
-  frame's reception time is kept, and a slow tick does not let the controller's buffer
-  overflow). Its listener only stores the COB-ID, the bytes and the timestamp; an exception in
-  the receive thread (python-can ends the thread on one) is latched and raised by the next drain,
-  so the tick learns of it at once instead of reading an empty bus forever.
+* :class:`ListenedFrames` lets python-can's ``Notifier`` thread receive, as on real hardware (a
+  slow tick does not let the controller's buffer overflow). Its listener only stores the COB-ID,
+  the bytes and the time the frame was received; an exception in the receive thread (python-can
+  ends the thread on one) is latched and raised by the next drain, so the tick learns of it at
+  once instead of reading an empty bus forever.
+
+A frame's time is the interface's receive time (``msg.timestamp``: socketcan's kernel stamp,
+SO_TIMESTAMPNS), put on the master's clock by its age (:class:`ReceiveClock`, D153), so that the
+TPDO latency the master reports is the bus's and not how late Python took the frame. A stamp that
+is missing or not plausible is replaced by the time the frame was taken, and counted.
+
+Error frames (``is_error_frame``: socketcan's controller events, linux/can/error.h) are kept apart
+for the bus's health (:meth:`FrameSource.take_error_frames`, :mod:`hal.canopen.health`); remote and
+extended frames are dropped (the DAROR bus carries standard data frames only).
 
 Software filters are never set on a bus we drain: python-can's ``recv(timeout=0)`` returns None
 at the first frame a filter rejects, even with matching frames queued behind it.
@@ -33,7 +42,7 @@ import can
 
 from hal.errors import HalError
 
-__all__ = ["Frame", "FrameSource", "ListenedFrames", "PolledFrames", "TrafficLog"]
+__all__ = ["Frame", "FrameSource", "ListenedFrames", "PolledFrames", "ReceiveClock", "TrafficLog"]
 
 
 class Frame(NamedTuple):
@@ -44,8 +53,56 @@ class Frame(NamedTuple):
     t_s: float
 
 
+class ReceiveClock:
+    """A frame's receive time on the master's clock, from the interface's stamp (see the module docstring).
+
+    The stamp (``msg.timestamp``, s) is on the interface's clock: socketcan's is the kernel's wall
+    clock (CLOCK_REALTIME). Its age is read on that same clock when the frame is taken, and the
+    frame's time is the master's now less that age: no offset is kept that an NTP step or slew
+    could make wrong over a session. A stamp whose age is negative beyond :data:`FUTURE_S`, or
+    over :data:`MAX_AGE_S` (a missing stamp, 0; an interface whose clock is not the wall clock;
+    a clock stepped between the stamp and now), is not used: the frame takes the time it was
+    taken, and :attr:`fallbacks` counts it.
+
+    Args:
+        now: the master's clock, s.
+        wall: the clock the interface's stamps are on, s (``time.time``).
+    """
+
+    #: A stamp this far ahead of the wall clock is still taken as now (the clocks' granularity), s.
+    FUTURE_S = 0.002
+    #: A frame stamped longer ago than this is not believed, s: the receive thread takes frames
+    #: within milliseconds; a second is a stamp on another clock.
+    MAX_AGE_S = 1.0
+
+    def __init__(self, now: Callable[[], float], wall: Callable[[], float] = time.time) -> None:
+        self._now = now
+        self._wall = wall
+        self.fallbacks = 0
+        self.stamped = 0
+
+    def __call__(self, stamp_s: float) -> float:
+        """The master's time at which a frame stamped ``stamp_s`` (interface clock) was received."""
+        now = self._now()
+        age = self._wall() - stamp_s
+        if -self.FUTURE_S <= age <= self.MAX_AGE_S:
+            self.stamped += 1
+            return now - max(age, 0.0)
+        self.fallbacks += 1
+        return now
+
+
 class FrameSource(ABC):
-    """Frames that arrived since the last :meth:`drain`."""
+    """Frames that arrived since the last :meth:`drain`, and the error frames among them."""
+
+    def receive_time_report(self) -> dict[str, object]:
+        """How the frames' receive times were taken (for the bus report)."""
+        return {"source": "the tick's time when drained (lock-step: the bus has no time of its own)"}
+
+    def take_error_frames(self) -> list[tuple[int, bytes]]:
+        """The error frames (CAN id, data) received since the last call, in arrival order (none: a source
+        that sees none)."""
+        return []
 
     @abstractmethod
     def drain(self) -> list[Frame]:
@@ -59,6 +116,13 @@ class FrameSource(ABC):
         """Stop receiving (a thread is stopped; a polled source does nothing)."""
 
 
+def _take_all(errors: deque[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+    taken = []
+    while errors:  # deque pops are atomic: a receive thread may append meanwhile
+        taken.append(errors.popleft())
+    return taken
+
+
 class PolledFrames(FrameSource):
     """Reads the bus itself, in the caller's thread (lock-step: no thread, a fixed order).
 
@@ -70,6 +134,10 @@ class PolledFrames(FrameSource):
     def __init__(self, bus: can.BusABC, now: Callable[[], float]) -> None:
         self._recv = bus.recv
         self._now = now
+        self._errors: deque[tuple[int, bytes]] = deque()
+
+    def take_error_frames(self) -> list[tuple[int, bytes]]:
+        return _take_all(self._errors)
 
     def drain(self) -> list[Frame]:
         frames = []
@@ -82,7 +150,10 @@ class PolledFrames(FrameSource):
                 raise HalError(f"reading the CAN bus failed: {exc}") from None
             if message is None:
                 return frames
-            if message.is_error_frame or message.is_remote_frame or message.is_extended_id:
+            if message.is_error_frame:
+                self._errors.append((message.arbitration_id, bytes(message.data)))
+                continue
+            if message.is_remote_frame or message.is_extended_id:
                 continue  # the DAROR bus carries standard data frames only
             frames.append(Frame(message.arbitration_id, bytes(message.data), now))
 
@@ -90,15 +161,24 @@ class PolledFrames(FrameSource):
 class _StoringListener(can.Listener):
     """Runs in python-can's receive thread: stores the frame, nothing else, and keeps the thread alive."""
 
-    def __init__(self, frames: deque[Frame], errors: list[BaseException], now: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        frames: deque[Frame],
+        errors: list[BaseException],
+        clock: ReceiveClock,
+        error_frames: deque[tuple[int, bytes]],
+    ) -> None:
         self._frames = frames
         self._errors = errors
-        self._now = now
+        self._clock = clock
+        self._error_frames = error_frames
         self.failures = 0
 
     def on_message_received(self, msg: can.Message) -> None:
-        if not (msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id):
-            self._frames.append(Frame(msg.arbitration_id, bytes(msg.data), self._now()))
+        if msg.is_error_frame:
+            self._error_frames.append((msg.arbitration_id, bytes(msg.data)))
+        elif not (msg.is_remote_frame or msg.is_extended_id):
+            self._frames.append(Frame(msg.arbitration_id, bytes(msg.data), self._clock(msg.timestamp)))
 
     def on_error(self, exc: Exception) -> None:
         # Latched (the first one; the tick raises it) and handled, so python-can keeps the thread
@@ -115,13 +195,18 @@ class ListenedFrames(FrameSource):
 
     Args:
         bus: the master's bus.
-        now: the clock a frame is stamped with on reception (wall time since the backend opened).
+        now: the master's clock (wall time since the backend opened), s: a frame's receive time is
+            put on it (:class:`ReceiveClock`).
+        wall: the clock of the interface's stamps, s.
     """
 
-    def __init__(self, bus: can.BusABC, now: Callable[[], float]) -> None:
+    def __init__(self, bus: can.BusABC, now: Callable[[], float], wall: Callable[[], float] = time.time) -> None:
         self._frames: deque[Frame] = deque()
-        self._errors: list[BaseException] = []
-        self._notifier = can.Notifier(bus, [_StoringListener(self._frames, self._errors, now)], timeout=0.05)
+        self._failures: list[BaseException] = []
+        self._errors: deque[tuple[int, bytes]] = deque()
+        self.clock = ReceiveClock(now, wall)
+        listener = _StoringListener(self._frames, self._failures, self.clock, self._errors)
+        self._notifier = can.Notifier(bus, [listener], timeout=0.05)
         self._reported = False
 
     def drain(self) -> list[Frame]:
@@ -129,11 +214,21 @@ class ListenedFrames(FrameSource):
         popleft = self._frames.popleft
         while self._frames:  # deque appends and pops are atomic: the thread never waits on the tick
             frames.append(popleft())
-        failure = self._errors[0] if self._errors else self._notifier.exception
+        failure = self._failures[0] if self._failures else self._notifier.exception
         if failure is not None and not self._reported:
             self._reported = True
             raise HalError(f"the CAN receive thread failed: {type(failure).__name__}: {failure}")
         return frames
+
+    def take_error_frames(self) -> list[tuple[int, bytes]]:
+        return _take_all(self._errors)
+
+    def receive_time_report(self) -> dict[str, object]:
+        return {
+            "source": "the interface's receive stamp (msg.timestamp), put on the master's clock by its age",
+            "stamped": self.clock.stamped,
+            "fallbacks": self.clock.fallbacks,
+        }
 
     def close(self) -> None:
         self._notifier.stop(timeout=1.0)

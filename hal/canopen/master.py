@@ -68,6 +68,7 @@ from hal.canopen.cia402.statemachine import (
     drive_state,
 )
 from hal.canopen.cia402.torque_slope import SlopeFollower
+from hal.canopen.health import BusHealth
 from hal.canopen.profile import DriveProfile, UnitCheck, decode_supported_modes
 from hal.canopen.reaction import ReactionPlan, format_ramp_s, plan_reaction
 from hal.errors import HalConfigError, HalError
@@ -259,6 +260,7 @@ class CanMaster:
         self._expected: dict[int, list[tuple[str, tuple[SdoTransfer, ...], object]]] = {}
         self._transfers: dict[int, list[SdoTransfer]] = {}
         self._latched: list[str] = []
+        self.health = BusHealth.for_bus(bus)  # the controller's state and error frames (hal/canopen/health.py)
         self.syncs = 0  # SYNCs sent
         self._last_sync_s = 0.0
         self.sample_t_s = 0.0  # when the SYNC whose TPDOs the arrays hold was sent (the master's clock)
@@ -557,6 +559,7 @@ class CanMaster:
             self._traffic_failed = True
             self._latch(self.traffic.error)
         now = self._now()
+        self.health.check(self.source.take_error_frames(), now)
         for node_id in self.heartbeats.newly_lost(now):
             drive = self._by_node[node_id]
             silent_ms = self.heartbeats.silent_s(node_id, now) * 1e3
@@ -893,6 +896,7 @@ class CanMaster:
         Never waits: the edge goes out with the next cycles; a lost drive is reset (NMT), configured
         (SDO, one transfer in flight per drive) and started over the next ticks.
         """
+        self.health.on_fault_reset()  # a bus still error-passive or bus-off is raised again
         now = self._now()
         for drive in self.drives:
             if drive.lost is not None and drive.recovery is None:

@@ -41,6 +41,7 @@ import numpy as np
 from hal.canopen.cia301.nmt import SDO_REQUEST_BASE, SYNC_COB_ID
 from hal.canopen.cia402.statemachine import PowerState
 from hal.canopen.profile import DriveProfile
+from hal.canopen.sim.bus import LineFaults
 from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
 from hal.capabilities import BUS_FAULT_KINDS
 from hal.errors import HalError, InputError
@@ -85,6 +86,7 @@ class SimulatedDriveSet:
         #: ``injected KIND`` (a fault injected into its drive) or ``power stage on``/``off`` (from that
         #: plant tick on the drive applies torque, in OPERATION ENABLED or a stop ramp, or no longer).
         self.events: list[tuple[float, int, str]] = []
+        self.line = LineFaults(self.events)  # the master's controller failing (bus_off, error_passive)
         self._stage_on = [False] * len(self.drives)
         self.syncs = 0
         self._thread: threading.Thread | None = None
@@ -152,6 +154,8 @@ class SimulatedDriveSet:
         now = self.t_s
         for drive in drives:
             drive.advance(now)
+        for _ in range(self.line.take_lost_syncs()):
+            self.tick_without_sync()  # a SYNC reached no drive (the master's controller is bus-off): time goes on
 
     # --- drives on their own thread (real time, as real drives) ----------------------------------
 
@@ -330,6 +334,7 @@ class SimulatedDriveSet:
         the fault is still latched in the drive), as a real drive does.
         """
         self._scheduled.clear()
+        self.line.clear()
         now = self.t_s
         for drive in self.drives:
             drive.clear_injected(now)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from hal.canopen.sim.bus import LINE_FAULT_KINDS
 from hal.canopen.sim.drives import SimulatedDriveSet
 from hal.capabilities import BUS_FAULT_KINDS
 from hal.errors import InputError
@@ -69,11 +70,15 @@ class CanSimWorld:
         self._drives.inject(kind, 1 if joint is None else joint, value)
 
     def schedule_fault(self, kind: str, joint: int, at_s: float, duration_s: float | None = None) -> None:
-        """Inject ``kind`` into the drive of ``joint`` at robot time ``at_s`` (the first SYNC at or after it).
+        """Inject ``kind`` into the drive of ``joint`` at robot time ``at_s`` (the first SYNC at or after it);
+        a bus fault (``bus_off``, ``error_passive``: the master's controller) ignores ``joint``.
 
         Raises:
             InputError: an unknown kind, a joint not 1-4, a negative time or a duration that is not positive.
         """
+        if kind in LINE_FAULT_KINDS:
+            self._drives.line.schedule(kind, at_s)
+            return
         self._drives.schedule(kind, joint, at_s, duration_s)
 
     def clear_faults(self) -> None:
