@@ -112,3 +112,18 @@ def test_torque_positions_spring_torque_and_estops_cross_the_bus_in_the_robot_fi
     rig.drives.set_estop(NODE_IDS[1], operator=False, pilot=True)
     assert rig.cycle().estop == (False, True)
     assert [rig.drives.applied_torque_permille(n) for n in NODE_IDS] == [0, 0, 0, 0]  # torque off
+
+
+def test_start_up_keeps_the_sync_going_while_it_waits_for_the_operational_heartbeats(rig: Rig) -> None:
+    """From NMT start on the master runs the bus (H31): durand sends its first OPERATIONAL heartbeat one period
+    (100 ms) after NMT start, and meanwhile every drive gets the SYNC at the loop's rate, never a silent bus."""
+    period_s = 1.0 / rig.hal.rate_hz
+    for n in NODE_IDS:
+        received = rig.drives.received(n)
+        start = next(f for f in received if f.cob_id == 0x000 and f.data in (bytes((0x01, n)), b"\x01\x00"))
+        operational = next(f for f in rig.drives.sent(n) if f.cob_id == 0x700 + n and f.data == b"\x05")
+        syncs = [f.t_s for f in received if f.cob_id == 0x080 and start.t_s <= f.t_s <= operational.t_s]
+        waited_s = operational.t_s - start.t_s
+        assert waited_s > 0.02  # durand's producer: no heartbeat at the state change
+        assert len(syncs) >= waited_s / period_s / 4  # at the loop's rate, a slow machine's jitter allowed
+        assert max(b - a for a, b in itertools.pairwise([start.t_s, *syncs])) < 0.05  # never a silent bus
