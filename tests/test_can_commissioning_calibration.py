@@ -20,7 +20,7 @@ from daror_runtime.cli import main
 from daror_runtime.clocks import LockStepClock
 from daror_runtime.commissioning.bus_session import BusSession, commissioning_backend
 from daror_runtime.commissioning.calibration import CalibrationLimits, measure_still, spread_problems, utc_now
-from daror_runtime.commissioning.robot_file import read_calibrations, store_calibrations
+from daror_runtime.commissioning.robot_file import check_storable, read_calibrations, store_calibrations
 from hal.canopen.calibration import Calibration, angle_rad, spring_torque_nm
 from hal.canopen.cia402.statemachine import PowerState
 from hal.config import hal_config
@@ -185,6 +185,31 @@ def test_a_refused_verification_leaves_the_file_and_no_other(tmp_path: Path) -> 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["robot.yaml"]
 
 
+def test_a_file_that_could_not_hold_a_calibration_is_refused_before_anything_is_measured(tmp_path: Path) -> None:
+    robot = tmp_path / "robot.yaml"
+    robot.write_text(ROBOT)
+    seen: list[str] = []
+
+    def loads(path: Path) -> None:
+        seen.append(path.read_text())
+
+    check_storable(robot, [1, 2, 3], verify=loads)  # storable: the trial file had every node's calibration
+    assert seen[0].count("calibration:") == 3
+    assert robot.read_text() == ROBOT
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["robot.yaml"]
+
+    def refuse(path: Path) -> None:
+        raise HalConfigError(f"{path}: line 12, field nodes.0.calibration: Extra inputs are not permitted")
+
+    with pytest.raises(HalConfigError) as caught:
+        check_storable(robot, [1], verify=refuse)
+    assert str(caught.value) == (
+        f"{robot}: with a calibration: per node the file would not load; nothing was written "
+        f"({robot}: line 12, field nodes.0.calibration: Extra inputs are not permitted)"
+    )  # the file named, not the temporary one
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["robot.yaml"]
+
+
 def test_unknown_nodes_and_the_short_form_are_one_line(tmp_path: Path) -> None:
     robot = tmp_path / "robot.yaml"
     robot.write_text(ROBOT)
@@ -247,3 +272,42 @@ def test_the_calibration_moves_the_angles_and_the_torque() -> None:
     assert spring_torque_nm(np.array([0.25, -0.75]), np.array([0.25, -0.25])) == pytest.approx([0.0, -0.5])
     with pytest.raises(ValueError, match="torque_tare_nm = nan"):
         Calibration(torque_tare_nm=float("nan"))
+
+
+def _sim_robot_file(tmp_path: Path) -> Path:
+    """A can-sim robot file of four DAROR drives in the per-node form, with the operator's comments."""
+    from hal.canopen.dictionary import DEFAULT_EDS
+
+    node = """\
+  - joint: {j}                     # joint {j}
+    node_id: {j}
+    eds: {eds}
+    motor_position: {{index: 0x6064, counts_per_rev: 65536}}
+    link_position: {{index: 0x2010, counts_per_rev: 65536, resolution_index: 0x2011}}
+    spring_torque: {{index: 0x6077}}
+    estop: {{index: 0x6041, operator_bit: 14, pilot_bit: 15}}
+"""
+    robot = tmp_path / "robot.yaml"
+    robot.write_text("# the simulated robot\nbackend: can-sim\nnodes:\n" + "".join(
+        node.format(j=j, eds=DEFAULT_EDS) for j in range(1, 5)))  # fmt: skip
+    return robot
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the robot file's loader does not take calibration: yet (hal/config.py NodeConfig, issue 25's robot file); "
+    "the verification refuses the new file and nothing is written (exit 2). Remove this marker when it does.",
+)
+def test_daror_can_zero_and_tare_store_what_the_drives_read(tmp_path: Path) -> None:
+    robot = _sim_robot_file(tmp_path)
+    before = robot.read_text()
+    assert main(["can", "zero", "--hal-config", str(robot), "--at-zero-pose"]) == 0
+    assert main(["can", "tare", "--hal-config", str(robot), "--arm-unloaded"]) == 0
+    readings, _ = measure_still(_session(), CalibrationLimits())  # the same deterministic simulation, read again
+    stored = read_calibrations(robot)
+    for r in readings:
+        assert stored[r.node_id]["motor_zero_counts"] == round(r.motor_counts.mean)
+        assert stored[r.node_id]["link_zero_counts"] == round(r.link_counts.mean)
+        assert stored[r.node_id]["torque_tare_nm"] == pytest.approx(r.spring_nm.mean, abs=1e-4)
+    assert all(line in robot.read_text().splitlines() for line in before.splitlines())  # comments kept
+    assert len(list(tmp_path.glob("robot.yaml.*.bak"))) == 2

@@ -162,7 +162,7 @@ def cmd_can_calibrate(args: argparse.Namespace, console: Console) -> int:
     from rich.table import Table
 
     from daror_runtime.commissioning.calibration import CalibrationLimits, measure_still, spread_problems, utc_now
-    from daror_runtime.commissioning.robot_file import read_calibrations, store_calibrations
+    from daror_runtime.commissioning.robot_file import check_storable, read_calibrations, store_calibrations
     from hal.config import load_hal_config
 
     kind = args.can_command
@@ -175,7 +175,9 @@ def cmd_can_calibrate(args: argparse.Namespace, console: Console) -> int:
         )
         raise UsageError(f"daror can {kind} stores what the drives read now: confirm that {what} with {flag}")
     stored = read_calibrations(args.hal_config)  # a file without nodes: refused before the bus is touched
-    session = _session(_config(args), args.clock, DEFAULT_CHECK_TORQUE_LIMIT_NM)
+    config = _config(args)
+    check_storable(args.hal_config, list(config.node_ids), verify=load_hal_config)  # before anything is measured
+    session = _session(config, args.clock, DEFAULT_CHECK_TORQUE_LIMIT_NM)
     limits = CalibrationLimits()
     console.print(f"daror can {kind}: reading every drive for {limits.window_s:g} s, every drive disabled ...")
     readings, problems = measure_still(session, limits)

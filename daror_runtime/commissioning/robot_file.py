@@ -19,19 +19,21 @@ crash leaves the old file or the new one, never half of one).
 from __future__ import annotations
 
 import copy
+import os
 import re
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from daror_runtime.util.atomic import atomic_path
+from daror_runtime.util.atomic import OutputWriteError, atomic_path
 from hal.errors import HalConfigError
 from hal.files import YAML_MAX_BYTES, read_text_bounded
 from hal.yamlfile import read_yaml
 
-__all__ = ["CALIBRATION_KEYS", "read_calibrations", "store_calibrations"]
+__all__ = ["CALIBRATION_KEYS", "check_storable", "read_calibrations", "store_calibrations"]
 
 #: The keys of a node's ``calibration:``, in the order they are written.
 CALIBRATION_KEYS = ("motor_zero_counts", "link_zero_counts", "zeroed_utc", "torque_tare_nm", "tared_utc")
@@ -97,6 +99,47 @@ def store_calibrations(
         OutputWriteError: the folder is not writable; nothing was written.
     """
     path = Path(path)
+    text, data, new_text, merged = _updated(path, updates)
+    backup = _backup_name(path, stamp)
+    with atomic_path(path) as tmp:
+        _check_new(path, tmp, new_text, data, merged, verify)
+        with open(backup, "x", encoding="utf-8") as handle:  # never overwrites: a new name each time
+            handle.write(text)
+    return backup
+
+
+def check_storable(path: Path | str, node_ids: list[int], verify: Callable[[Path], object] | None = None) -> None:
+    """Refuse now, before anything is measured, a robot file that a calibration of ``node_ids`` could not be stored in.
+
+    The file with a calibration (zeros and a tare) for each node is built and checked as
+    :func:`store_calibrations` would, under a temporary name that is removed; the file is not changed.
+
+    Raises:
+        HalConfigError, OutputWriteError: as :func:`store_calibrations`.
+    """
+    path = Path(path)
+    trial = {"motor_zero_counts": 0, "link_zero_counts": 0, "zeroed_utc": "2000-01-01T00:00:00Z",
+             "torque_tare_nm": 0.0, "tared_utc": "2000-01-01T00:00:00Z"}  # fmt: skip
+    _, data, new_text, merged = _updated(path, dict.fromkeys(node_ids, trial))
+    try:  # beside the file, so that its relative paths (the EDS files) resolve as they will
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".trial.yaml", dir=path.parent)
+    except OSError as exc:
+        raise OutputWriteError(f"{path}: cannot write beside it ({exc.strerror})") from None
+    os.close(fd)
+    try:
+        _check_new(path, Path(name), new_text, data, merged, verify)
+    finally:
+        Path(name).unlink(missing_ok=True)
+
+
+def _updated(
+    path: Path, updates: dict[int, dict[str, Any]]
+) -> tuple[str, dict[str, Any], str, dict[int, dict[str, Any]]]:
+    """``(old text, old document, new text, each updated node's merged calibration)``.
+
+    Raises:
+        HalConfigError: see :func:`store_calibrations`.
+    """
     text = read_text_bounded(path, HalConfigError, YAML_MAX_BYTES, "robot file")
     data, root = read_yaml(path, HalConfigError, "a robot file (a YAML mapping with backend: and nodes:)")
     nodes = _nodes(path, data, root)
@@ -113,15 +156,32 @@ def store_calibrations(
     new_text = text
     for start, end, replacement in sorted(edits, reverse=True):
         new_text = new_text[:start] + replacement + new_text[end:]
-    backup = _backup_name(path, stamp)
-    with atomic_path(path) as tmp:
-        tmp.write_text(new_text, encoding="utf-8")
-        _same_but_calibrations(path, tmp, data, merged)
-        if verify is not None:
-            verify(tmp)
-        with open(backup, "x", encoding="utf-8") as handle:  # never overwrites: a new name each time
-            handle.write(text)
-    return backup
+    return text, data, new_text, merged
+
+
+def _check_new(
+    path: Path,
+    tmp: Path,
+    new_text: str,
+    data: dict[str, Any],
+    merged: dict[int, dict[str, Any]],
+    verify: Callable[[Path], object] | None,
+) -> None:
+    """Write ``new_text`` to ``tmp`` and check it (same document but the calibrations; ``verify``), messages naming ``path``.
+
+    Raises:
+        HalConfigError: see :func:`store_calibrations`.
+    """
+    tmp.write_text(new_text, encoding="utf-8")
+    _same_but_calibrations(path, tmp, data, merged)
+    if verify is None:
+        return
+    try:
+        verify(tmp)
+    except HalConfigError as exc:
+        problem = str(exc).replace(str(tmp), str(path))
+        raise HalConfigError(f"{path}: with a calibration: per node the file would not load; nothing was written "
+                             f"({problem})") from None  # fmt: skip
 
 
 def _line_starts(text: str) -> list[int]:
