@@ -279,3 +279,19 @@ def test_supported_modes_must_hold_the_mode_written(tmp_path: Path, supported: i
         ("enable", "not tried: 4 item(s) above failed"),
     ] or (failed[0][0] == "start-up" and "0x6502" in failed[0][1] and "tq" in failed[0][1])
     assert not [e for e in hal.world.drive_events() if e[2] == "power stage on"]  # nothing was enabled
+
+
+def test_a_drive_that_is_not_what_the_file_says_is_never_enabled(tmp_path: Path) -> None:
+    """The EDS says vendor 0x1A3; the drives report 0: the identity row fails and no joint is enabled."""
+    from hal.canopen.dictionary import DEFAULT_EDS
+
+    eds = tmp_path / "vendor.eds"
+    eds.write_text(DEFAULT_EDS.read_text().replace("VendorNumber=0x00000000", "VendorNumber=0x000001A3"))
+    hal = commissioning_backend(hal_config("can-sim", eds=str(eds)), 2.0)
+    session = BusSession(hal, LockStepClock(1.0 / hal.rate_hz))
+    report = _check(session)
+    assert _rows(report, "vendor 0x1018:1") == [(j, "0x00000000", "FAIL") for j in range(1, 5)]
+    assert _rows(report, "enable") == [(0, "not tried: 4 item(s) above failed", "FAIL")]
+    assert report.readings == {}
+    assert not [e for e in _stage_on_events(session) if e[2] == "power stage on"]
+    _all_off(session)
