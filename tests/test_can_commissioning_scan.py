@@ -195,6 +195,7 @@ def test_daror_can_scan_on_a_can_sim_robot_file_writes_json(tmp_path: Path, caps
         (["--listen-s", "0", "--interface", "virtual", "--channel", "x"], "--listen-s 0: expected a time above 0 s"),
         (["--interface", "virtual"], "name the bus: --interface and --channel"),
         (["--interface", "virtual", "--channel", "x", "--eds-dir", "/nonexistent"], "/nonexistent: no such file"),
+        (["--interface", "virtual", "--channel", "x", "--bitrate", "0"], "--bitrate 0: expected one of the CiA 301"),
     ],
 )
 def test_daror_can_scan_bad_input_is_one_line_exit_2(
@@ -221,3 +222,17 @@ def test_the_scan_never_sends_nmt_even_to_a_booting_node(rig: Rig) -> None:
     assert len(result.nodes) == 4
     assert {d.nmt_state for d in rig.drives.drives} == {NmtState.PRE_OPERATIONAL}
     assert not [m for m in frames if m.arbitration_id == 0x000]
+
+
+def test_daror_can_scan_of_a_hardware_robot_file_scans_its_interface(
+    tmp_path: Path, rig: Rig, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``backend: can``: the file's interface and channel (here python-can's virtual bus, the drives on it)."""
+    rig.start()
+    robot = tmp_path / "robot.yaml"
+    robot.write_text(f"backend: can\ninterface: virtual\nchannel: {rig.channel}\nnode_ids: [5, 9, 12, 100]\n")
+    out = tmp_path / "scan.json"
+    assert main(["can", "scan", "--hal-config", str(robot), "--listen-s", "0.2", "--json", str(out)]) == 0
+    assert [n["node_id"] for n in json.loads(out.read_text())["nodes"]] == list(NODES)
+    assert not [m for m in rig.drain() if m.arbitration_id == 0x000 or 0x200 <= m.arbitration_id < 0x580]
+    assert f"scanning virtual {rig.channel} at 1000000 bit/s" in capsys.readouterr().out

@@ -67,6 +67,12 @@ def cmd_can_scan(args: argparse.Namespace, console: Console) -> int:
     elif args.interface is None or args.channel is None:
         raise UsageError("name the bus: --interface and --channel (and --bitrate), or --hal-config FILE")
     else:
+        from hal.config import CAN_BITRATES
+
+        if args.bitrate not in CAN_BITRATES:
+            raise UsageError(
+                f"--bitrate {args.bitrate}: expected one of the CiA 301 bit rates {', '.join(map(str, CAN_BITRATES))}"
+            )
         interface, channel, bitrate = args.interface, args.channel, args.bitrate
     console.print(f"scanning {interface} {channel} at {bitrate} bit/s for {args.listen_s:g} s (SDO reads only) ...")
     result = scan(config, interface, channel, bitrate, args.listen_s, list(args.eds_dir or []))
