@@ -53,9 +53,7 @@ class CanOnSimulatedDrives(CanHal):
         super().__init__(settings)
         self._plant = SimHal(plant_scenario, self.rate_hz, self.description)
         self._drive_bus: can.BusABC | None = None
-        self.drives = SimulatedDriveSet(
-            None, self._plant, tuple(settings.node_ids), self.dictionary, settings.master_node_id
-        )
+        self.drives = SimulatedDriveSet(None, self._plant, self.profiles, settings.master_node_id)
         self._world = CanSimWorld(self._plant.world, self.drives)
         self._period_s = 1.0 / self.rate_hz
         self._last_write_s = 0.0
