@@ -14,7 +14,9 @@ the state the runtime wants, one transition per tick (:class:`PowerStepper`); th
     a fault anywhere: FAULT REACTION ACTIVE, then FAULT; a rising edge of bit 7 (0x80): SWITCH ON DISABLED
 
 Statusword bits 14 and 15 are manufacturer-specific in CiA 402; the DAROR drives report the
-operator's and the pilot's e-stop inputs there (hal/canopen/daror_sea.eds).
+operator's and the pilot's e-stop inputs there (hal/canopen/daror_sea.eds). Where a drive of
+another make reports them is its robot file's ``estop`` (an object and two bits,
+:mod:`hal.canopen.profile`): on other drives bits 14 and 15 mean other things.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ CW_SWITCH_ON = 0x0007
 CW_ENABLE_OPERATION = 0x000F
 CW_FAULT_RESET = 0x0080  # acts on its rising edge
 
-#: Statusword (0x6041) manufacturer bits of the DAROR drives: the e-stop inputs.
+#: Statusword (0x6041) manufacturer bits of the DAROR drives: the e-stop inputs (their profile's ``estop``).
 SW_ESTOP_OPERATOR = 1 << 14
 SW_ESTOP_PILOT = 1 << 15
 #: Statusword bit 4: the power stage has voltage.
