@@ -138,7 +138,7 @@ def test_a_scan_of_an_empty_bus_takes_well_under_2_s() -> None:
     took = time.monotonic() - started
     assert result.nodes == ()
     assert result.frames_sent == 127
-    assert 1.0 <= took < 1.5  # the listening window; the 127 probes time out together, within it
+    assert 1.0 <= took < 1.8  # the listening window (1.00 s measured); the 127 probes time out together, within it
     assert sdo_probe_timeout_s(1_000_000) == pytest.approx(0.1 + 2 * 127 * 135 / 1e6)
 
 
