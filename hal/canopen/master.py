@@ -1,15 +1,20 @@
-"""The CANopen master of the DAROR-01's four SEA drives: configured at start-up, one bus cycle per tick.
+"""The CANopen master of the robot's four CiA 402 drives: configured at start-up, one bus cycle per tick.
 
-Start-up (:meth:`CanMaster.start`, outside the tick, may wait on the bus)::
+Each drive is its :class:`hal.canopen.profile.DriveProfile` (the robot file's node: its EDS, its
+objects and scales, its PDOs, its e-stop bits, its start-up writes, its timeouts); the DAROR-01's
+four SEA drives are the short form's profiles. Start-up (:meth:`CanMaster.start`, outside the
+tick, may wait on the bus; docs/canopen.md, "Start-up")::
 
     NMT reset communication -> every drive's boot-up message
-    per drive, by SDO: read its identity and units (device type, rated torque, encoder resolutions)
-      and refuse a drive whose units are not its EDS's; write cyclic synchronous torque (0x6060),
-      the peak torque (0x6072), the heartbeat producer (0x1017) and the master's heartbeat as its
-      consumer (0x1016), every PDO's communication and mapping parameters (never the defaults),
-      and what it does by itself when it loses the master (0x6007, 0x605E, 0x6087, 0x605A:
-      :mod:`hal.canopen.reaction`; a drive without them is reported, not refused)
-    NMT start -> the first SYNC -> every drive's first TPDOs
+    per drive, by SDO: read its device type, identity (0x1018) and supported modes (0x6502); write
+      its mode (0x6060), the peak torque (0x6072), the heartbeat producer (0x1017) and the master's
+      heartbeat as its consumer (0x1016), the cycle (0x1006, 0x60C2), every PDO's communication and
+      mapping parameters (never the defaults), the robot file's sdo_init, and what it does by itself
+      when it loses the master (0x6007, 0x605E, 0x6087, 0x605A: :mod:`hal.canopen.reaction`; a drive
+      without them is reported, not refused); read back its units, 0x6061 and every sdo_init value;
+      refuse in one line what differs from its robot file (reads judged before failed writes)
+    NMT start -> the master's heartbeat and the SYNC at their periods -> every drive's OPERATIONAL
+      heartbeat and first TPDOs
 
 The tick, in one order, never waiting (:meth:`CanMaster.receive` is the HAL's read,
 :meth:`CanMaster.send_cycle` its write)::
