@@ -18,6 +18,16 @@ flags (``--hal``, ``--scenario``). :func:`hal.interface.open_hal` turns it into 
     heartbeat_consumer_ms: 250    # a drive silent this long is lost: a latched fault
     eds: drives.eds               # the drives' EDS file (relative to this file)
 
+That is the short form: four DAROR SEA drives. A robot file describes each drive by its own EDS
+instead (``nodes:``, one :class:`NodeConfig` per joint; docs/canopen.md, "Robot file";
+``examples/robot/``), resolved into drive profiles by :mod:`hal.canopen.profile`::
+
+    nodes:
+      - {joint: 1, node_id: 11, eds: drives/maxon_epos4_0x6050.eds, mode: cst, rated_torque_mnm: 160,
+         motor_position: {index: 0x6064, counts_per_rev: 4096, gear_ratio: 100.0},
+         link_position: {index: 0x60E4, subindex: 2, counts_per_rev: 65536},
+         spring_torque: {from: deflection}, estop: {index: 0x60FD, operator_bit: 16, pilot_bit: 17}}
+
 Files are read through :func:`hal.yamlfile.read_yaml` (strict types; a bool or a string where a
 number is meant is refused) and every problem is one line naming the file, the line and the
 field: ``hal.yaml: line 3, field rate_hz: Input should be greater than 0; got -5``.
