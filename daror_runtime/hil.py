@@ -24,7 +24,7 @@ import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from daror_runtime.fsm.spec import FsmSpec
 from daror_runtime.safety.faults import FaultKind
@@ -305,9 +305,7 @@ def hil_config(robot_file: Path | None, scenario: str | None, rate_hz: float | N
 
     flags = {"scenario": scenario, "rate_hz": rate_hz, "traffic_log": str(traffic)}
     if robot_file is None:
-        config = hal_config("can-sim", "--scenario/--rate-hz", **flags)
-        assert isinstance(config, CanSimHalConfig)
-        return config
+        return cast(CanSimHalConfig, hal_config("can-sim", "--scenario/--rate-hz", **flags))  # the can-sim variant
     loaded = load_hal_config(robot_file)
     if not isinstance(loaded, CanHalConfig | CanSimHalConfig):
         raise HalConfigError(

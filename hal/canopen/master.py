@@ -991,13 +991,11 @@ def _judge(profile: DriveProfile, kind: str, raw: list[int], want: object) -> st
             f"its 0x6502 supported drive modes are {names}: no {_MODE_NAMES[int(want)]}, the robot file's mode; "  # type: ignore[call-overload]
             f"expected mode: {torque[0].split()[0]}"
         )
-    if kind == "unit":
-        check = want
-        assert isinstance(check, UnitCheck)
-        got = check.value(raw)
-        if got != check.expected:
+    if isinstance(want, UnitCheck):  # kind "unit"
+        got = want.value(raw)
+        if got != want.expected:
             return (
-                f"reports {check.what} {got:g}, its robot file says {check.expected:g}: torques and angles "
+                f"reports {want.what} {got:g}, its robot file says {want.expected:g}: torques and angles "
                 "would be converted wrong"
             )
         return None
