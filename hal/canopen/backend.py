@@ -306,6 +306,7 @@ class CanHal(Hal):
             "unknown_frames": m.unknown_frames,
             "bus_health": m.health.report(),
             "receive_times": m.source.receive_time_report(),
+            "emcy_warnings": m.emcy_warnings.report(),
         }
 
     def _frame_source(self, bus: can.BusABC, now: object) -> FrameSource:

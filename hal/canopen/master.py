@@ -49,7 +49,7 @@ import numpy as np
 
 from hal.canopen import objects as obj
 from hal.canopen.bus import Frame, FrameSource, TrafficLog
-from hal.canopen.cia301.emcy import EmcyMessage, parse_emcy
+from hal.canopen.cia301.emcy import EmcyClass, EmcyMessage, EmcyWarnings, classify_emcy, parse_emcy
 from hal.canopen.cia301.heartbeat import HeartbeatConsumer
 from hal.canopen.cia301.nmt import (
     EMCY_BASE,
@@ -266,6 +266,7 @@ class CanMaster:
         self._transfers: dict[int, list[SdoTransfer]] = {}
         self._latched: list[str] = []
         self.health = BusHealth.for_bus(bus)  # the controller's state and error frames (hal/canopen/health.py)
+        self.emcy_warnings = EmcyWarnings()  # EMCYs that take no torque (hal/canopen/cia301/emcy.py)
         self.syncs = 0  # SYNCs sent
         self._last_sync_s = 0.0
         self.sample_t_s = 0.0  # when the SYNC whose TPDOs the arrays hold was sent (the master's clock)
@@ -695,8 +696,13 @@ class CanMaster:
             self._lose(drive, "restarted", f"reported NMT state {state.name.lower().replace('_', '-')} while running")
 
     def _on_emcy(self, drive: _Drive, message: EmcyMessage) -> None:
-        if message.is_error_reset:
+        kind = classify_emcy(message)  # error reset, warning or error (D154)
+        if kind is EmcyClass.RESET:
             drive.emcy = None
+            self.emcy_warnings.reset(drive.node_id)
+            return
+        if kind is EmcyClass.WARNING:  # reported; the torque stays (its statusword is the authority for FAULT)
+            self.emcy_warnings.warn(drive.node_id, self._joint[drive.node_id], message, self._now())
             return
         drive.emcy = message
         self._latch(f"drive {drive.node_id}: {message.describe()}")
@@ -902,6 +908,9 @@ class CanMaster:
         (SDO, one transfer in flight per drive) and started over the next ticks.
         """
         self.health.on_fault_reset()  # a bus still error-passive or bus-off is raised again
+        for drive in self.drives:  # an EMCY error of a drive whose statusword shows no fault: acknowledged
+            if drive.emcy is not None and drive.power not in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+                drive.emcy = None
         now = self._now()
         for drive in self.drives:
             if drive.lost is not None and drive.recovery is None:
