@@ -1060,8 +1060,7 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.session.settings import load_session_settings
     from daror_runtime.util.atomic import write_text_atomic
     from daror_runtime.util.outputs import output_lock
-    from hal.canopen.sim.bus import LINE_FAULT_KINDS
-    from hal.capabilities import BUS_FAULT_KINDS, BusStatistics, FaultSchedule
+    from hal.capabilities import BUS_FAULT_KINDS, BUS_LINE_FAULT_KINDS, BusStatistics, FaultSchedule
     from hal.interface import open_hal
 
     spec = load_fsm_spec(args.spec)
@@ -1072,7 +1071,9 @@ def cmd_hil(args: argparse.Namespace, console: Console) -> int:
         if name.exists():
             raise UsageError(f"{name}: exists; a HIL run writes a new one: expected another --out")
     config = hil_config(args.hal_config, args.scenario, args.rate_hz, traffic)
-    faults = [_parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS, LINE_FAULT_KINDS) for text in args.fault or []]
+    faults = [
+        _parse_fault(text, list(config.node_ids), BUS_FAULT_KINDS, BUS_LINE_FAULT_KINDS) for text in args.fault or []
+    ]
     hal = open_hal(config)
     world = hal.world
     if not isinstance(world, FaultSchedule) or not isinstance(hal, BusStatistics):

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BUS_FAULT_KINDS",
+    "BUS_LINE_FAULT_KINDS",
     "ESTOP_OPERATOR",
     "ESTOP_PILOT",
     "FAULT_KINDS",
@@ -49,6 +50,8 @@ FaultKind = Literal["nan", "jump", "stale", "drive_fault", "bus", "heartbeat_los
 PLANT_FAULT_KINDS: tuple[str, ...] = ("nan", "jump", "stale", "drive_fault", "bus")
 #: The faults simulated CANopen drives inject on the bus (``can-sim``, hal/canopen/sim).
 BUS_FAULT_KINDS: tuple[str, ...] = ("heartbeat_loss", "emcy", "frozen_pdo", "drive_fault", "drop_frames")
+#: The faults of the simulated CAN bus itself, the master's controller (``can-sim``; ``daror hil --fault KIND@T_S``).
+BUS_LINE_FAULT_KINDS: tuple[str, ...] = ("bus_off", "error_passive")
 #: Every fault a simulated world may offer (what each does: :meth:`SimulatedWorld.inject_fault`);
 #: a world offers its own subset (:attr:`SimulatedWorld.fault_kinds`).
 FAULT_KINDS: tuple[str, ...] = (*PLANT_FAULT_KINDS, *(k for k in BUS_FAULT_KINDS if k not in PLANT_FAULT_KINDS))

@@ -525,3 +525,30 @@ def test_hil_a_bus_fault_fails_the_robot_with_torque_off_within_three_cycles_and
         assert all(
             stage["off_s"] is not None and 4.0 < stage["off_s"] <= 4.0 + 0.012 + 3.0 for stage in stages.values()
         )
+
+
+@pytest.mark.parametrize(
+    ("fault", "fragment"),
+    [
+        ("bus_off:2@1", "bus_off is a fault of the bus, not of a node: expected bus_off@T_S"),
+        ("error_passive:1@0.5", "error_passive is a fault of the bus, not of a node"),
+        ("emcy@1", "emcy is a drive's fault: expected emcy:NODE@T_S"),
+        ("bus_of@1", "unknown fault 'bus_of'; expected one of heartbeat_loss, emcy, frozen_pdo, drive_fault"),
+        ("bus_off@-1", "expected KIND:NODE@T_S or a bus fault KIND@T_S"),
+    ],
+)
+def test_a_bus_fault_with_a_node_or_a_drives_fault_without_one_is_one_line_exit_2_nothing_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: str, fragment: str
+) -> None:
+    from daror_runtime.cli import main
+
+    script = tmp_path / "short.txt"
+    script.write_text("wait 1\n")
+    out = tmp_path / "run"
+    assert main(["hil", "--script", str(script), "--out", str(out), "--fault", fault]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err
+    assert "Traceback" not in err
+    assert fragment in err
+    assert not (out / "hil.json").exists()
+    assert not (out / "can.log.gz").exists()

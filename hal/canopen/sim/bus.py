@@ -32,12 +32,13 @@ from can.interfaces.virtual import VirtualBus
 
 from hal.canopen.cia301.nmt import SYNC_COB_ID
 from hal.canopen.health import CAN_ERR_RESTARTED, ControllerState, error_frame_data
+from hal.capabilities import BUS_LINE_FAULT_KINDS
 from hal.errors import InputError
 
 __all__ = ["LINE_FAULT_KINDS", "LineFaults", "SimulationBus"]
 
 #: Faults of the master's CAN controller, not of a drive (``--fault KIND@T_S``, no node).
-LINE_FAULT_KINDS: tuple[str, ...] = ("bus_off", "error_passive")
+LINE_FAULT_KINDS: tuple[str, ...] = BUS_LINE_FAULT_KINDS
 #: The joint a line fault is recorded with in the drives' events (it is no drive's).
 LINE_JOINT = 0
 #: The error counters a simulated controller reports on entering a state (tx; rx stays 0).
