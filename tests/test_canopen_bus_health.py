@@ -422,6 +422,18 @@ def test_error_passive_lets_the_runtimes_torque_off_reach_the_drives_in_the_next
         assert np.all(hal.applied_motor_torque_nm == 0.0)  # disable voltage arrived with that cycle's RPDOs
 
 
+def test_a_start_up_on_a_controller_gone_bus_off_says_so() -> None:
+    """The drives do not answer because nothing reaches them: the refusal names the controller's state."""
+    from hal.errors import HalError
+
+    hal = open_hal(hal_config("can-sim"))
+    assert isinstance(hal, SimulatedCanHal)
+    hal.drive_set.line.schedule("bus_off", 0.0)  # at the first SYNC start-up sends
+    with pytest.raises(HalError, match=r"within [0-9.]+ s; CAN bus: bus-off \(the controller stopped transmitting"):
+        hal.open()
+    hal.close()
+
+
 # --- receive times: the interface's stamp, not when Python took the frame -----------------------------------
 
 

@@ -287,6 +287,10 @@ class BusHealth:
         why = f" ({_WHY[self.state]}{counters})" if self.state in _WHY else counters
         return f"CAN bus: {self.state.value}{why}"
 
+    def note(self) -> str:
+        """``"; "`` and :meth:`describe` while the controller is not error-active (for a start-up that failed), else ``""``."""
+        return "" if self.state is ControllerState.ACTIVE else f"; {self.describe()}"
+
     def take_fault(self) -> str | None:
         """The fault latched since the last call (None if none): the backend raises it once."""
         latched, self._latched = self._latched, None

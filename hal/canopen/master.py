@@ -410,10 +410,11 @@ class CanMaster:
             frames = self.source.drain()
             self._log_received(frames)
             handle(frames)
+            self.health.check(self.source.take_error_frames(), self._now())
             if done():
                 return
             if waited >= timeout_s:
-                raise HalError(f"CAN bus: {missing()} within {timeout_s:g} s")
+                raise HalError(f"CAN bus: {missing()} within {timeout_s:g} s{self.health.note()}")
             self._wait(step)
             waited += step
             if cyclic and self._now() - self._last_sync_s >= self.settings.period_s:
