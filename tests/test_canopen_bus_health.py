@@ -62,7 +62,7 @@ def _frame(b1: int = 0, b2: int = 0, tx: int = 0, rx: int = 0) -> bytes:
         (0x004, _frame(0x08), W, ()),  # TX warning
         (0x004, _frame(0x04), W, ()),  # RX warning
         (0x004, _frame(0x40), A, ()),  # back to error active (CAN_ERR_CRTL_ACTIVE)
-        (0x008, _frame(0, 0x40), A, ("protocol error",)),  # older drivers: CAN_ERR_PROT_ACTIVE
+        (0x008, _frame(0, 0x40), None, ("protocol error",)),  # CAN_ERR_PROT_ACTIVE: an error flag, no recovery
         (0x100, _frame(), A, ()),  # restarted after bus-off
         (0x020, _frame(), None, ("no acknowledge",)),  # nobody acknowledged: no state
         (0x088, _frame(0, 0x04), None, ("protocol error", "bus error")),  # a form error: counted

@@ -59,8 +59,6 @@ CAN_ERR_CRTL_TX_WARNING = 0x08
 CAN_ERR_CRTL_RX_PASSIVE = 0x10
 CAN_ERR_CRTL_TX_PASSIVE = 0x20
 CAN_ERR_CRTL_ACTIVE = 0x40
-# data[2]: the protocol error type; older drivers say "back to error active" here
-CAN_ERR_PROT_ACTIVE = 0x40
 
 # PCAN-Basic's status bits (python-can's can.interfaces.pcan.basic: PCAN_ERROR_*)
 _PCAN_BUSLIGHT = 0x00004
@@ -123,7 +121,10 @@ def decode_error_frame(can_id: int, data: bytes) -> ErrorFrame:
     """What a socketcan error frame says: ``can_id`` its class bits (without CAN_ERR_FLAG), ``data`` 0-8 bytes.
 
     The worst state it names wins: bus-off over passive over warning; "back to error active"
-    (CAN_ERR_CRTL_ACTIVE, or CAN_ERR_PROT_ACTIVE of older drivers) and a restart say active.
+    (CAN_ERR_CRTL_ACTIVE) and a restart say active. CAN_ERR_PROT_ACTIVE in the protocol byte is
+    not read as a recovery: it is the active error flag of a protocol error, which a few old drivers
+    also send on returning to error-active; read as a recovery, it could end a passive state that
+    lasts (the acknowledge would then not raise it again).
     """
     b = data.ljust(8, b"\0")
     state: ControllerState | None = None
@@ -140,8 +141,6 @@ def decode_error_frame(can_id: int, data: bytes) -> ErrorFrame:
             events.append("rx overflow")
         if flags & CAN_ERR_CRTL_TX_OVERFLOW:
             events.append("tx overflow")
-    if can_id & CAN_ERR_PROT and b[2] & CAN_ERR_PROT_ACTIVE and state is None:
-        state = ControllerState.ACTIVE
     restarted = bool(can_id & CAN_ERR_RESTARTED)
     if restarted and state is None:
         state = ControllerState.ACTIVE
@@ -229,9 +228,9 @@ class BusHealth:
     tx_errors: int | None = None
     rx_errors: int | None = None
     state_reads_failed: int = 0
-    _latched: str | None = None
-    _by_frame: ControllerState = ControllerState.ACTIVE
-    _by_read: ControllerState = ControllerState.ACTIVE
+    _latched: str | None = field(default=None, init=False, repr=False)
+    _by_frame: ControllerState = field(default=ControllerState.ACTIVE, init=False, repr=False)
+    _by_read: ControllerState = field(default=ControllerState.ACTIVE, init=False, repr=False)
 
     @classmethod
     def for_bus(cls, bus: can.BusABC) -> BusHealth:
