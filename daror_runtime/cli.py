@@ -1535,6 +1535,12 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     hil.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
     hil.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
+    hil.add_argument(
+        "--hal-config",
+        type=Path,
+        help="robot file (backend can or can-sim): its nodes run on simulated drives built from their EDS "
+        "(default: the DAROR-01's four drives)",
+    )
     hil.set_defaults(handler=cmd_hil)
 
     fsm = commands.add_parser("fsm", help="the safety FSM spec: check it, draw it, export its JSON Schema")
@@ -1550,12 +1556,6 @@ def build_parser() -> argparse.ArgumentParser:
     schema.add_argument("--out", type=Path, help="write here instead of standard output")
     schema.set_defaults(handler=cmd_fsm_schema)
 
-    hil.add_argument(
-        "--hal-config",
-        type=Path,
-        help="robot file (backend can or can-sim): its nodes run on simulated drives built from their EDS "
-        "(default: the DAROR-01's four drives)",
-    )
     bench = commands.add_parser(
         "bench",
         help="run the benchmarks of docs/performance.md",

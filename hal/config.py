@@ -254,7 +254,7 @@ class _CanFields(_Config):
         bitrate: the bus bit rate, bit/s (one of :data:`CAN_BITRATES`).
         node_ids: CANopen node id of the drive of joints 1-4 (distinct, 1-127).
         rate_hz: loop rate, Hz; also the SYNC rate. None: the highest rate the PDO mapping allows
-            within the bus-load budget (hal/canopen/busload.py: 500 Hz for four drives on 1 Mbit/s);
+            within the bus-load budget (hal/canopen/busload.py: 400 Hz for four drives on 1 Mbit/s);
             a rate over the budget is refused when the backend is built.
         heartbeat_producer_ms: how often the drives (and the master) send a heartbeat, ms.
         heartbeat_consumer_ms: how long a drive's heartbeat may be missing before the backend
@@ -265,7 +265,7 @@ class _CanFields(_Config):
         boot_timeout_ms: how long a drive may take to boot after a reset (and to answer the
             first SYNC), ms.
         rpdo_deadline_ms: the drives' RPDO deadline monitoring: a drive that receives no RPDO
-            this long faults by itself, torque off (0: off); None: five SYNC periods (10 ms at 500 Hz).
+            this long faults by itself, torque off (0: off); None: five SYNC periods (13 ms at 400 Hz).
         eds: the drives' EDS file (object dictionary); None: the backend's own.
         traffic_log: a file to log every frame on the bus to, in candump's ``-L`` format (it must
             not exist yet; a name ending in ``.gz`` is written gzip-compressed); None: no log.

@@ -62,6 +62,11 @@ class Recorder(BusSession):
     def __init__(self, hal: object, clock: object) -> None:
         super().__init__(hal, clock)  # type: ignore[arg-type]
         self.truth: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.window_end = 0  # the ticks recorded when the close began: the reading window ends there
+
+    def disable_all(self):  # type: ignore[no-untyped-def]
+        self.window_end = len(self.truth)
+        return super().disable_all()
 
     def tick(self, command):  # type: ignore[no-untyped-def]
         sample = super().tick(command)
@@ -86,10 +91,11 @@ def test_zero_counts_and_tare_are_the_plants_readings_in_the_drives_units() -> N
     assert spread_problems(readings, "zero", limits) == []
     assert spread_problems(readings, "tare", limits) == []
     assert [(r.joint, r.node_id) for r in readings] == [(1, 1), (2, 2), (3, 3), (4, 4)]
-    window = session.truth[-60:-10]  # the last ticks before the close: the window (50 of its SYNCs)
+    n = round(limits.window_s * session.hal.rate_hz)  # the window's SYNCs: 40 at 400 Hz
+    window = session.truth[session.window_end - n : session.window_end]  # the last ticks before the close
     for r in readings:
         j = r.joint - 1
-        assert r.link_counts.n == 50
+        assert r.link_counts.n == n
         q = np.mean([t[0][j] for t in window])
         assert r.link_counts.mean == pytest.approx(q / COUNT_RAD, abs=3.0)  # counts: the plant's angle
         assert r.motor_counts.mean == pytest.approx(np.mean([t[1][j] for t in window]) / COUNT_RAD, abs=3.0)

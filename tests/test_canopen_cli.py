@@ -44,14 +44,15 @@ def test_a_scheduled_fault_happens_at_its_robot_time_and_is_reported(tmp_path: P
     report = json.loads((out / "hil.json").read_text())
     (fault,) = report["faults"]
     assert (fault["kind"], fault["node"], fault["joint"], fault["scheduled_at_s"]) == ("drive_fault", 3, 3, 1.5)
-    assert fault["injected_s"] == 1.5  # a SYNC falls on 1.5 s at 500 Hz
+    assert fault["injected_s"] == 1.5  # a SYNC falls on 1.5 s at 400 Hz
     assert (fault["state_before"], fault["state_after"]) == ("startup", "FAIL")
-    assert report["bus"]["rate_hz"] == 500.0
+    assert report["bus"]["rate_hz"] == 400.0
     events = [json.loads(line) for line in (out / "audit.jsonl").read_text().splitlines()]
     fail = next(e for e in events if e.get("event") == "transition" and e["dest"] == "FAIL")
     # the EMCY at the SYNC of 1.5 s; the FAIL in the tick that reads it, stamped with the time of the
     # last sample read before it (the read that raised has none)
-    assert 1.5 - 0.002 - 1e-9 <= fail["t_s"] <= 1.5 + 3 * 0.002
+    period_s = 1.0 / report["bus"]["rate_hz"]
+    assert 1.5 - period_s - 1e-9 <= fail["t_s"] <= 1.5 + 3 * period_s
     assert any("drive 3: EMCY 0x2310" in e.get("message", "") for e in events if e.get("event") == "fault")
     epoch = report["bus"]["traffic_log_epoch_s"]
     with gzip.open(out / "can.log.gz", "rt") as log:
@@ -67,7 +68,7 @@ def test_a_scheduled_fault_happens_at_its_robot_time_and_is_reported(tmp_path: P
         (["--fault", "overheat:2@1"], "unknown fault 'overheat'"),
         (["--fault", "emcy:9@1"], "node 9 is not a drive"),
         (["--fault", "emcy:2@-1"], "expected KIND:NODE@T_S"),
-        (["--rate-hz", "1000"], "the bus would be 135.8 % loaded"),
+        (["--rate-hz", "1000"], "the bus's worst cycle would be 168.0 % loaded"),
         (["--rate-hz", "-3"], "rate_hz: Input should be greater than 0"),
         (["--scenario", "no_such_scenario"], "no_such_scenario"),
     ],

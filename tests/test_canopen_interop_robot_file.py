@@ -85,7 +85,10 @@ def test_start_up_configures_epos4_drives_that_know_only_their_eds(rig: Rig) -> 
         assert rig.drives.read(n, 0x60C2, 1) == 25  # the cycle, 2.5 ms = 25 x 10^-4 s
         assert rig.drives.read(n, 0x60C2, 2) == -4
         assert rig.drives.read(n, 0x1A01, 1) == 0x60E40220  # TPDO2: the link encoder, sensor 2
-        assert rig.drives.read(n, 0x1A01, 2) == 0x60FD0020  # and the digital inputs
+        if n == NODE_IDS[0]:  # joint 1's drive reads the e-stop chain: its digital inputs too
+            assert (rig.drives.read(n, 0x1A01, 0), rig.drives.read(n, 0x1A01, 2)) == (2, 0x60FD0020)
+        else:  # the others: the link encoder alone (the worst cycle's budget, D160)
+            assert rig.drives.read(n, 0x1A01, 0) == 1
 
 
 def test_torque_positions_spring_torque_and_estops_cross_the_bus_in_the_robot_files_units(rig: Rig) -> None:
@@ -106,10 +109,10 @@ def test_torque_positions_spring_torque_and_estops_cross_the_bus_in_the_robot_fi
         assert sample.q_rad[j] == written[n].load_increments * wiring.rad_per_link_count
         assert sample.tau_nm[j] == pytest.approx(k * (sample.theta_rad[j] - sample.q_rad[j]), abs=1e-12)
     assert sample.estop == (False, False)
-    rig.drives.set_estop(NODE_IDS[1], operator=True, pilot=False)
+    rig.drives.set_estop(NODE_IDS[0], operator=True, pilot=False)  # the chain is wired to joint 1's drive
     assert rig.cycle((0.8, -0.8, 0.0, 0.0), enable=True).estop == (True, False)
-    assert rig.drives.read(NODE_IDS[1], 0x60FD) == 1 << 17  # normally closed: the operator's bit 16 cleared
-    rig.drives.set_estop(NODE_IDS[1], operator=False, pilot=True)
+    assert rig.drives.read(NODE_IDS[0], 0x60FD) == 1 << 17  # normally closed: the operator's bit 16 cleared
+    rig.drives.set_estop(NODE_IDS[0], operator=False, pilot=True)
     assert rig.cycle().estop == (False, True)
     assert [rig.drives.applied_torque_permille(n) for n in NODE_IDS] == [0, 0, 0, 0]  # torque off
 

@@ -4,9 +4,10 @@ What is tested here, on the simulated bus (lock-step, :class:`hal.canopen.backen
 
 * the short form resolves to exactly the shipped DAROR-01 file's profiles, and their derived PDOs
   are the DAROR mapping;
-* the maxon EPOS4 file (its vendor's EDS) derives its PDOs from what the node sends, fits the bus
-  only at 400 Hz (500 Hz is refused with the numbers), and its drives get the cycle in 0x60C2 (their EDS
-  has no 0x1006), the robot file's sdo_init, cyclic synchronous torque, and report the e-stops on 0x60FD;
+* the maxon EPOS4 file (its vendor's EDS) derives its PDOs from what the node sends (the e-stops'
+  0x60FD only on the node that reads them), fits the bus's worst cycle only at 400 Hz (500 Hz is
+  refused with the numbers), and its drives get the cycle in 0x60C2 (their EDS has no 0x1006), the
+  robot file's sdo_init, cyclic synchronous torque, and joint 1's reports the e-stops on 0x60FD;
 * start-up refuses in one line: a drive without a torque mode (naming the modes its 0x6502 has),
   units other than the robot file's, another identity; a robot file's mistakes are one line too.
 """
@@ -88,6 +89,12 @@ def test_the_epos4_pdos_are_derived_from_what_the_node_sends() -> None:
         [(0x6041, 0, 16), (0x6064, 0, 32)],
         [(0x60E4, 2, 32), (0x60FD, 0, 32)],
     ]
+    # the other joints' drives read no e-stop: their TPDO2 is the link encoder alone
+    for profile in profiles[1:]:
+        assert [[(m.index, m.sub) for m in t.objects] for t in profile.pdos.tpdos] == [
+            [(0x6041, 0), (0x6064, 0)],
+            [(0x60E4, 2)],
+        ]
     assert profiles[0].torque is None
     assert profiles[0].spring_k_nm_per_rad == K_NM_PER_RAD
     assert profiles[0].nm_per_permille == pytest.approx(0.160 * 100 / 1000)
@@ -98,8 +105,11 @@ def test_a_rate_over_the_bus_budget_is_refused_with_the_numbers() -> None:
     with pytest.raises(HalConfigError) as info:
         SimulatedCanHal(config)
     message = str(info.value)
-    assert "72.1 % loaded" in message, message
-    assert "expected rate_hz at most 485 Hz" in message, message
+    # SYNC 55 + 4 RPDOs of 4 B (95) + 4 TPDO1 of 6 B (115) + 3 TPDO2 of 4 B (95) + 1 of 8 B (135) = 1315 bits,
+    # + 5 heartbeats (65) in one cycle = 1640 bits: 82.0 % of 2000 at 500 Hz; 0.7 x 1e6 / 1640 = 426.8 Hz
+    assert "worst cycle would be 82.0 % loaded" in message, message
+    assert "1315 worst-case bits" in message, message
+    assert "expected rate_hz at most 426 Hz" in message, message
     assert SimulatedCanHal(_sim_config(EPOS4)).rate_hz == 400.0  # the default: the highest that fits
 
 

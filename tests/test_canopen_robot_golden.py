@@ -2,7 +2,7 @@
 
 ``tests/data/daror01_golden.json`` holds one sha256 per stream (:mod:`tests.golden_streams`) of two
 ``daror hil`` runs of the demo session made with the code before the robot file existed (the short
-form, commit 7f4f4f3): the whole session, and the session with an EMCY of drive 2 at 30 s. The same
+form, commit 7f4f4f3, with ``--rate-hz 400``: the default rate since the worst cycle is budgeted, D160): the whole session, and the session with an EMCY of drive 2 at 30 s. The same
 runs with ``--hal-config examples/robot/daror01.yaml`` must give the same streams: every SYNC's
 time and every RPDO and TPDO payload in bus order, every recorded array and dataset, the session's
 end state and the audit log's events. Start-up's SDO and NMT frames and the heartbeats are not
@@ -80,5 +80,5 @@ def test_the_epos4_family_runs_the_demo_session_as_the_daror01_does(tmp_path: Pa
     assert session["faults"] == []
     assert session["model"]["validated"] is True
     bus = json.loads((out / "hil.json").read_text(encoding="utf-8"))["bus"]
-    assert bus["rate_hz"] == 400.0  # its 8-byte TPDO2 fits the 70 % budget at 400 Hz, not 500 Hz
+    assert bus["rate_hz"] == 400.0  # its worst cycle fits the 70 % budget at 400 Hz (65.6 %), not at 500 Hz (82 %)
     assert bus["node_ids"] == [11, 12, 13, 14]

@@ -25,7 +25,7 @@ from daror_runtime.cli import main
 
 SESSION = Path(__file__).parents[1] / "daror_runtime" / "console" / "scripts" / "session.txt"
 DAROR = Path(sys.executable).with_name("daror")
-PERIOD_S = 1.0 / 500.0  # can-sim's default rate
+PERIOD_S = 1.0 / 400.0  # can-sim's default rate (D160)
 STAMP = re.compile(r"^\[t=([^\]]*)\]")
 
 

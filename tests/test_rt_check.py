@@ -146,7 +146,7 @@ def test_a_one_second_run_in_process_reports_consistent_figures() -> None:
 
 
 def test_daror_rt_check_writes_its_report_and_exits_with_its_verdict(tmp_path: Path) -> None:
-    """The command in a child process (SCHED_FIFO and mlockall when granted), at the can backend's 500 Hz."""
+    """The command in a child process (SCHED_FIFO and mlockall when granted), at the can backend's 400 Hz (D160)."""
     out = tmp_path / "rt.json"
     config = tmp_path / "robot.yaml"
     config.write_text("backend: can\ninterface: socketcan\nchannel: can9\n")  # only its rate is used
@@ -158,10 +158,10 @@ def test_daror_rt_check_writes_its_report_and_exits_with_its_verdict(tmp_path: P
     assert run.returncode in (0, 1), run.stderr
     report = json.loads(out.read_text())
     assert report["backend"] == "can"
-    _check_report(report, 1.0, 500.0)
+    _check_report(report, 1.0, 400.0)
     assert report["verdict"]["can_run"] == (run.returncode == 0)
     lines = run.stdout.splitlines()
-    assert lines[0] == "rt-check: the real loop at 500 Hz (the can backend's rate) on the simulated plant for 1 s ..."
+    assert lines[0] == "rt-check: the real loop at 400 Hz (the can backend's rate) on the simulated plant for 1 s ..."
     assert report["verdict"]["line"] in lines
     assert lines[-1] == f"{out}: written"
     assert run.stderr == ""  # the watchdog's faults are in the report, not logged on the terminal

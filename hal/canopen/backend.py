@@ -18,8 +18,10 @@ the drives     real ones                                :mod:`hal.canopen.sim` i
 =============  ======================================  ==========================================
 
 The loop's rate is the SYNC rate: the configuration's ``rate_hz``, or the highest rate the PDO
-mapping allows within the bus-load budget (:mod:`hal.canopen.busload`; 500 Hz for four drives on
-1 Mbit/s). A configuration over the budget is refused with the numbers.
+mapping allows within the bus-load budget (:mod:`hal.canopen.busload`: its worst cycle, every
+heartbeat in it; 400 Hz for four DAROR drives on 1 Mbit/s, D160). A configuration over the budget
+is refused with the numbers. The tick's SDO transfers go only into cycles with room for them
+(:mod:`hal.canopen.cycle_budget`, D161).
 
 What each drive does by itself when it loses the master is the runtime's to declare
 (:meth:`CanHal.set_drive_reaction`, before ``open``; category 0 when it declares nothing); the
@@ -84,7 +86,7 @@ def _rate(config: CanHalConfig | CanSimHalConfig, profiles: tuple[DriveProfile, 
     if config.rate_hz is not None:
         rate = float(config.rate_hz)
     else:
-        fitting = [r for r in CANDIDATE_RATES_HZ if load(r).total <= LOAD_BUDGET]
+        fitting = [r for r in CANDIDATE_RATES_HZ if load(r).worst_cycle <= LOAD_BUDGET]
         if not fitting:
             raise HalConfigError(f"{where}: no loop rate fits the bus: even {load(CANDIDATE_RATES_HZ[-1]).describe()}")
         rate = fitting[0]
@@ -185,6 +187,7 @@ class CanHal(Hal):
                 c.rpdo_deadline_ms if c.rpdo_deadline_ms is not None else math.ceil(5000.0 / self._rate_hz)
             ),
             ramp_s=self._reaction.ramp_s,
+            bitrate=c.bitrate,
         )
 
     # --- the drives' own reaction to losing the master ------------------------------------------------
@@ -289,6 +292,7 @@ class CanHal(Hal):
             "bitrate": c.bitrate,
             "node_ids": list(c.node_ids),
             "worst_case_load": round(load.total, 4),
+            "worst_cycle_load": round(load.worst_cycle, 4),
             "load": load.describe(),
             "traffic_log": str(self._traffic_path) if self._traffic_path is not None else None,
             "traffic_log_epoch_s": self._traffic_epoch_s,
@@ -304,6 +308,7 @@ class CanHal(Hal):
             "frames_sent": m.frames_sent,
             "frames_received": m.frames_received,
             "unknown_frames": m.unknown_frames,
+            "sdo_deferred": m.cycle_budget.deferred,  # transfers that waited for a cycle with room (D161)
             "bus_health": m.health.report(),
             "receive_times": m.source.receive_time_report(),
             "emcy_warnings": m.emcy_warnings.report(),

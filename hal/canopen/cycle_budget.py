@@ -84,8 +84,8 @@ class CycleBudget:
                 bits += HEARTBEAT_BITS
                 continue
             period = self._period_s[node_id]
-            # beats last + k periods (k >= 1) inside the widened window; more than one if it beats faster than the cycle
-            first_k = max(1, math.ceil((start_s - self.period_s - last_s) / period))
+            # beats last + k periods (k >= 0: one heard in this cycle is in it) inside the widened window; several if it beats faster
+            first_k = max(0, math.ceil((start_s - self.period_s - last_s) / period))
             last_k = math.floor((end_s + self.period_s - last_s) / period)
             bits += HEARTBEAT_BITS * max(0, last_k - first_k + 1)
         return bits

@@ -1,7 +1,7 @@
 """The PDOs of a drive, and the DAROR-01 drives' own: what the master sends each drive and what each drive sends back, every SYNC.
 
-Sixteen bytes a drive a cycle, so that four drives and the SYNC fit a 1 Mbit/s bus at 500 Hz under
-a 70 % load budget (hal/canopen/busload.py, docs/canopen.md)::
+Sixteen bytes a drive a cycle, so that four drives, the SYNC and every heartbeat fit one cycle of a
+1 Mbit/s bus at 400 Hz under a 70 % load budget (hal/canopen/busload.py, D160, docs/canopen.md)::
 
     RPDO1 (master -> drive, 4 bytes): controlword 0x6040 (u16), target torque 0x6071 (i16, per mille)
     TPDO1 (drive -> master, 6 bytes): statusword 0x6041 (u16), position actual 0x6064 (i32, motor side)

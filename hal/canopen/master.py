@@ -73,8 +73,9 @@ from hal.canopen.cia402.statemachine import (
     drive_state,
 )
 from hal.canopen.cia402.torque_slope import SlopeFollower
+from hal.canopen.cycle_budget import CycleBudget
 from hal.canopen.health import BusHealth
-from hal.canopen.profile import DriveProfile, UnitCheck, decode_supported_modes
+from hal.canopen.profile import DriveProfile, UnitCheck, decode_supported_modes, robot_bus_load
 from hal.canopen.reaction import ReactionPlan, format_ramp_s, plan_reaction
 from hal.errors import HalConfigError, HalError
 from hal.interface import DriveState
@@ -115,6 +116,8 @@ class MasterSettings:
         ramp_s: what every drive does by itself when it loses the master (its heartbeat consumer or
             RPDO deadline): None, disable at once (category 0); a time, s, ramp its torque from the
             last target to zero over it, then disable (:mod:`hal.canopen.reaction`).
+        bitrate: the bus bit rate, bit/s: how many bits a cycle may carry (the tick's SDO transfers
+            are admitted only where the cycle has room: :mod:`hal.canopen.cycle_budget`).
     """
 
     node_ids: tuple[int, ...]
@@ -129,6 +132,7 @@ class MasterSettings:
     boot_timeout_s: float = 2.0
     rpdo_deadline_ms: int = 0
     ramp_s: float | None = None
+    bitrate: int = 1_000_000
 
 
 @dataclass
@@ -251,6 +255,13 @@ class CanMaster:
         self._pack_rpdo = [self._codec(d.profile, d.profile.pdos.rpdo).pack for d in self.drives]
         self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
         self.sdo = SdoClient(timeout_s=settings.sdo_timeout_s)
+        # The tick's SDO transfers go where a cycle has room beside its PDOs and heartbeats (D161).
+        periodic_bits = robot_bus_load(
+            profiles, 1.0 / settings.period_s, settings.bitrate, settings.heartbeat_producer_ms
+        ).bits_per_cycle
+        beats = {p.node_id: p.heartbeat_ms / 1000.0 for p in profiles if p.heartbeat_ms > 0}
+        beats[settings.master_node_id] = settings.heartbeat_producer_ms / 1000.0
+        self.cycle_budget = CycleBudget(settings.period_s, settings.bitrate, periodic_bits, beats)
         self._nm_per_permille = [p.nm_per_permille for p in profiles]
         self._peak_permille_of = [min(round(settings.peak_torque_nm / p.nm_per_permille), 32767) for p in profiles]
         # The scales of the sample's arrays, one per joint (an array of equal scales multiplies as the scalar did).
@@ -683,6 +694,10 @@ class CanMaster:
             self._latch(f"drive {drive.node_id}: a heartbeat frame that is not one ({frame.data.hex() or 'empty'})")
             return
         self.heartbeats.on_heartbeat(drive.node_id, state, frame.t_s)
+        if state is NmtState.BOOT_UP:
+            self.cycle_budget.forget(drive.node_id)  # restarted: its beat's phase is set anew when configured
+        else:
+            self.cycle_budget.heard(drive.node_id, frame.t_s)
         if drive.recovery is not None:
             if drive.recovery.phase == "reset" and state is NmtState.BOOT_UP:
                 self._configure_lost(drive)
@@ -791,7 +806,9 @@ class CanMaster:
         now = self._now()
         if following:
             self._follow_slopes(commanded, now)
-        for cob_id, data in self.sdo.frames_due(now):
+        startable = self.sdo.startable()
+        limit = self.cycle_budget.transfers(self._last_sync_s, startable) if startable else 0
+        for cob_id, data in self.sdo.frames_due(now, limit):
             self._send(cob_id, data)
         self._send_heartbeat_if_due()
         self._sync()
@@ -815,6 +832,7 @@ class CanMaster:
         now = self._now()
         if now >= self._next_heartbeat_s:
             self._send(*heartbeat_frame(self.settings.master_node_id, NmtState.OPERATIONAL))
+            self.cycle_budget.heard(self.settings.master_node_id, now)
             self._next_heartbeat_s = now + self.settings.heartbeat_producer_ms / 1000.0
 
     def stop(self) -> None:

@@ -419,4 +419,5 @@ def robot_bus_load(
     heartbeat_bits_per_s = (
         frame_bits(1) * 1000.0 * (1.0 / master_heartbeat_ms + sum(1.0 / p.heartbeat_ms for p in profiles))
     )
-    return dataclasses.replace(load, heartbeat_bits_per_s=heartbeat_bits_per_s)
+    burst_bits = frame_bits(1) * (len(profiles) + 1)  # every node's beat and the master's in one cycle (D160)
+    return dataclasses.replace(load, heartbeat_bits_per_s=heartbeat_bits_per_s, heartbeat_burst_bits=burst_bits)
