@@ -131,6 +131,24 @@ class IdentityCheck(_Config):
     product_code: Annotated[Integer, Field(ge=0, le=0xFFFF_FFFF)] | None = None
 
 
+class NodeCalibration(_Config):
+    """What ``daror can zero`` and ``daror can tare`` measured on a node (docs/canopen.md, Commissioning).
+
+    Attributes:
+        motor_zero_counts: the motor encoder's counts at the robot's zero pose.
+        link_zero_counts: the link encoder's counts at the robot's zero pose.
+        torque_tare_nm: the spring torque read with the arm unloaded, N m (subtracted from every reading).
+        zeroed_utc: when the zeros were taken (ISO 8601, UTC); None: never.
+        tared_utc: when the tare was taken (ISO 8601, UTC); None: never.
+    """
+
+    motor_zero_counts: Annotated[Integer, Field(ge=-(2**31), le=2**31 - 1)] = 0
+    link_zero_counts: Annotated[Integer, Field(ge=-(2**31), le=2**31 - 1)] = 0
+    torque_tare_nm: Annotated[Number, Field(ge=-1000.0, le=1000.0)] = 0.0
+    zeroed_utc: Text | None = None
+    tared_utc: Text | None = None
+
+
 class PositionObject(_Config):
     """An encoder the drive reports in a PDO: its object and its scale.
 
@@ -228,6 +246,8 @@ class NodeConfig(_Config):
         enable_timeout_ms: how long one CiA 402 power state transition may take, ms.
         heartbeat_ms: the node's heartbeat producer time 0x1017, ms; None: the file's
             ``heartbeat_producer_ms``.
+        calibration: the encoder zeros and the torque tare commissioning stored (applied to every
+            reading); None: never zeroed nor tared.
     """
 
     joint: Annotated[Integer, Field(ge=1, le=N_JOINTS)]
@@ -243,6 +263,7 @@ class NodeConfig(_Config):
     sdo_init: Annotated[list[SdoInitWrite], Field(max_length=64)] = []
     enable_timeout_ms: Annotated[Integer, Field(ge=1, le=60_000)] = 200
     heartbeat_ms: HeartbeatMs | None = None
+    calibration: NodeCalibration | None = None
 
 
 class _CanFields(_Config):

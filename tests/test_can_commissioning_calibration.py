@@ -299,11 +299,6 @@ def _sim_robot_file(tmp_path: Path) -> Path:
     return robot
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the robot file's loader does not take calibration: yet (hal/config.py NodeConfig, issue 25's robot file); "
-    "the verification refuses the new file and nothing is written (exit 2). Remove this marker when it does.",
-)
 def test_daror_can_zero_and_tare_store_what_the_drives_read(tmp_path: Path) -> None:
     robot = _sim_robot_file(tmp_path)
     before = robot.read_text()

@@ -214,3 +214,41 @@ def test_a_robot_file_with_a_joint_twice_is_refused_naming_file_line_and_field(t
         load_hal_config(path)
     assert str(info.value).startswith(f"{path}: line 3, field nodes: ")
     assert "expected each of joints 1-4 once" in str(info.value)
+
+
+# --------------------------------------------------------------------------- commissioning's calibration
+
+
+def _readings(config: CanSimHalConfig, ticks: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    hal = _open(config)
+    try:
+        for _ in range(ticks):
+            sample = hal.read()
+            hal.write(Command(np.zeros(4), False))
+        return sample.q_rad.copy(), sample.theta_rad.copy(), sample.tau_nm.copy()
+    finally:
+        hal.close()
+
+
+def test_the_stored_zeros_and_tare_are_applied_to_every_reading(tmp_path: Path) -> None:
+    """A node's calibration (daror can zero / tare) shifts its readings by exactly the stored counts and torque."""
+    plain = _readings(load_hal_config(_robot_file(tmp_path)))  # type: ignore[arg-type]
+    calibration = "{motor_zero_counts: 1200, link_zero_counts: -300, torque_tare_nm: 0.25, zeroed_utc: '2026-11-28T09:30:00Z'}"
+    (tmp_path / "c").mkdir()
+    path = _robot_file(tmp_path / "c", {2: {"calibration": calibration}})
+    calibrated = _readings(load_hal_config(path))  # type: ignore[arg-type]
+    rad_per_count = 2 * np.pi / 65536
+    q, theta, tau = (c - p for c, p in zip(calibrated, plain, strict=True))
+    assert q == pytest.approx([0.0, 300 * rad_per_count, 0.0, 0.0], abs=1e-12)
+    assert theta == pytest.approx([0.0, -1200 * rad_per_count, 0.0, 0.0], abs=1e-12)
+    assert tau == pytest.approx([0.0, -0.25, 0.0, 0.0], abs=1e-12)
+    assert np.array_equal(np.delete(calibrated[0], 1), np.delete(plain[0], 1))  # the others bit for bit
+
+
+def test_a_calibration_of_the_wrong_type_is_one_line(tmp_path: Path) -> None:
+    path = _robot_file(tmp_path, {3: {"calibration": "{link_zero_counts: 1.5}"}})
+    with pytest.raises(HalConfigError) as info:
+        load_hal_config(path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert "calibration.link_zero_counts" in message, message

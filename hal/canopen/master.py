@@ -49,6 +49,7 @@ import numpy as np
 
 from hal.canopen import objects as obj
 from hal.canopen.bus import Frame, FrameSource, TrafficLog
+from hal.canopen.calibration import angle_rad, spring_torque_nm
 from hal.canopen.cia301.emcy import EmcyClass, EmcyMessage, EmcyWarnings, classify_emcy, parse_emcy
 from hal.canopen.cia301.heartbeat import HeartbeatConsumer
 from hal.canopen.cia301.nmt import (
@@ -269,6 +270,12 @@ class CanMaster:
         self._rad_per_motor = np.array([p.rad_per_motor_count for p in profiles])
         self._nm_per_torque = np.array([p.nm_per_torque_count for p in profiles])
         self._deflection = np.array([p.torque is None for p in profiles])
+        # Commissioning's zeros and tares (the robot file's calibration): applied only where one was stored,
+        # so that an uncalibrated robot reads exactly as before.
+        self._motor_zero = np.array([p.calibration.motor_zero_counts for p in profiles], dtype=float)
+        self._link_zero = np.array([p.calibration.link_zero_counts for p in profiles], dtype=float)
+        self._tare_nm = np.array([p.calibration.torque_tare_nm for p in profiles])
+        self._calibrated = bool(self._motor_zero.any() or self._link_zero.any() or self._tare_nm.any())
         self._spring_k = np.array([p.spring_k_nm_per_rad or 0.0 for p in profiles])
         self._any_deflection = bool(self._deflection.any())
         self._joint = {d.node_id: j + 1 for j, d in enumerate(self.drives)}
@@ -612,7 +619,13 @@ class CanMaster:
         starts again from rest rather than differentiating across the gap (the arm may have moved
         while nobody saw it: that is a jump for the safety monitor to judge, not a speed).
         """
-        q_new = np.array([d.load_counts for d in self.drives], dtype=float) * self._rad_per_link
+        calibrated = self._calibrated
+        link_counts = np.array([d.load_counts for d in self.drives], dtype=float)
+        q_new = (
+            angle_rad(link_counts, self._link_zero, self._rad_per_link)
+            if calibrated
+            else link_counts * self._rad_per_link
+        )
         dq_new = np.zeros(self.n)
         if self._last_fresh_sync >= 0:
             cycles = sync - self._last_fresh_sync
@@ -623,10 +636,17 @@ class CanMaster:
                 if fresh_now and drive.was_stale:
                     dq_new[j] = 0.0
                 drive.was_stale = not fresh_now
-        theta = np.array([d.motor_counts for d in self.drives], dtype=float) * self._rad_per_motor
+        motor_counts = np.array([d.motor_counts for d in self.drives], dtype=float)
+        theta = (
+            angle_rad(motor_counts, self._motor_zero, self._rad_per_motor)
+            if calibrated
+            else motor_counts * self._rad_per_motor
+        )
         tau = np.array([d.torque_counts for d in self.drives], dtype=float) * self._nm_per_torque
         if self._any_deflection:  # the spring torque of the encoders around the spring: k (theta - q)
             tau = np.where(self._deflection, self._spring_k * (theta - q_new), tau)
+        if calibrated:
+            tau = spring_torque_nm(tau, self._tare_nm)
         for array in (q_new, dq_new, theta, tau):
             array.flags.writeable = False
         self.q_rad, self.dq_rad_s, self.theta_rad, self.tau_nm = q_new, dq_new, theta, tau

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from hal.canopen import objects as obj
 from hal.canopen.busload import BusLoad, bus_load, frame_bits
+from hal.canopen.calibration import NO_CALIBRATION, Calibration
 from hal.canopen.cia301.pdo import MappedObject, PdoCodec, PdoMapping
 from hal.canopen.dictionary import DEFAULT_EDS, DriveDictionary
 from hal.canopen.mapping import DrivePdos
@@ -104,6 +105,8 @@ class DriveProfile:
         heartbeat_ms: its heartbeat producer time 0x1017, ms.
         pdos: its PDOs (:func:`derive_pdos`).
         unit_checks: what start-up compares (:class:`UnitCheck`).
+        calibration: its encoder zeros and torque tare (the robot file's ``calibration``), applied
+            to every reading (:mod:`hal.canopen.calibration`).
     """
 
     joint: int
@@ -130,6 +133,7 @@ class DriveProfile:
     heartbeat_ms: int
     pdos: DrivePdos
     unit_checks: tuple[UnitCheck, ...]
+    calibration: Calibration = NO_CALIBRATION
 
     @property
     def nm_per_permille(self) -> float:
@@ -302,6 +306,7 @@ def profile_of(
         heartbeat_ms=node.heartbeat_ms if node.heartbeat_ms is not None else heartbeat_ms,
         pdos=pdos,
         unit_checks=_unit_checks(node, dictionary, rated),
+        calibration=(Calibration(**node.calibration.model_dump()) if node.calibration is not None else NO_CALIBRATION),
     )
 
 
