@@ -233,7 +233,9 @@ def _readings(config: CanSimHalConfig, ticks: int = 40) -> tuple[np.ndarray, np.
 def test_the_stored_zeros_and_tare_are_applied_to_every_reading(tmp_path: Path) -> None:
     """A node's calibration (daror can zero / tare) shifts its readings by exactly the stored counts and torque."""
     plain = _readings(load_hal_config(_robot_file(tmp_path)))  # type: ignore[arg-type]
-    calibration = "{motor_zero_counts: 1200, link_zero_counts: -300, torque_tare_nm: 0.25, zeroed_utc: '2026-11-28T09:30:00Z'}"
+    calibration = (
+        "{motor_zero_counts: 1200, link_zero_counts: -300, torque_tare_nm: 0.25, zeroed_utc: '2026-11-28T09:30:00Z'}"
+    )
     (tmp_path / "c").mkdir()
     path = _robot_file(tmp_path / "c", {2: {"calibration": calibration}})
     calibrated = _readings(load_hal_config(path))  # type: ignore[arg-type]
