@@ -27,7 +27,7 @@ from hal.canopen.mapping import DAROR_MAPPING
 from hal.canopen.profile import decode_supported_modes, resolve_profiles
 from hal.config import CanSimHalConfig, hal_config, load_hal_config
 from hal.errors import HalConfigError, HalError
-from hal.interface import Command, DriveState
+from hal.interface import Command, DriveReaction, DriveState
 
 ROOT = Path(__file__).resolve().parents[1]
 DAROR01 = ROOT / "examples" / "robot" / "daror01.yaml"
@@ -163,6 +163,9 @@ def test_the_epos4_drives_get_the_cycle_the_mode_and_the_sdo_init_and_report_the
         )
         assert drive.value(obj.MODES_OF_OPERATION_DISPLAY) == obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE
         assert drive.value(obj.MOTOR_RATED_TORQUE) == 160
+        assert (
+            drive.value(obj.DISABLE_OPERATION_OPTION_CODE) == 0
+        )  # its EDS's default is 1 (a ramp): the runtime's at once
         assert drive.value(obj.DIGITAL_INPUTS) == 0b11 << 16  # normally closed, nothing pressed
         for _ in range(10):
             sample = hal.read()
@@ -254,3 +257,36 @@ def test_a_calibration_of_the_wrong_type_is_one_line(tmp_path: Path) -> None:
     message = str(info.value)
     assert "\n" not in message
     assert "calibration.link_zero_counts" in message, message
+
+
+def _eds_with_disable_operation(tmp_path: Path) -> Path:
+    """The DAROR SEA drive's EDS with a writable 0x605C disable operation option code (its own has none)."""
+    text = DAROR_EDS.read_text(encoding="utf-8")
+    text = text.replace(
+        "[OptionalObjects]\nSupportedObjects=27\n", "[OptionalObjects]\nSupportedObjects=28\n28=0x605C\n"
+    )
+    text += "\n[605C]\nParameterName=Disable operation option code\nObjectType=0x7\nDataType=0x0003\nAccessType=rw\n"
+    text += "DefaultValue=1\nLowLimit=0x0000\nHighLimit=0x0001\nPDOMapping=0\n"
+    path = tmp_path / "daror_sea_605c.eds"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(("ramp_s", "expected"), [(None, 0), (2.0, 1)])
+def test_a_disabled_operation_ends_as_the_runtime_declared_its_reaction(
+    tmp_path: Path, ramp_s: float | None, expected: int
+) -> None:
+    """0x605C follows the declared reaction: 0 (at once) for category 0, 1 (the slow-down ramp, 0x6087) for a ramp."""
+    eds = _eds_with_disable_operation(tmp_path)
+    path = _robot_file(tmp_path, {j: {"eds": str(eds)} for j in range(1, 5)})
+    hal = SimulatedCanHal(load_hal_config(path))  # type: ignore[arg-type]
+    hal.set_drive_reaction(DriveReaction(ramp_s))
+    hal.open()
+    try:
+        for drive in hal.drive_set.drives:
+            assert drive.value(obj.DISABLE_OPERATION_OPTION_CODE) == expected  # the EDS's default is 1
+            assert drive.value(obj.ABORT_CONNECTION_OPTION_CODE) == (
+                obj.ABORT_QUICK_STOP if ramp_s else obj.ABORT_DISABLE_VOLTAGE
+            )
+    finally:
+        hal.close()

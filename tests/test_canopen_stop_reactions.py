@@ -41,6 +41,10 @@ from tests.can_rig import CanOnSimulatedDrives
 
 NODES = (0x21, 0x22, 0x23, 0x24)
 PERIOD_S = 1.0 / 400.0  # the default rate of four drives on 1 Mbit/s (D160)
+#: How many cycles an SDO transfer may wait for room around the heartbeats (D161): a beat at h blocks the
+#: cycles whose window (one cycle wider each way) or whose next cycle's holds it, h - 3 to h + 1 periods:
+#: five cycles, six when the master's own beat falls a cycle apart from the drives'.
+BUDGET_DEFER_CYCLES = 6
 RAMP_S = 2.0
 #: The peak torque (40 Nm) in per mille of the rated torque (10 Nm): 0x6072, and the start-up slope's base.
 PEAK_PERMILLE = 4000
@@ -332,12 +336,11 @@ def test_the_torque_slope_follows_the_held_torque_on_the_bus(tmp_path: Path) -> 
     settled = [(t, v) for t, v in writes if t < t_double]
     assert settled[-1][1] == -(-held // 2)  # ceil(356 / 2 s) = 178 per mille a second
     raised = [(t, v) for t, v in writes if t_double <= t < t_back]
-    # At once, or after the cycles the heartbeats are expected in (all five producers share one phase in
-    # lock-step: a window of three cycles, and the next cycle must have room for the answer: D161).
-    assert raised[0][0] - t_double <= (2 + 4) * PERIOD_S
+    assert raised[0][0] - t_double <= (2 + BUDGET_DEFER_CYCLES) * PERIOD_S  # at once, or after the heartbeats' cycles
     assert raised[0][1] == -(-doubled // 2)
     lowered = [(t, v) for t, v in writes if t_back <= t < t_noise]
-    assert lowered[0][0] - t_back == pytest.approx(0.5, abs=3 * PERIOD_S)  # once it lasted 0.5 s
+    # once it lasted 0.5 s (and the cycle had room for it)
+    assert 0.5 - 3 * PERIOD_S <= lowered[0][0] - t_back <= 0.5 + (3 + BUDGET_DEFER_CYCLES) * PERIOD_S
     assert lowered[0][1] == -(-held // 2)
     noisy = [t for t, _ in writes if t_noise <= t <= t_end]
     assert len(noisy) <= 10 * (t_end - t_noise) + 1  # the bus-load bound: one write per 0.1 s at most

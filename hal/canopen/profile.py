@@ -322,6 +322,7 @@ _MASTER_OWNED: tuple[tuple[range, str], ...] = (
     (range(0x6007, 0x6008), "the drive's reaction to losing the master, which the runtime declares (hal/canopen/reaction.py)"),
     (range(0x605A, 0x605B), "the drive's reaction to losing the master, which the runtime declares (hal/canopen/reaction.py)"),
     (range(0x605E, 0x605F), "the drive's reaction to losing the master, which the runtime declares (hal/canopen/reaction.py)"),
+    (range(0x605C, 0x605D), "how a disable operation ends, which the runtime declares with its reaction (hal/canopen/reaction.py)"),
     (range(0x6087, 0x6088), "the torque slope of the drive's stop ramp, which the runtime declares (hal/canopen/reaction.py)"),
 )  # fmt: skip
 

@@ -7,11 +7,18 @@ start-up in this order, one transfer in flight per drive (:func:`plan_reaction`)
 
     0x6007 abort connection option code = 2 disable voltage      always first: category 0 whatever follows
     0x605E fault reaction option code   = 0 disable drive         always: faults cut the torque at once
+    0x605C disable operation option code = 0 disable drive        always: "disable operation" cuts it at once
     ramp only:
     0x6087 torque slope                 = ceil(peak / ramp_s)    per mille/s; then it follows the torque
     0x605A quick stop option code       = 1 slow down on the slow-down ramp, then SWITCH ON DISABLED
     0x6007 abort connection option code = 3 quick stop           only if 0x6087 and 0x605A were taken
     0x605E fault reaction option code   = 1 slow down ramp       only if 0x6087 was taken
+    0x605C disable operation option code = 1 slow down ramp      only if 0x6087 was taken
+
+0x605C: the master never commands "disable operation" (its torque off is disable voltage), but a
+vendor's tool or a drive's own logic may; it then ends like the master's loss, so that no path
+through the power state machine leaves the arm to a firmware default (maxon's is 1, a ramp on
+whatever slope the drive holds).
 
 Why code 1 of 0x605A: CiA 402 (IEC 61800-7-201, quick stop option code) defines 1 as "slow down on
 slow down ramp and transit into SWITCH ON DISABLED" and 2 as the same on the quick stop ramp; in the
@@ -50,6 +57,7 @@ NAMES = {
     obj.ABORT_CONNECTION_OPTION_CODE: "0x6007 abort connection option code",
     obj.QUICK_STOP_OPTION_CODE: "0x605A quick stop option code",
     obj.FAULT_REACTION_OPTION_CODE: "0x605E fault reaction option code",
+    obj.DISABLE_OPERATION_OPTION_CODE: "0x605C disable operation option code",
     obj.TORQUE_SLOPE: "0x6087 torque slope",
 }
 #: What the master does with a drive's reaction, in the words of the report.
@@ -78,6 +86,8 @@ class ReactionPlan:
         quick_stop: the 0x605A = 1 write (None: as ``slope``).
         ramp: the final 0x6007 = 3 write (None: as ``slope``).
         fault_ramp: the final 0x605E = 1 write (None: as ``slope``, or the EDS has no 0x605E).
+        disable_operation: the baseline 0x605C = 0 write (None: the EDS has no writable 0x605C).
+        disable_ramp: the final 0x605C = 1 write (None: as ``slope``, or the EDS has no 0x605C).
         slope_permille_per_s: the slope ``slope`` carries (0: none).
     """
 
@@ -91,6 +101,8 @@ class ReactionPlan:
     quick_stop: SdoTransfer | None = None
     ramp: SdoTransfer | None = None
     fault_ramp: SdoTransfer | None = None
+    disable_operation: SdoTransfer | None = None
+    disable_ramp: SdoTransfer | None = None
     slope_permille_per_s: int = 0
 
     @property
@@ -101,7 +113,16 @@ class ReactionPlan:
     @property
     def transfers(self) -> tuple[SdoTransfer, ...]:
         """Every write queued, in order."""
-        queued = (self.abort_connection, self.fault_reaction, self.slope, self.quick_stop, self.ramp, self.fault_ramp)
+        queued = (
+            self.abort_connection,
+            self.fault_reaction,
+            self.disable_operation,
+            self.slope,
+            self.quick_stop,
+            self.ramp,
+            self.fault_ramp,
+            self.disable_ramp,
+        )
         return tuple(t for t in queued if t is not None)
 
     def sentence(self) -> str:
@@ -181,6 +202,10 @@ def plan_reaction(
         )
     if dictionary.writable(obj.FAULT_REACTION_OPTION_CODE):
         plan.fault_reaction = write(obj.FAULT_REACTION_OPTION_CODE, obj.STOP_DISABLE_DRIVE, "fault reaction: disable")
+    if dictionary.writable(obj.DISABLE_OPERATION_OPTION_CODE):
+        plan.disable_operation = write(
+            obj.DISABLE_OPERATION_OPTION_CODE, obj.STOP_DISABLE_DRIVE, "disable operation: disable"
+        )
     if ramp_s is None:
         return plan
     slope = slope_for(peak_permille, ramp_s)
@@ -206,5 +231,12 @@ def plan_reaction(
             obj.STOP_SLOW_DOWN_RAMP,
             "fault reaction: slow-down ramp",
             needs=(plan.fault_reaction, plan.slope),
+        )
+    if plan.disable_operation is not None:
+        plan.disable_ramp = write(
+            obj.DISABLE_OPERATION_OPTION_CODE,
+            obj.STOP_SLOW_DOWN_RAMP,
+            "disable operation: slow-down ramp",
+            needs=(plan.disable_operation, plan.slope),
         )
     return plan
