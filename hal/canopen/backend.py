@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING
 import can
 import numpy as np
 
+from hal.canopen.bitrate import check_bitrate
 from hal.canopen.bus import FrameSource, ListenedFrames, PolledFrames, TrafficLog
 from hal.canopen.busload import CANDIDATE_RATES_HZ, LOAD_BUDGET, BusLoad, check_bus_load
 from hal.canopen.dictionary import load_dictionary
@@ -136,6 +137,7 @@ class CanHal(Hal):
         self._traffic_path = traffic_log or (Path(config.traffic_log) if config.traffic_log is not None else None)
         self._traffic: TrafficLog | None = None
         self._traffic_epoch_s: int | None = None
+        self._bitrate_check = "not checked: the bus was not opened by the backend"
         self._counts: dict[str, object] = {}
         self._is_open = False
         self._sample: Sample | None = None
@@ -266,6 +268,8 @@ class CanHal(Hal):
 
     def _open_bus(self) -> can.BusABC:
         c = self.config
+        # A SocketCAN interface runs at the rate the OS gave it, whatever python-can is told: read and compared.
+        self._bitrate_check = check_bitrate(c.interface, c.channel, c.bitrate, "hal config: bitrate")
         try:
             return can.Bus(interface=c.interface, channel=c.channel, bitrate=c.bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -296,6 +300,7 @@ class CanHal(Hal):
             "load": load.describe(),
             "traffic_log": str(self._traffic_path) if self._traffic_path is not None else None,
             "traffic_log_epoch_s": self._traffic_epoch_s,
+            "bitrate_check": self._bitrate_check,
         }
         if self._master is not None:
             self._counts = self._master_counts(self._master)
