@@ -290,6 +290,14 @@ class BusHealth:
         """``"; "`` and :meth:`describe` while the controller is not error-active (for a start-up that failed), else ``""``."""
         return "" if self.state is ControllerState.ACTIVE else f"; {self.describe()}"
 
+    def settle(self) -> None:
+        """Start-up is over: a fault latched while it lasted is dropped if the controller is error-active
+        again (a master that talked before the drives were powered goes error-passive until they
+        acknowledge: counted in the report, not a fault of the session); one still in force stays
+        latched for the first read."""
+        if not self.faulted:
+            self._latched = None
+
     def take_fault(self) -> str | None:
         """The fault latched since the last call (None if none): the backend raises it once."""
         latched, self._latched = self._latched, None

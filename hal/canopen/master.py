@@ -374,6 +374,7 @@ class CanMaster:
         self._collect(handle, lambda: len(operational) == self.n and all(d.last_sync >= first for d in self.drives),
                       self.settings.boot_timeout_s, lambda: self._not_running(operational, first), cyclic=True)  # fmt: skip
         self._latched.clear()  # what happened while starting is in the start's own errors
+        self.health.settle()  # a bus that failed while starting and is well again: counted, not raised
 
     def _missing(self, seen: set[int]) -> str:
         return ", ".join(str(d.node_id) for d in self.drives if d.node_id not in seen)
