@@ -43,7 +43,7 @@ import can
 import numpy as np
 
 from hal.canopen.bitrate import check_bitrate
-from hal.canopen.bus import FrameSource, ListenedFrames, PolledFrames, TrafficLog
+from hal.canopen.bus import FrameSource, ListenedFrames, TrafficLog
 from hal.canopen.busload import CANDIDATE_RATES_HZ, LOAD_BUDGET, BusLoad, check_bus_load
 from hal.canopen.dictionary import load_dictionary
 from hal.canopen.master import CanMaster, MasterSettings
@@ -64,6 +64,7 @@ from hal.robot import N_JOINTS, RobotDescription, load_description
 
 if TYPE_CHECKING:
     from hal.canopen.sim.drives import SimulatedDriveSet
+    from hal.canopen.sim.link import LockstepLink
     from hal.canopen.sim.world import CanSimWorld
     from hal.sim.backend import SimHal
 
@@ -436,10 +437,11 @@ class CanHal(Hal):
 
 
 class SimulatedCanHal(CanHal):
-    """``can-sim``: the CANopen backend against simulated SEA drives on a python-can ``virtual`` bus.
+    """``can-sim``: the CANopen backend against simulated SEA drives, frame by frame in lock-step.
 
-    The same master as :class:`CanHal`, on its own virtual channel, drained in the tick; the
-    drives (:mod:`hal.canopen.sim`) process the bus after each cycle the master sends, and move
+    The same master as :class:`CanHal` (its controller a python-can ``virtual`` handle of its own),
+    its frames carried to and from the drives by the lock-step link (:mod:`hal.canopen.sim.link`)
+    and drained in the tick; the drives process the bus after each cycle the master sends, and move
     the simulated plant one tick per SYNC. Lock-step is deterministic; the backend also runs in
     real time (the loop's clock paces the SYNCs).
 
@@ -500,7 +502,7 @@ class SimulatedCanHal(CanHal):
             else p
             for p in self.profiles
         )
-        self._drive_bus: can.BusABC | None = None
+        self._link: LockstepLink | None = None
         self._drives: SimulatedDriveSet | None = None
         self._world: CanSimWorld | None = None
 
@@ -561,7 +563,7 @@ class SimulatedCanHal(CanHal):
         self._drive_set().tick_without_sync()
 
     def _now(self) -> float:
-        return self._plant.world.t_s
+        return self._plant.time_s  # the plant world's time (world.t_s), without its two properties
 
     def open(self) -> None:
         """A new session: the plant at rest, the drives switched on, then the master's start-up (see :class:`CanHal`)."""
@@ -569,25 +571,28 @@ class SimulatedCanHal(CanHal):
         if self._is_open:
             self.close()
         from hal.canopen.sim.bus import SimulationBus
+        from hal.canopen.sim.link import LinkFrames, LockstepLink
 
+        # The master's controller (its state, python-can's handle) and the lock-step link that carries
+        # every frame between it and the drives (hal/canopen/sim/link.py).
         self._bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
-        self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
-        drives.attach(self._drive_bus)
-        drives.line.attach(self._bus)  # bus-off and error-passive of the master's controller
+        link = self._link = LockstepLink()
+        drives.attach(link)
+        drives.line.attach(self._bus, link)  # bus-off and error-passive of the master's controller
         drives.power_on()
         self._open_traffic()
-        self._source = PolledFrames(self._bus, self._now)
+        self._source = LinkFrames(link, self._now)
         self._start(
             CanMaster(
                 self._bus, self._source, self.profiles, self.settings(), self._now,
-                pump=drives.step, wait=lambda s: None, traffic=self._traffic,
+                pump=drives.step, wait=lambda s: None, traffic=self._traffic, transmit=link.send,
             )
         )  # fmt: skip
 
     def _shutdown(self) -> None:
         super()._shutdown()  # the master's bus: this backend made it, CanHal shuts it down
-        if self._drive_bus is not None:
+        if self._link is not None:
             if self._drives is not None:
                 self._drives.attach(None)
-            self._drive_bus.shutdown()
-            self._drive_bus = None
+            self._link.close()
+            self._link = None

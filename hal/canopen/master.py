@@ -93,7 +93,7 @@ LOST_CODES = {
 
 
 #: Power states in which a drive ramps its torque down by itself (its slope is left alone).
-_STOPPING = frozenset({PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
+_STOPPING = (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)  # a tuple: no Enum hash per tick
 
 
 @dataclass(frozen=True)
@@ -204,6 +204,10 @@ class CanMaster:
             drives process the bus then; None on hardware).
         wait: how start-up waits for answers between polls (``time.sleep`` on hardware).
         traffic: the bus log (None: no log).
+        transmit: puts one frame on the bus: ``(COB-ID, data, the master's time s)``; None: a
+            :class:`can.Message` to ``bus.send`` (hardware). Lock-step over simulated drives gives
+            the link's (:class:`hal.canopen.sim.link.LockstepLink`): the same frames, in the same
+            order, without a message object each.
 
     Raises:
         HalConfigError: the profiles' node ids are not the settings', or a PDO does not fit its EDS.
@@ -219,6 +223,7 @@ class CanMaster:
         pump: Callable[[], None] | None = None,
         wait: Callable[[float], None] | None = None,
         traffic: TrafficLog | None = None,
+        transmit: Callable[[int, bytes, float], None] | None = None,
     ) -> None:
         if tuple(p.node_id for p in profiles) != tuple(settings.node_ids):
             raise HalConfigError(
@@ -233,6 +238,7 @@ class CanMaster:
         self._pump = pump
         self._wait = wait or (lambda s: None)
         self.traffic = traffic
+        self._transmit = transmit or self._send_message
         self.n = len(settings.node_ids)
         self.drives = [
             _Drive(p, PowerStepper(max(2, math.ceil(p.enable_timeout_s / settings.period_s)))) for p in profiles
@@ -320,12 +326,15 @@ class CanMaster:
 
     def _send(self, cob_id: int, data: bytes) -> None:
         try:
-            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=self._now()))
+            self._transmit(cob_id, data, self._now())
         except can.CanError as exc:
             raise HalError(f"sending frame 0x{cob_id:03X} failed: {exc}") from None
         self.frames_sent += 1
         if self.traffic is not None:
             self.traffic.frame(cob_id, data, self._now(), sent=True)
+
+    def _send_message(self, cob_id: int, data: bytes, now_s: float) -> None:
+        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=now_s))
 
     # --- start-up (outside the tick) ----------------------------------------------------------
 

@@ -163,6 +163,22 @@ def device_next_state(state: PowerState, controlword: int, previous_controlword:
     return state if enable_operation else PowerState.SWITCHED_ON  # 5
 
 
+def _towards_torque(state: PowerState) -> int:
+    """The controlword that moves a drive in ``state`` (not a fault state) one step towards OPERATION ENABLED.
+
+    Tests by identity, not a dict of states: an Enum's hash is a Python call, and this runs per drive and tick.
+    """
+    if state is PowerState.OPERATION_ENABLED or state is PowerState.SWITCHED_ON:
+        return CW_ENABLE_OPERATION
+    if state is PowerState.SWITCH_ON_DISABLED:
+        return CW_SHUTDOWN
+    if state is PowerState.READY_TO_SWITCH_ON:
+        return CW_SWITCH_ON
+    if state is PowerState.NOT_READY_TO_SWITCH_ON or state is PowerState.QUICK_STOP_ACTIVE:
+        return CW_DISABLE_VOLTAGE
+    raise KeyError(state)  # the fault states are handled before: a bug
+
+
 @dataclass
 class StepOutcome:
     """What the master sends a drive this tick, and a fault to report (a drive that did not follow)."""
@@ -223,14 +239,7 @@ class PowerStepper:
                 # "disable voltage" is reported like one that does not enable.
                 timed_out = self._count_wait(state, CW_DISABLE_VOLTAGE)
             return self._send(CW_DISABLE_VOLTAGE, timed_out)
-        wanted = {
-            PowerState.NOT_READY_TO_SWITCH_ON: CW_DISABLE_VOLTAGE,
-            PowerState.SWITCH_ON_DISABLED: CW_SHUTDOWN,
-            PowerState.READY_TO_SWITCH_ON: CW_SWITCH_ON,
-            PowerState.SWITCHED_ON: CW_ENABLE_OPERATION,
-            PowerState.OPERATION_ENABLED: CW_ENABLE_OPERATION,
-            PowerState.QUICK_STOP_ACTIVE: CW_DISABLE_VOLTAGE,
-        }[state]
+        wanted = _towards_torque(state)
         timed_out = None
         if state is not PowerState.OPERATION_ENABLED and wanted == self._command:
             timed_out = self._count_wait(state, wanted)

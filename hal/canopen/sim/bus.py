@@ -26,6 +26,7 @@ set runs a tick without SYNC per SYNC lost, :meth:`LineFaults.take_lost_syncs`).
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import can
 from can.interfaces.virtual import VirtualBus
@@ -34,6 +35,9 @@ from hal.canopen.cia301.nmt import SYNC_COB_ID
 from hal.canopen.health import CAN_ERR_RESTARTED, ControllerState, error_frame_data
 from hal.capabilities import BUS_LINE_FAULT_KINDS
 from hal.errors import InputError
+
+if TYPE_CHECKING:
+    from hal.canopen.sim.link import LockstepLink
 
 __all__ = ["LINE_FAULT_KINDS", "LineFaults", "SimulationBus"]
 
@@ -66,16 +70,23 @@ class LineFaults:
         #: socketcan-style error frames arrive in the master's receive queue.
         self.sends_error_frames = True
         self._scheduled: list[tuple[float, str]] = []
-        self._bus: SimulationBus | None = None
+        self._receiver: SimulationBus | LockstepLink | None = None
         self._lost_syncs = 0
 
-    def attach(self, bus: SimulationBus | None) -> None:
-        """The master's handle from now on (a new handle is a restarted controller: error-active)."""
-        self._bus = bus
+    def attach(self, bus: SimulationBus | None, receiver: LockstepLink | None = None) -> None:
+        """The master's handle from now on (a new handle is a restarted controller: error-active).
+
+        ``receiver``: where the master receives in lock-step (:class:`hal.canopen.sim.link.LockstepLink`):
+        the controller's error frames go there, and a bus-off stops what it carries; None: the handle's
+        own queue.
+        """
+        self._receiver = receiver if receiver is not None else bus
         self.state = ControllerState.ACTIVE
         self._lost_syncs = 0
         if bus is not None:
             bus.line = self
+        if receiver is not None:
+            receiver.line = self
 
     def schedule(self, kind: str, at_s: float) -> None:
         """``kind`` at the first SYNC the master sends at or after robot time ``at_s``.
@@ -121,18 +132,13 @@ class LineFaults:
             self.inject(kind, t_s)
 
     def _enter(self, state: ControllerState, restarted: bool = False) -> None:
-        bus = self._bus
-        if bus is not None and state is ControllerState.BUS_OFF and self.state is not ControllerState.BUS_OFF:
-            bus.went_off()
+        receiver = self._receiver
+        if receiver is not None and state is ControllerState.BUS_OFF and self.state is not ControllerState.BUS_OFF:
+            receiver.went_off()
         self.state = state
-        if bus is not None and self.sends_error_frames:
+        if receiver is not None and self.sends_error_frames:
             can_id, data = error_frame_data(state, _TX_ERRORS.get(state, 0))
-            bus.queue.put(
-                can.Message(
-                    arbitration_id=can_id | (CAN_ERR_RESTARTED if restarted else 0), is_error_frame=True,
-                    data=data, timestamp=time.time(), channel=bus.channel_id, check=False,
-                )
-            )  # fmt: skip
+            receiver.put_error_frame(can_id | (CAN_ERR_RESTARTED if restarted else 0), data)
 
 
 def _check_kind(kind: str) -> None:
@@ -155,6 +161,15 @@ class SimulationBus(VirtualBus):
     def went_off(self) -> None:
         """Bus-off from now on: what was received stays readable, nothing more arrives (but error frames)."""
         self._kept = self.queue.qsize()
+
+    def put_error_frame(self, can_id: int, data: bytes) -> None:
+        """The controller reports an event: a socketcan error frame in this handle's receive queue."""
+        self.queue.put(
+            can.Message(
+                arbitration_id=can_id, is_error_frame=True, data=data, timestamp=time.time(),
+                channel=self.channel_id, check=False,
+            )
+        )  # fmt: skip
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         line = self.line

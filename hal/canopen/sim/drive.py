@@ -131,16 +131,15 @@ _ABORT_GENERAL = 0x08000000
 _READABLE = frozenset({"ro", "rw", "rww", "rwr", "const"})
 _WRITABLE = frozenset({"rw", "wo", "rww", "rwr"})
 #: The states the e-stop (safe torque off) throws out of, and which the drive cannot enter while it is pressed.
-_POWER_STAGE_STATES = frozenset(
-    {
-        PowerState.READY_TO_SWITCH_ON,
-        PowerState.SWITCHED_ON,
-        PowerState.OPERATION_ENABLED,
-        PowerState.QUICK_STOP_ACTIVE,
-    }
+#: (Tuples, not sets, of states here and below: membership by identity, no Python-level Enum.__hash__ per test.)
+_POWER_STAGE_STATES = (
+    PowerState.READY_TO_SWITCH_ON,
+    PowerState.SWITCHED_ON,
+    PowerState.OPERATION_ENABLED,
+    PowerState.QUICK_STOP_ACTIVE,
 )
 #: The states a drive may not keep when it loses its PDOs (it could not be commanded any more).
-_COMMANDED_STATES = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE})
+_COMMANDED_STATES = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
 #: The objects of the drive's own stop reactions (optional in its EDS).
 _STOP_OBJECTS = (
     obj.ABORT_CONNECTION_OPTION_CODE,
@@ -149,7 +148,7 @@ _STOP_OBJECTS = (
     obj.TORQUE_SLOPE,
 )
 #: The states whose torque comes from a stop ramp (the drive's own, nobody commands it).
-_RAMPING_STATES = frozenset({PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
+_RAMPING_STATES = (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
 _INT16 = (-(1 << 15), (1 << 15) - 1)
 _INT32 = (-(1 << 31), (1 << 31) - 1)
 #: CAN identifiers are 11 bits: a COB-ID's bits 11-28 are 0, and bit 29 (a 29-bit frame) is refused.
@@ -173,6 +172,12 @@ _COB_ID_EMCY = 0x1014
 #: The most bits a PDO carries (one CAN frame), and the most entries a mapping parameter has (CiA 301).
 _PDO_MAX_BITS = 64
 _MAX_MAPPING_ENTRIES = 0x40
+
+
+#: What a PDO does now: its CAN-ID (None while invalid), its transmission type, its codec, its objects' (index, sub).
+_Plan = tuple[int | None, int, PdoCodec, tuple[tuple[int, int], ...]]
+#: A value no object has (a missing entry in the stored values).
+_UNSET = object()
 
 
 @dataclass(frozen=True)
@@ -238,6 +243,10 @@ class SimulatedSeaDrive:
             ((m.index, m.sub), scale, _bounds(dictionary, m.index, m.sub)) for m, scale in sensors if m is not None
         )
         self._estop_key = (profile.estop.index, profile.estop.sub) if profile.estop is not None else None
+        # The objects whose value the drive computes from its state rather than stores.
+        self._computed = frozenset(
+            {(obj.STATUSWORD, 0), (obj.ERROR_REGISTER, 0), *((self._estop_key,) if self._estop_key else ())}
+        )
         self._estop_in_statusword = profile.estop_in_statusword
         self._estop_factory = (
             int(_default_or(dictionary, *self._estop_key, node_id))
@@ -265,8 +274,14 @@ class SimulatedSeaDrive:
         self._pdo_frozen = False  # injected: frozen_pdo
         self._drop_until_s: float | None = None  # injected: drop_frames
         self._codecs: dict[int, PdoCodec] = {}
-        # per PDO: (COB-ID, or None while invalid; transmission type; codec); dropped with its codec
-        self._plans: dict[int, tuple[int | None, int, PdoCodec]] = {}
+        # per PDO: (COB-ID, or None while invalid; transmission type; codec; its objects' keys); dropped with its codec
+        self._plans: dict[int, _Plan] = {}
+        #: Counts the changes of the PDO parameters: what is derived from them (the RPDO deadlines here,
+        #: the drive set's routes) is derived again when it moved on, not every cycle.
+        self.pdo_generation = 0
+        self._deadlines: tuple[tuple[int, float], ...] | None = None  # (RPDO comm index, deadline s), derived
+        self._consumer: tuple[int, int] | None = None  # 0x1016:1 as (node, ms), derived from the object
+        self._statusword: tuple[PowerState, int] | None = None  # (power state, its statusword), the last one
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
         self._rpdo_heard_s: dict[int, float] = {}  # when each RPDO last arrived (its deadline monitoring)
         self._operational_since_s = 0.0
@@ -393,6 +408,7 @@ class SimulatedSeaDrive:
         """
         self._powered = True
         self._values.clear()
+        self._consumer = None
         self._fault_register = 0
         self._drop_until_s = None
         self._power = PowerState.SWITCH_ON_DISABLED
@@ -456,9 +472,10 @@ class SimulatedSeaDrive:
         Raises:
             ValueError: an angle or a torque that is not finite (a simulation bug; nothing changed).
         """
-        for name, x in (("q_rad", q_rad), ("theta_rad", theta_rad), ("tau_nm", tau_nm)):
-            if not math.isfinite(x):
-                raise ValueError(f"{name} = {x}: a drive's sensors never measure a non-finite value")
+        if not (math.isfinite(q_rad) and math.isfinite(theta_rad) and math.isfinite(tau_nm)):
+            for name, x in (("q_rad", q_rad), ("theta_rad", theta_rad), ("tau_nm", tau_nm)):
+                if not math.isfinite(x):
+                    raise ValueError(f"{name} = {x}: a drive's sensors never measure a non-finite value")
         self.on_inputs(estop_operator, estop_pilot, power_cut, now_s)
         if not self._powered:
             return
@@ -480,8 +497,10 @@ class SimulatedSeaDrive:
         self._power_cut = self._estop_operator or self._estop_pilot if power_cut is None else bool(power_cut)
         if not self._powered:
             return
-        self._step_stop(now_s)
-        self._cut_if_unpowered()
+        if self._power in _RAMPING_STATES:  # (the checks' own first tests: called only when they could act)
+            self._step_stop(now_s)
+        if self._power_cut:
+            self._cut_if_unpowered()
 
     def _cut_if_unpowered(self) -> None:
         if not self._power_cut:
@@ -495,10 +514,17 @@ class SimulatedSeaDrive:
         watchdogs (the master's heartbeat, the RPDO deadline), heartbeats due."""
         if not self._powered:
             return
-        self._step_stop(now_s)
-        self._check_consumer(now_s)
-        self._check_rpdo_deadline(now_s)
-        self._produce_heartbeat(now_s)
+        # Each check is called only when it could act (its own first test, here): advance runs twice a
+        # SYNC per drive, and most of the time none of them has anything to do.
+        if self._power in _RAMPING_STATES:
+            self._step_stop(now_s)
+        if not self._consumer_lost:
+            self._check_consumer(now_s)
+        if self._nmt is NmtState.OPERATIONAL and self._power in _COMMANDED_STATES and not self._rpdo_deadline_lost:
+            self._check_rpdo_deadline(now_s)
+        period = self._hb_period_s
+        if period is not None and now_s + _TIME_EPS_S >= self._hb_origin_s + self._hb_next * period:
+            self._produce_heartbeat(now_s)
 
     def _check_rpdo_deadline(self, now_s: float) -> None:
         """RPDO deadline monitoring: an RPDO with an event timer that went quiet longer faults a commanded drive.
@@ -508,16 +534,26 @@ class SimulatedSeaDrive:
         """
         if self._nmt is not NmtState.OPERATIONAL or self._power not in _COMMANDED_STATES or self._rpdo_deadline_lost:
             return
-        for slot in self._rpdos:
-            cob, _, _ = self._plan(slot)
-            deadline_ms = int(self._get(slot.comm, 5)) if self._exists(slot.comm, 5) else 0
-            if cob is None or deadline_ms == 0:
-                continue
-            heard = self._rpdo_heard_s.get(slot.comm, self._operational_since_s)
-            if now_s - heard > deadline_ms / 1000.0:
+        deadlines = self._deadlines
+        if deadlines is None:
+            deadlines = self._deadlines = self._rpdo_deadlines()
+        heard_s = self._rpdo_heard_s
+        for comm, deadline_s in deadlines:
+            heard = heard_s.get(comm, self._operational_since_s)
+            if now_s - heard > deadline_s:
                 self._rpdo_deadline_lost = True
                 self._lose_master(ERROR_RPDO_TIMEOUT, now_s)
                 return
+
+    def _rpdo_deadlines(self) -> tuple[tuple[int, float], ...]:
+        """(communication index, deadline s) of each valid RPDO with an event timer (0x1400:5, ms; 0: none), in order."""
+        found = []
+        for slot in self._rpdos:
+            cob = self._plan(slot)[0]
+            deadline_ms = int(self._get(slot.comm, 5)) if self._exists(slot.comm, 5) else 0
+            if cob is not None and deadline_ms != 0:
+                found.append((slot.comm, deadline_ms / 1000.0))
+        return tuple(found)
 
     def inject(self, kind: str, now_s: float, duration_s: float | None = None) -> None:
         """Do to the drive at ``now_s``, s, what a bench test rig would do to a real one.
@@ -602,19 +638,28 @@ class SimulatedSeaDrive:
 
     def _get(self, index: int, sub: int) -> Any:
         """The current value of an object that exists (statusword and error register computed from the state)."""
-        if index == obj.STATUSWORD and sub == 0:
-            word = statusword_of(self._power)
-            return self._with_estop(word) if self._estop_in_statusword else word
-        if index == obj.ERROR_REGISTER and sub == 0:
-            return self._error_register()
         key = (index, sub)
-        if key == self._estop_key:
-            return self._with_estop(self._estop_factory)
-        if key in self._values:
-            return self._values[key]
-        if key not in self._factory:
-            self._factory[key] = _default_or(self._dictionary, index, sub, self._node_id)
-        return self._factory[key]
+        if key in self._computed:
+            return self._computed_value(key)
+        value = self._values.get(key, _UNSET)
+        if value is not _UNSET:
+            return value
+        factory = self._factory
+        if key not in factory:
+            factory[key] = _default_or(self._dictionary, index, sub, self._node_id)
+        return factory[key]
+
+    def _computed_value(self, key: tuple[int, int]) -> int:
+        """The statusword, the error register or the e-stop object, from the drive's state now."""
+        if key == (obj.STATUSWORD, 0):
+            cached = self._statusword
+            if cached is None or cached[0] is not self._power:  # identity: no Enum hash per TPDO
+                cached = self._statusword = (self._power, statusword_of(self._power))
+            word = cached[1]
+            return self._with_estop(word) if self._estop_in_statusword else word
+        if key == (obj.ERROR_REGISTER, 0):
+            return self._error_register()
+        return self._with_estop(self._estop_factory)
 
     def _error_register(self) -> int:
         communication = (
@@ -637,7 +682,8 @@ class SimulatedSeaDrive:
         """The actual values at a SYNC, in the profile's objects and counts, saturated at their types' ranges."""
         values = self._values
         for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):
-            values[key] = _clamp(round(x / scale), bounds)
+            counts = round(x / scale)
+            values[key] = bounds[0] if counts < bounds[0] else bounds[1] if counts > bounds[1] else counts
 
     def _write(self, index: int, sub: int, value: Any, now_s: float) -> None:
         """Store a value already checked (:meth:`_write_problem`) and do what writing it means."""
@@ -652,10 +698,12 @@ class SimulatedSeaDrive:
         elif index == obj.CONSUMER_HEARTBEAT_TIME:
             self._consumer_set_s = now_s
             self._consumer_lost = False
+            self._consumer = None
         slot = self._slots.get(index)
         if slot is not None:
             self._codecs.pop(slot.comm, None)
             self._plans.pop(slot.comm, None)
+            self._pdo_parameters_changed()
             self._tpdo_last.pop(slot.comm, None)
             if not self._pdo_valid(slot) or (index, sub) == (slot.comm, 2):
                 # An invalid PDO does not exist, nor do its data; data buffered for a SYNC belong to the old type.
@@ -759,7 +807,11 @@ class SimulatedSeaDrive:
                 found.append(cob)
         return tuple(found)
 
-    def _plan(self, slot: _PdoSlot) -> tuple[int | None, int, PdoCodec]:
+    def _pdo_parameters_changed(self) -> None:
+        self.pdo_generation += 1
+        self._deadlines = None
+
+    def _plan(self, slot: _PdoSlot) -> _Plan:
         """What a PDO does now: its CAN-ID (None while invalid), its transmission type and its codec.
 
         Cached until one of its parameters is written (a SYNC reads it for every PDO: the
@@ -769,7 +821,9 @@ class SimulatedSeaDrive:
         if plan is None:
             cob = int(self._get(slot.comm, 1))
             valid = None if cob & COB_ID_INVALID else cob & _CAN_ID_MASK
-            plan = self._plans[slot.comm] = (valid, int(self._get(slot.comm, 2)), self._codec(slot))
+            codec = self._codec(slot)
+            keys = tuple((o.index, o.sub) for o in codec.mapping.objects)
+            plan = self._plans[slot.comm] = (valid, int(self._get(slot.comm, 2)), codec, keys)
         return plan
 
     def _codec(self, slot: _PdoSlot) -> PdoCodec:
@@ -841,6 +895,8 @@ class SimulatedSeaDrive:
         self._lose_pdos()
         self._codecs.clear()
         self._plans.clear()
+        self._pdo_parameters_changed()
+        self._consumer = None
         self._sync_count = 0
         self._heard_s.clear()
         self._consumer_set_s = now_s
@@ -927,7 +983,7 @@ class SimulatedSeaDrive:
         if self._nmt is not NmtState.OPERATIONAL:
             return
         for slot in self._rpdos:
-            cob, transmission, codec = self._plan(slot)
+            cob, transmission, codec, _ = self._plan(slot)
             if cob != cob_id:
                 continue
             values = codec.decode(data)
@@ -963,10 +1019,10 @@ class SimulatedSeaDrive:
             return
         get = self._get
         for slot in self._tpdos:
-            cob, transmission, codec = self._plan(slot)
+            cob, transmission, codec, keys = self._plan(slot)
             if cob is None:
                 continue
-            data = codec.pack(*[get(o.index, o.sub) for o in codec.mapping.objects])
+            data = codec.pack(*[get(index, sub) for index, sub in keys])
             if 1 <= transmission <= 240:
                 due = self._sync_count % transmission == 0
             else:  # 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
@@ -1122,9 +1178,17 @@ class SimulatedSeaDrive:
         if node_id == self._node_id or parse_heartbeat(data) is None:
             return
         self._heard_s[node_id] = now_s
-        if node_id == (int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1)) >> 16) & 0x7F:
+        if node_id == self._consumed()[0]:
             self._consumer_lost = False
             self._master_back(ERROR_HEARTBEAT, now_s)
+
+    def _consumed(self) -> tuple[int, int]:
+        """The node the heartbeat consumer watches and its time (ms; 0: none), from 0x1016:1 (derived once per write)."""
+        consumer = self._consumer
+        if consumer is None:
+            entry = int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1))
+            consumer = self._consumer = ((entry >> 16) & 0x7F, entry & 0xFFFF)
+        return consumer
 
     def _check_consumer(self, now_s: float) -> None:
         """The heartbeat consumer: a fault when the consumed node is silent too long while OPERATIONAL.
@@ -1132,8 +1196,7 @@ class SimulatedSeaDrive:
         Counting starts at the first heartbeat of the node or at the write of 0x1016:1, whichever
         is later; each loss is a fault once (until the node's heartbeat comes back).
         """
-        entry = int(self._get(obj.CONSUMER_HEARTBEAT_TIME, 1))
-        node, time_ms = (entry >> 16) & 0x7F, entry & 0xFFFF
+        node, time_ms = self._consumed()
         heard = self._heard_s.get(node)
         if time_ms == 0 or node == 0 or heard is None or self._consumer_lost:
             return
@@ -1200,8 +1263,3 @@ def _supported_modes(dictionary: DriveDictionary) -> frozenset[int]:
         return frozenset({obj.MODE_CYCLIC_SYNCHRONOUS_TORQUE})
     value = int(_default_or(dictionary, obj.SUPPORTED_DRIVE_MODES, 0, 0))
     return frozenset(bit + 1 for bit in range(32) if value >> bit & 1)
-
-
-def _clamp(value: int, bounds: tuple[int, int]) -> int:
-    """``value`` saturated at ``bounds`` (what a drive's counter of that type can show)."""
-    return max(bounds[0], min(bounds[1], value))

@@ -1,9 +1,10 @@
 """The four simulated SEA drives on their side of the bus, in front of the simulated plant.
 
-The drives' side of a python-can ``virtual`` bus: one bus handle for all four drives (python-can
-copies every frame once per receiving handle, so one handle on this side keeps a cycle at 5 + 13
-copies instead of 5 x 4 + 13 x 4). :meth:`SimulatedDriveSet.step` processes the frames that
-arrived since the last call in bus order; a SYNC is where time passes::
+The drives' side of the bus, one for all four drives: in lock-step the link
+(:class:`hal.canopen.sim.link.LockstepLink`: each frame its COB-ID and bytes, no message object),
+in a thread of their own a python-can ``virtual`` bus handle (:meth:`SimulatedDriveSet.start_thread`).
+:meth:`SimulatedDriveSet.step` processes the frames that arrived since the last call in bus order;
+a SYNC is where time passes::
 
     SYNC: every drive applies the RPDOs received since the previous SYNC and samples its joint
           (q, theta and the spring torque of the plant's readings now, the e-stop buttons, the
@@ -33,6 +34,7 @@ the run is deterministic).
 from __future__ import annotations
 
 import threading
+from collections import deque
 from collections.abc import Callable
 
 import can
@@ -43,6 +45,7 @@ from hal.canopen.cia402.statemachine import PowerState
 from hal.canopen.profile import DriveProfile
 from hal.canopen.sim.bus import LineFaults
 from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
+from hal.canopen.sim.link import LockstepLink
 from hal.capabilities import BUS_FAULT_KINDS
 from hal.errors import HalError, InputError
 from hal.interface import Command
@@ -51,16 +54,17 @@ from hal.sim.backend import SimHal
 
 __all__ = ["SimulatedDriveSet"]
 
-#: The power states in which a drive's power stage applies torque: commanded, or ramping by itself.
-_STAGE_ON = frozenset({PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE})
+#: The power states in which a drive's power stage applies torque: commanded, or ramping by itself (a tuple:
+#: membership by identity, no Python-level Enum.__hash__ per drive and tick).
+_STAGE_ON = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
 
 
 class SimulatedDriveSet:
     """The drives of joints 1-4 and the plant they move.
 
     Args:
-        bus: the drives' handle on the virtual bus (created with ``preserve_timestamps=True``), or
-            None until :meth:`attach`.
+        bus: the lock-step link, or the drives' handle on a virtual bus (created with
+            ``preserve_timestamps=True``; for :meth:`start_thread`), or None until :meth:`attach`.
         plant: the simulated plant, opened by :meth:`power_on`.
         profiles: the drives of joints 1-4 (:mod:`hal.canopen.profile`): each is built from its
             profile's EDS and reads its sensors into its profile's objects.
@@ -69,12 +73,12 @@ class SimulatedDriveSet:
 
     def __init__(
         self,
-        bus: can.BusABC | None,
+        bus: can.BusABC | LockstepLink | None,
         plant: SimHal,
         profiles: tuple[DriveProfile, ...],
         master_node_id: int,
     ) -> None:
-        self.bus = bus
+        self.bus: can.BusABC | LockstepLink | None = None
         self.plant = plant
         self.drives = [
             SimulatedSeaDrive(p.node_id, p.dictionary, self._send, master_node_id, profile=p) for p in profiles
@@ -91,29 +95,39 @@ class SimulatedDriveSet:
         self.syncs = 0
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
-        self._pending_first: can.Message | None = None  # the frame a thread's blocking receive took
+        self._pending_first: tuple[int, bytes] | None = None  # the frame a thread's blocking receive took
+        self._routes_of: tuple[tuple[int, ...], dict[int, SimulatedSeaDrive]] = ((), {})
+        self._take: Callable[[], tuple[int, bytes] | None] = _nothing
+        self._put: Callable[[int, bytes], None] = _lose
+        self.attach(bus)
         self.thread_error: str | None = None
         self._clock: Callable[[], float] | None = None  # the drives' time in a thread (None: the plant's)
 
     @property
     def t_s(self) -> float:
         """The drives' time, s: the plant's robot time, or the clock given to :meth:`start_thread`."""
-        return self.plant.world.t_s if self._clock is None else self._clock()
+        return self.plant.time_s if self._clock is None else self._clock()  # time_s: the world's t_s
 
-    def attach(self, bus: can.BusABC | None) -> None:
-        """Use ``bus`` from now on (None: detached; frames the drives send are lost, as on an unplugged cable)."""
+    def attach(self, bus: can.BusABC | LockstepLink | None) -> None:
+        """Use ``bus`` from now on: python-can's (a thread, :meth:`start_thread`) or the lock-step link
+        (:mod:`hal.canopen.sim.link`); None: detached (frames the drives send are lost, as on an unplugged cable)."""
         self.bus = bus
+        if isinstance(bus, LockstepLink):
+            self._take: Callable[[], tuple[int, bytes] | None] = _taker(bus.to_drives)
+            self._put: Callable[[int, bytes], None] = bus.send_from_drive
+        elif bus is not None:
+            self._take = _python_can_taker(bus)
+            self._put = _python_can_sender(bus, lambda: self.t_s)
 
     def _send(self, cob_id: int, data: bytes) -> None:
-        if self.bus is None:
-            return
-        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=self.t_s))
+        if self.bus is not None:
+            self._put(cob_id, data)
 
     def power_on(self) -> None:
         """A new session: the plant at rest, every drive switched on (boot-up message, pre-operational, factory objects)."""
         self.plant.open()
         self.syncs = 0
-        while self.bus is not None and self.bus.recv(timeout=0) is not None:
+        while self.bus is not None and self._take() is not None:
             pass  # nothing of an earlier session is left on the drives' side
         now = self.t_s
         for drive in self.drives:
@@ -127,30 +141,30 @@ class SimulatedDriveSet:
         """
         if self.bus is None:
             return
-        recv = self.bus.recv
+        take = self._take
         drives = self.drives
         routes = self._routes()
-        while True:
-            message, self._pending_first = self._pending_first, None
-            if message is None:
-                message = recv(timeout=0)
-            if message is None:
-                break
-            if message.is_error_frame or message.is_remote_frame:
-                continue
-            cob_id = message.arbitration_id
+        frame, self._pending_first = self._pending_first, None
+        if frame is None:
+            frame = take()
+        lockstep = self._clock is None  # robot time moves only at a SYNC; a thread's clock runs on its own
+        now = self.t_s
+        while frame is not None:
+            cob_id, data = frame
             if cob_id == SYNC_COB_ID:
                 self._sync()
                 routes = self._routes()  # a SYNC may have changed what the drives listen to (a restart)
-                continue
-            data = bytes(message.data)
-            now = self.t_s
-            target = routes.get(cob_id)
-            if target is not None:
-                target.receive(cob_id, data, now)
+                now = self.t_s
             else:
-                for drive in drives:  # NMT, heartbeats, anything else: every drive takes what is for it
-                    drive.receive(cob_id, data, now)
+                if not lockstep:
+                    now = self.t_s
+                target = routes.get(cob_id)
+                if target is not None:
+                    target.receive(cob_id, data, now)
+                else:
+                    for drive in drives:  # NMT, heartbeats, anything else: every drive takes what is for it
+                        drive.receive(cob_id, data, now)
+            frame = take()
         now = self.t_s
         for drive in drives:
             drive.advance(now)
@@ -194,19 +208,30 @@ class SimulatedDriveSet:
                 bus = self.bus
                 if bus is None:
                     return
+                if not isinstance(bus, can.BusABC):
+                    raise HalError("the drives' thread runs on a python-can bus, not on the lock-step link")
                 message = bus.recv(timeout=0.005)  # python-can's blocking receive: woken by the next frame
                 if message is None:
                     now = self.t_s
                     for drive in self.drives:
                         drive.advance(now)  # heartbeats go on while no frame comes
                     continue
-                self._pending_first = message
+                self._pending_first = _frame_of(message)
                 self.step()
         except Exception as exc:  # the thread's failure is reported by stop_thread, never lost
             self.thread_error = f"{type(exc).__name__}: {exc}"
 
     def _routes(self) -> dict[int, SimulatedSeaDrive]:
-        """CAN-ID -> the one drive a frame is for: each drive's SDO requests and valid RPDOs (a shared CAN-ID is not routed)."""
+        """CAN-ID -> the one drive a frame is for: each drive's SDO requests and valid RPDOs (a shared CAN-ID is not routed).
+
+        Derived again only when a drive's PDO parameters changed since (:attr:`SimulatedSeaDrive.pdo_generation`).
+        """
+        generations = tuple(drive.pdo_generation for drive in self.drives)
+        if generations != self._routes_of[0]:
+            self._routes_of = (generations, self._derive_routes())
+        return self._routes_of[1]
+
+    def _derive_routes(self) -> dict[int, SimulatedSeaDrive]:
         routes: dict[int, SimulatedSeaDrive] = {}
         shared: set[int] = set()
         for drive in self.drives:
@@ -343,3 +368,51 @@ class SimulatedDriveSet:
     def applied_motor_torque_nm(self) -> np.ndarray:
         """The torque each drive's power stage applies now (Nm, (4,))."""
         return np.array([d.applied_torque_nm for d in self.drives])
+
+
+def _frame_of(message: can.Message) -> tuple[int, bytes] | None:
+    """A python-can message as the drives take it: (COB-ID, data); None for an error or remote frame (no drive's)."""
+    if message.is_error_frame or message.is_remote_frame:
+        return None
+    return message.arbitration_id, bytes(message.data)
+
+
+def _python_can_taker(bus: can.BusABC) -> Callable[[], tuple[int, bytes] | None]:
+    """The next data frame on ``bus`` (error and remote frames skipped), None when none is queued."""
+    recv = bus.recv
+
+    def take() -> tuple[int, bytes] | None:
+        while (message := recv(timeout=0)) is not None:
+            frame = _frame_of(message)
+            if frame is not None:
+                return frame
+        return None
+
+    return take
+
+
+def _python_can_sender(bus: can.BusABC, clock: Callable[[], float]) -> Callable[[int, bytes], None]:
+    """Sends a frame on ``bus`` stamped with the drives' time ``clock()`` (s)."""
+
+    def send(cob_id: int, data: bytes) -> None:
+        bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=clock()))
+
+    return send
+
+
+def _taker(queue: deque[tuple[int, bytes]]) -> Callable[[], tuple[int, bytes] | None]:
+    """The next frame of a lock-step queue, None when it is empty."""
+    popleft = queue.popleft
+
+    def take() -> tuple[int, bytes] | None:
+        return popleft() if queue else None
+
+    return take
+
+
+def _nothing() -> None:
+    return None
+
+
+def _lose(cob_id: int, data: bytes) -> None:
+    """A frame sent while detached: lost, as on an unplugged cable."""
