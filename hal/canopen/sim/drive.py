@@ -280,6 +280,7 @@ class SimulatedSeaDrive:
         #: the drive set's routes) is derived again when it moved on, not every cycle.
         self.pdo_generation = 0
         self._deadlines: tuple[tuple[int, float], ...] | None = None  # (RPDO comm index, deadline s), derived
+        self._valid: tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]] | None = None
         self._consumer: tuple[int, int] | None = None  # 0x1016:1 as (node, ms), derived from the object
         self._statusword: tuple[PowerState, int] | None = None  # (power state, its statusword), the last one
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
@@ -810,6 +811,23 @@ class SimulatedSeaDrive:
     def _pdo_parameters_changed(self) -> None:
         self.pdo_generation += 1
         self._deadlines = None
+        self._valid = None
+
+    def _valid_pdos(self) -> tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]]:
+        """The valid PDOs and their plans: the RPDOs by CAN-ID (the first slot of an ID), the TPDOs in order.
+
+        Derived once per change of the PDO parameters: a SYNC and each RPDO would otherwise look at every slot.
+        """
+        valid = self._valid
+        if valid is None:
+            rpdos: dict[int, tuple[_PdoSlot, _Plan]] = {}
+            for slot in self._rpdos:
+                plan = self._plan(slot)
+                if plan[0] is not None:
+                    rpdos.setdefault(plan[0], (slot, plan))
+            tpdos = tuple((slot, plan) for slot in self._tpdos if (plan := self._plan(slot))[0] is not None)
+            valid = self._valid = (rpdos, tpdos)
+        return valid
 
     def _plan(self, slot: _PdoSlot) -> _Plan:
         """What a PDO does now: its CAN-ID (None while invalid), its transmission type and its codec.
@@ -982,25 +1000,24 @@ class SimulatedSeaDrive:
         """A frame that may be an RPDO: processed only when operational and on a valid RPDO's COB-ID."""
         if self._nmt is not NmtState.OPERATIONAL:
             return
-        for slot in self._rpdos:
-            cob, transmission, codec, _ = self._plan(slot)
-            if cob != cob_id:
-                continue
-            values = codec.decode(data)
-            if values is None:
-                self._report_pdo_length_error(now_s)
-                return
-            self._clear_pdo_length_error(now_s)
-            self._rpdo_heard_s[slot.comm] = now_s
-            if self._rpdo_deadline_lost:
-                self._rpdo_deadline_lost = False
-                self._master_back(ERROR_RPDO_TIMEOUT, now_s)
-            writes = tuple(zip(codec.mapping.objects, values, strict=True))
-            if transmission <= 240:
-                self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
-            elif transmission >= 254:
-                self._apply_rpdo(writes, now_s)  # event-driven: acts at once
+        found = self._valid_pdos()[0].get(cob_id)
+        if found is None:
             return
+        slot, (_, transmission, codec, _) = found
+        values = codec.decode(data)
+        if values is None:
+            self._report_pdo_length_error(now_s)
+            return
+        self._clear_pdo_length_error(now_s)
+        self._rpdo_heard_s[slot.comm] = now_s
+        if self._rpdo_deadline_lost:
+            self._rpdo_deadline_lost = False
+            self._master_back(ERROR_RPDO_TIMEOUT, now_s)
+        writes = tuple(zip(codec.mapping.objects, values, strict=True))
+        if transmission <= 240:
+            self._rpdo_pending[slot.comm] = writes  # synchronous: acts at the next SYNC (the last one wins)
+        elif transmission >= 254:
+            self._apply_rpdo(writes, now_s)  # event-driven: acts at once
 
     def _apply_pending_rpdos(self, now_s: float) -> None:
         pending, self._rpdo_pending = self._rpdo_pending, {}
@@ -1018,10 +1035,7 @@ class SimulatedSeaDrive:
         if self._pdo_frozen:
             return
         get = self._get
-        for slot in self._tpdos:
-            cob, transmission, codec, keys = self._plan(slot)
-            if cob is None:
-                continue
+        for slot, (cob, transmission, codec, keys) in self._valid_pdos()[1]:
             data = codec.pack(*[get(index, sub) for index, sub in keys])
             if 1 <= transmission <= 240:
                 due = self._sync_count % transmission == 0
