@@ -4,7 +4,7 @@
   the 70 % budget (arithmetic, hal/canopen/busload.py) and the physical limit.
 * Lock-step HIL: the ``can-sim`` tick alone (the master, four simulated drives, the plant), and
   the whole ``daror hil`` command on the demo's session script (process start to exit, the bus
-  logged), each as a real-time factor.
+  logged, three runs; issue 25's target: 30x), each as a real-time factor.
 * Real-time HIL at the default rate for 30 s: the ``can`` backend as on the robot (python-can's
   Notifier thread, the wall clock) against the simulated drives answering from their own thread
   (tests/can_rig.py), under the runtime's real-time clock with a holding position controller and
@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -84,12 +85,16 @@ def bench_can_sim_tick(quick: bool) -> list[BenchFigure]:
     ]  # fmt: skip
 
 
+#: Issue 25: the whole ``daror hil`` of the demo session at this real-time factor or faster.
+HIL_COMMAND_TARGET_X = 30.0
+
+
 def bench_hil_command(quick: bool) -> list[BenchFigure]:
-    """The whole ``daror hil`` on the demo's session script (lock-step over can-sim, the bus logged)."""
+    """The whole ``daror hil`` on the demo's session script (lock-step over can-sim, the bus logged), three runs."""
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        for n in range(1):
+        for n in range(1 if quick else 3):
             out = folder / f"hil{n}"
             run = command_in_child(
                 ["hil", "--script", str(SESSION), "--settings", str(SETTINGS), "--out", str(out)], folder
@@ -99,17 +104,22 @@ def bench_hil_command(quick: bool) -> list[BenchFigure]:
             report = json.loads((out / "hil.json").read_text())
             robot_s = report["bus"]["syncs"] / report["bus"]["rate_hz"]
             log_mb = (out / "can.log.gz").stat().st_size / 1e6  # gzip-compressed as written (D137)
-            # the session's cycles: the last 50 ms are the shutdown's torque-off cycles, sent at one robot time
-            epoch_s = report["bus"]["traffic_log_epoch_s"]
-            loads = cycle_loads(out / "can.log.gz", until_s=epoch_s + robot_s - 0.05)
-            worst = loads.share(loads.worst_bits, report["bus"]["rate_hz"], report["bus"]["bitrate"]) * 100
-            runs.append((robot_s, run.wall_s, run.peak_mb or 0.0, log_mb, report["bus"]["frames_sent"], worst, loads))
-    robot_s, wall_s, peak_mb, log_mb, sent, worst, loads = runs[0]
+            runs.append((robot_s, run.wall_s, run.peak_mb or 0.0, log_mb, report["bus"]["frames_sent"]))
+            if n == 0:  # the session is deterministic: its bus log is the same every run
+                # the session's cycles: the last 50 ms are the shutdown's torque-off cycles, sent at one robot time
+                epoch_s = report["bus"]["traffic_log_epoch_s"]
+                loads = cycle_loads(out / "can.log.gz", until_s=epoch_s + robot_s - 0.05)
+                worst = loads.share(loads.worst_bits, report["bus"]["rate_hz"], report["bus"]["bitrate"]) * 100
+            shutil.rmtree(out)
+    robot_s, _, _, log_mb, sent = runs[0]
+    factors = np.array([r[0] / r[1] for r in runs])
+    walls = ", ".join(f"{r[1]:.1f}" for r in runs)
+    peak_mb = max(r[2] for r in runs)
     return [
-        BenchFigure("daror hil, the demo session over can-sim (fresh process, start to exit)", robot_s / wall_s,
-                    robot_s / wall_s, "x real time", 1, at_least=True,
-                    note=f"{robot_s:.0f} s of robot time in {wall_s:.1f} s; can.log.gz {log_mb:.1f} MB, {sent} frames sent"),
-        BenchFigure("  its peak memory (the child's own VmHWM)", peak_mb, peak_mb, "MB", 1),
+        BenchFigure("daror hil, the demo session over can-sim (fresh process, start to exit)", float(np.median(factors)),
+                    float(factors.min()), "x real time", len(runs), target=HIL_COMMAND_TARGET_X, at_least=True,
+                    note=f"{robot_s:.0f} s of robot time in {walls} s; can.log.gz {log_mb:.1f} MB, {sent} frames sent"),
+        BenchFigure("  its peak memory (the child's own VmHWM)", peak_mb, peak_mb, "MB", len(runs)),
         BenchFigure("  the worst SYNC cycle of its bus log (55 + 10 s bits a frame)", worst, worst, "%", 1,
                     target=LOAD_BUDGET * 100,
                     note=f"{loads.worst_bits} bits; {loads.cycles} cycles, the five fullest: {sorted(loads.bits.items())[-5:]}"),
