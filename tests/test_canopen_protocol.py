@@ -1150,6 +1150,27 @@ def test_a_drive_that_does_not_follow_is_reported_once_per_timeout() -> None:
     )
 
 
+def test_ticks_without_a_report_from_the_drive_are_not_counted_as_waiting() -> None:
+    """A master that writes without reading (or a late TPDO) has not seen the drive stay: no timeout from it.
+
+    Found by the HAL contract's random sequences at 400 Hz: twelve writes in a row after open, no
+    read between them, reported "stayed in switch on disabled for 9 ticks" of a drive that had enabled.
+    """
+    stepper = PowerStepper(timeout_ticks=3)
+    outcomes = [stepper.step(P.SWITCH_ON_DISABLED, want_torque=True, fresh=tick == 0) for tick in range(12)]
+    assert {o.controlword for o in outcomes} == {SHUTDOWN}  # it keeps asking
+    assert all(o.timed_out is None for o in outcomes)
+    # reported again, the drive's state counts as before: more than 3 fresh ticks without change
+    fresh = [stepper.step(P.SWITCH_ON_DISABLED, want_torque=True) for _ in range(4)]
+    assert [o.timed_out is not None for o in fresh] == [False, False, False, True]
+    # the safety-relevant direction too: a stale "operation enabled" after disable voltage counts nothing
+    for shown in (P.READY_TO_SWITCH_ON, P.SWITCHED_ON, P.OPERATION_ENABLED):
+        stepper.step(shown, want_torque=True)
+    stale = [stepper.step(P.OPERATION_ENABLED, want_torque=False, fresh=False) for _ in range(10)]
+    assert all(o.timed_out is None for o in stale)
+    assert any(stepper.step(P.OPERATION_ENABLED, want_torque=False).timed_out for _ in range(5))
+
+
 def test_progress_restarts_the_timeout_and_the_limit_is_at_least_2() -> None:
     assert PowerStepper(timeout_ticks=0).timeout_ticks == 2
     stepper = PowerStepper(timeout_ticks=3)

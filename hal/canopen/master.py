@@ -820,7 +820,9 @@ class CanMaster:
             seen = drive.lost is None and drive.recovery is None  # a lost drive's last statusword is stale
             healthy = seen and drive.emcy is None
             wanted = want_torque and (j + 1) not in joints_off
-            outcome = drive.stepper.step(drive.power if seen else None, wanted and healthy)
+            # its statusword of the last SYNC: a write without a read since is no tick it "stayed" in a state
+            fresh = drive.last_sync >= self.syncs - 1
+            outcome = drive.stepper.step(drive.power if seen else None, wanted and healthy, fresh)
             if outcome.timed_out is not None:
                 self._latch(f"drive {drive.node_id}: {outcome.timed_out}")
             drive.controlword = outcome.controlword

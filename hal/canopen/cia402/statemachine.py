@@ -217,8 +217,13 @@ class PowerStepper:
         """
         self._reset_phase = 1
 
-    def step(self, state: PowerState | None, want_torque: bool) -> StepOutcome:
-        """The controlword for this tick, from the state the drive showed last and what the runtime wants."""
+    def step(self, state: PowerState | None, want_torque: bool, fresh: bool = True) -> StepOutcome:
+        """The controlword for this tick, from the state the drive showed last and what the runtime wants.
+
+        ``fresh``: the drive reported ``state`` since the last step. A tick without a report (the
+        master wrote twice without reading, or the drive's TPDO is late) is no tick the drive
+        "stayed" in it: the wait is not counted (a late drive is the watchdogs' to judge).
+        """
         if self._reset_phase:
             if state is PowerState.FAULT or self._reset_phase == 2:
                 command = CW_DISABLE_VOLTAGE if self._reset_phase == 1 else CW_FAULT_RESET
@@ -237,11 +242,11 @@ class PowerStepper:
             ):
                 # The safety-relevant direction: a drive that keeps its power stage on after
                 # "disable voltage" is reported like one that does not enable.
-                timed_out = self._count_wait(state, CW_DISABLE_VOLTAGE)
+                timed_out = self._count_wait(state, CW_DISABLE_VOLTAGE) if fresh else None
             return self._send(CW_DISABLE_VOLTAGE, timed_out)
         wanted = _towards_torque(state)
         timed_out = None
-        if state is not PowerState.OPERATION_ENABLED and wanted == self._command:
+        if state is not PowerState.OPERATION_ENABLED and wanted == self._command and fresh:
             timed_out = self._count_wait(state, wanted)
         return self._send(wanted, timed_out)
 
