@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hal.canopen.bus import Frame, FrameSource
+from hal.canopen.bus import Frame
 from hal.canopen.cia301.emcy import (
     COMMUNICATION_WARNINGS,
     EmcyClass,
@@ -33,6 +33,7 @@ from hal.canopen.master import CanMaster, MasterSettings
 from hal.canopen.profile import resolve_profiles
 from hal.config import hal_config
 from hal.interface import DriveState
+from tests.test_canopen_master import Clock, ScriptedFrames
 
 NODES = (1, 2, 3, 4)
 PERIOD_S = 0.002
@@ -81,23 +82,6 @@ def test_an_emcy_is_a_warning_only_when_it_says_so(code: int, register: int, len
 
 
 # --- the master: what a drive shows after a sequence of EMCYs ------------------------------------------------
-
-
-class ScriptedFrames(FrameSource):
-    def __init__(self) -> None:
-        self.queued: list[Frame] = []
-
-    def drain(self) -> list[Frame]:
-        frames, self.queued = self.queued, []
-        return frames
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t_s = 0.0
-
-    def __call__(self) -> float:
-        return self.t_s
 
 
 @pytest.fixture(scope="module")
