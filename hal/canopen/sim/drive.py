@@ -176,6 +176,8 @@ _MAX_MAPPING_ENTRIES = 0x40
 
 #: What a PDO does now: its CAN-ID (None while invalid), its transmission type, its codec, its objects' (index, sub).
 _Plan = tuple[int | None, int, PdoCodec, tuple[tuple[int, int], ...]]
+#: A valid TPDO as a SYNC sends it: comm index, CAN-ID, transmission type, its codec's pack, its objects' keys.
+_TpdoSource = tuple[int, int, int, Callable[..., bytes], tuple[tuple[int, int], ...]]
 #: A value no object has (a missing entry in the stored values).
 _UNSET = object()
 
@@ -282,6 +284,9 @@ class SimulatedSeaDrive:
         self._deadlines: tuple[tuple[int, float], ...] | None = None  # (RPDO comm index, deadline s), derived
         self._valid: tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]] | None = None
         self._consumer: tuple[int, int] | None = None  # 0x1016:1 as (node, ms), derived from the object
+        self._tpdo_plan: tuple[_TpdoSource, ...] | None = None  # the valid TPDOs, derived with _valid
+        # (power state, controlword) whose CiA 402 transition, the controlword repeated, is none (a memo)
+        self._cw_idle: tuple[PowerState, int] | None = None
         self._statusword: tuple[PowerState, int] | None = None  # (power state, its statusword), the last one
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
         self._rpdo_heard_s: dict[int, float] = {}  # when each RPDO last arrived (its deadline monitoring)
@@ -298,6 +303,7 @@ class SimulatedSeaDrive:
         self._communication_errors: set[int] = set()  # losses of the master in force without a fault
         self._ramp: StopRamp | None = None  # the torque ramp of a quick stop or fault reaction under way
         self._limits: dict[tuple[int, int], tuple[int | None, int | None]] = {}
+        self._plain: dict[tuple[int, int], Any] = {}  # _plain_limits' answers
         for index, sub in self._objects_read_at_run_time():
             self._get(index, sub)  # a factory value missing from the EDS is found now, not at a SYNC
 
@@ -477,6 +483,17 @@ class SimulatedSeaDrive:
             for name, x in (("q_rad", q_rad), ("theta_rad", theta_rad), ("tau_nm", tau_nm)):
                 if not math.isfinite(x):
                     raise ValueError(f"{name} = {x}: a drive's sensors never measure a non-finite value")
+        cut = estop_operator or estop_pilot if power_cut is None else power_cut
+        if (
+            not cut
+            and self._nmt is NmtState.OPERATIONAL
+            and self._powered
+            and self._power not in _RAMPING_STATES
+            and not self._pdo_frozen
+            and not self._dropping(now_s)
+        ):
+            self._sync_steady(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s)
+            return
         self.on_inputs(estop_operator, estop_pilot, power_cut, now_s)
         if not self._powered:
             return
@@ -486,6 +503,28 @@ class SimulatedSeaDrive:
         self._sync_count += 1
         self._apply_pending_rpdos(now_s)
         self._transmit_tpdos(now_s)
+
+    def _sync_steady(
+        self, q_rad: float, theta_rad: float, tau_nm: float, estop_operator: bool, estop_pilot: bool, now_s: float
+    ) -> None:
+        """:meth:`on_sync` in the steady state: powered, OPERATIONAL, no stop ramp, no cut, TPDOs not frozen, no dropout.
+
+        Nearly every SYNC of a session is one of these (issue 25, D167): the same steps as the
+        general path in the same order (the inputs, the sample, the pending RPDOs, the TPDOs),
+        without the tests that cannot act here. The caller checked the conditions; what the RPDOs
+        change (a controlword) is seen by the TPDOs as on the general path.
+        """
+        # on_inputs with no ramp under way and no cut: it only stores the inputs.
+        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        self._power_cut = False
+        values = self._values
+        for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):  # _sample's
+            counts = round(x / scale)
+            values[key] = bounds[0] if counts < bounds[0] else bounds[1] if counts > bounds[1] else counts
+        self._sync_count += 1
+        if self._rpdo_pending:
+            self._apply_pending_rpdos(now_s)
+        self._send_tpdos(now_s)
 
     def on_inputs(self, estop_operator: bool, estop_pilot: bool, power_cut: bool | None, now_s: float) -> None:
         """The hardwired inputs at ``now_s``, s: the e-stop buttons (statusword bits 14, 15) and the safe torque off.
@@ -812,6 +851,7 @@ class SimulatedSeaDrive:
         self.pdo_generation += 1
         self._deadlines = None
         self._valid = None
+        self._tpdo_plan = None
 
     def _valid_pdos(self) -> tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]]:
         """The valid PDOs and their plans: the RPDOs by CAN-ID (the first slot of an ID), the TPDOs in order.
@@ -1026,24 +1066,68 @@ class SimulatedSeaDrive:
 
     def _apply_rpdo(self, writes: tuple[tuple[MappedObject, Any], ...], now_s: float) -> None:
         """Write an RPDO's values into their objects, in mapping order (a value the drive refuses is skipped)."""
+        values = self._values
         for mapped, value in writes:
-            if self._write_problem(mapped.index, mapped.sub, value) is None:
-                self._write(mapped.index, mapped.sub, value, now_s)
+            index, sub = mapped.index, mapped.sub
+            limits = self._plain_limits(index, sub)
+            if limits is None:  # an object whose write does more than store it (controlword, PDO, heartbeat, mode)
+                if self._write_problem(index, sub, value) is None:
+                    self._write(index, sub, value, now_s)
+            elif _in_limits(value, limits):  # _write_problem's range test, then _write's plain store
+                values[(index, sub)] = value
+
+    def _plain_limits(self, index: int, sub: int) -> tuple[int | None, int | None] | None:
+        """The EDS limits of an object whose write only stores a value in range; None for one whose write acts.
+
+        Such an object (a target torque: one a SYNC) is checked and stored without the general
+        write's tests, which cannot act for it (D167); the answer does not change (cached).
+        """
+        key = (index, sub)
+        found = self._plain.get(key, _UNSET)
+        if found is _UNSET:
+            acts = index in _ACTING_INDICES or index in self._slots
+            found = self._plain[key] = None if acts else self._dictionary.limits(index, sub)
+        return found
 
     def _transmit_tpdos(self, now_s: float) -> None:
         """At a SYNC: the synchronous TPDOs due, and the event-driven ones whose data changed."""
         if self._pdo_frozen:
             return
+        if self._dropping(now_s):
+            self._pack_tpdos()  # what is due is judged (and remembered) as ever; the frames are lost
+            return
+        self._send_tpdos(now_s)
+
+    def _send_tpdos(self, now_s: float) -> None:
+        """:meth:`_transmit_tpdos` once it is known that the frames are not frozen and not dropped."""
+        send = self._send
+        for cob, data in self._pack_tpdos():
+            send(cob, data)
+
+    def _pack_tpdos(self) -> list[tuple[int, bytes]]:
+        """The TPDOs due at this SYNC, (CAN-ID, data) in order; the event-driven ones' data remembered."""
         get = self._get
-        for slot, (cob, transmission, codec, keys) in self._valid_pdos()[1]:
-            data = codec.pack(*[get(index, sub) for index, sub in keys])
+        due_frames = []
+        for comm, cob, transmission, pack, keys in self._tpdo_sources():
+            data = pack(*[get(index, sub) for index, sub in keys])
             if 1 <= transmission <= 240:
                 due = self._sync_count % transmission == 0
             else:  # 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
-                due = self._tpdo_last.get(slot.comm) != data
+                due = self._tpdo_last.get(comm) != data
             if due:
-                self._tpdo_last[slot.comm] = data
-                self._emit(cob, data, now_s)
+                self._tpdo_last[comm] = data
+                due_frames.append((cob, data))
+        return due_frames
+
+    def _tpdo_sources(self) -> tuple[_TpdoSource, ...]:
+        """The valid TPDOs as (comm index, CAN-ID, transmission type, pack, their objects' keys); derived per change."""
+        sources = self._tpdo_plan
+        if sources is None:
+            sources = self._tpdo_plan = tuple(
+                (slot.comm, cob, transmission, codec.pack, keys)
+                for slot, (cob, transmission, codec, keys) in self._valid_pdos()[1]
+            )
+        return sources
 
     # ------------------------------------------------------------------ CiA 402 and faults
 
@@ -1051,7 +1135,20 @@ class SimulatedSeaDrive:
         """A controlword (RPDO or SDO): the CiA 402 transition it asks, unless the e-stop holds the power stage off."""
         previous = int(self._get(obj.CONTROLWORD, 0))
         self._values[(obj.CONTROLWORD, 0)] = controlword
+        idle = self._cw_idle
+        if (
+            previous == controlword
+            and not self._power_cut
+            and idle is not None
+            and idle[0] is self._power
+            and idle[1] == controlword
+        ):
+            # The same controlword again in the same state (nearly every RPDO of a session): device_next_state
+            # is a pure function and gave no transition for it; nothing below would act (D167).
+            return
         state = device_next_state(self._power, controlword, previous)
+        if previous == controlword and state is self._power:
+            self._cw_idle = (state, controlword)
         if self._power_cut and state in _POWER_STAGE_STATES:
             state = PowerState.SWITCH_ON_DISABLED  # safe torque off: the drive cannot leave SWITCH ON DISABLED
         fault_reset = self._power is PowerState.FAULT and state is not PowerState.FAULT
@@ -1228,6 +1325,21 @@ class SimulatedSeaDrive:
         """A frame to the bus (lost while ``drop_frames`` lasts)."""
         if not self._dropping(now_s):
             self._send(cob_id, data)
+
+
+#: The objects whose write does more than store a value (what :meth:`SimulatedSeaDrive._write` and
+#: :meth:`SimulatedSeaDrive._write_problem` test for besides the PDO parameters and the range).
+_ACTING_INDICES = frozenset(
+    {obj.CONTROLWORD, obj.MODES_OF_OPERATION, obj.PRODUCER_HEARTBEAT_TIME, obj.CONSUMER_HEARTBEAT_TIME}
+)
+
+
+def _in_limits(value: Any, limits: tuple[int | None, int | None]) -> bool:
+    """:meth:`SimulatedSeaDrive._range_problem` is None: a non-integer, or an integer within the EDS's limits."""
+    if not isinstance(value, int):
+        return True
+    low, high = limits
+    return (low is None or value >= low) and (high is None or value <= high)
 
 
 #: EDS data types that are signed integers (CiA 301): INTEGER8, 16, 32, 64.
