@@ -96,6 +96,19 @@ LOST_CODES = {
 _STOPPING = (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)  # a tuple: no Enum hash per tick
 
 
+#: decode_statusword's answers by statusword (a pure function of it; a session shows a handful of words).
+_POWER_OF: dict[int, PowerState | None] = {}
+
+
+def _power_of(statusword: int) -> PowerState | None:
+    """:func:`decode_statusword`, memoised: each TPDO's statusword would walk its patterns again (issue 25, D167)."""
+    try:
+        return _POWER_OF[statusword]
+    except KeyError:
+        power = _POWER_OF[statusword] = decode_statusword(statusword)
+        return power
+
+
 @dataclass(frozen=True)
 class MasterSettings:
     """How the master runs the bus (from the HAL configuration).
@@ -700,7 +713,7 @@ class CanMaster:
                 for name, value in zip(names, values, strict=True):
                     setattr(drive, name, int(value))
                 if "statusword" in names:
-                    power = decode_statusword(drive.statusword or 0)
+                    power = _power_of(drive.statusword or 0)
                     if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
                         drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
                     drive.power = power

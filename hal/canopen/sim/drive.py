@@ -176,8 +176,8 @@ _MAX_MAPPING_ENTRIES = 0x40
 
 #: What a PDO does now: its CAN-ID (None while invalid), its transmission type, its codec, its objects' (index, sub).
 _Plan = tuple[int | None, int, PdoCodec, tuple[tuple[int, int], ...]]
-#: A valid TPDO as a SYNC sends it: comm index, CAN-ID, transmission type, its codec's pack, its objects' keys.
-_TpdoSource = tuple[int, int, int, Callable[..., bytes], tuple[tuple[int, int], ...]]
+#: A valid TPDO as a SYNC sends it: comm index, CAN-ID, transmission type, its codec's pack, its objects' (key, stored).
+_TpdoSource = tuple[int, int, int, Callable[..., bytes], tuple[tuple[tuple[int, int], bool], ...]]
 #: A value no object has (a missing entry in the stored values).
 _UNSET = object()
 
@@ -1107,9 +1107,11 @@ class SimulatedSeaDrive:
     def _pack_tpdos(self) -> list[tuple[int, bytes]]:
         """The TPDOs due at this SYNC, (CAN-ID, data) in order; the event-driven ones' data remembered."""
         get = self._get
+        values = self._values
         due_frames = []
         for comm, cob, transmission, pack, keys in self._tpdo_sources():
-            data = pack(*[get(index, sub) for index, sub in keys])
+            # _get's answer: a stored value of an object not computed from the state is read directly
+            data = pack(*[values[key] if stored and key in values else get(*key) for key, stored in keys])
             if 1 <= transmission <= 240:
                 due = self._sync_count % transmission == 0
             else:  # 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
@@ -1120,11 +1122,11 @@ class SimulatedSeaDrive:
         return due_frames
 
     def _tpdo_sources(self) -> tuple[_TpdoSource, ...]:
-        """The valid TPDOs as (comm index, CAN-ID, transmission type, pack, their objects' keys); derived per change."""
+        """The valid TPDOs as (comm index, CAN-ID, transmission type, pack, (key, not computed) per object); per change."""
         sources = self._tpdo_plan
         if sources is None:
             sources = self._tpdo_plan = tuple(
-                (slot.comm, cob, transmission, codec.pack, keys)
+                (slot.comm, cob, transmission, codec.pack, tuple((key, key not in self._computed) for key in keys))
                 for slot, (cob, transmission, codec, keys) in self._valid_pdos()[1]
             )
         return sources
