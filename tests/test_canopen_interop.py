@@ -525,7 +525,9 @@ def test_a_drive_lost_by_heartbeat_comes_back_after_a_fault_reset(make_rig: Call
     reset_at = len(rig.drives.received(17))
 
     rig.hal.request_fault_reset()
-    rig.cycle_until(lambda s: s.drives[1] is not DriveState.FAULT, torque, True, 200)
+    # A liveness bound on wall-clock drives: the reconfiguration is ~45 SDO transfers, one in flight per drive,
+    # each answered by durand's thread and paced into cycles with room (D161); the rig cycles faster than 400 Hz.
+    rig.cycle_until(lambda s: s.drives[1] is not DriveState.FAULT, torque, True, 1000)
     rig.enable(torque)
     rig.cycle(torque, True)
 

@@ -74,7 +74,11 @@ CAN_RIG = BackendUnderTest(
     # The drives watch the master's heartbeat, which the master sends only as it ticks (a stalled
     # runtime stops the drives: D81); a test's pauses between calls are not stalls of a runtime.
     # A loaded test machine may starve the drives' thread for a while: generous start-up timeouts.
-    make=lambda: CanOnSimulatedDrives(heartbeat_consumer_ms=5000, sdo_timeout_ms=10_000, boot_timeout_ms=10_000),
+    # Wall-clock drives behind a test that pauses between steps as hypothesis thinks: the watchdogs' times are
+    # the test's, not the robot's (their behaviour is tested in test_canopen_master.py and test_canopen_stop_reactions.py).
+    make=lambda: CanOnSimulatedDrives(
+        heartbeat_consumer_ms=5000, sdo_timeout_ms=10_000, boot_timeout_ms=10_000, rpdo_deadline_ms=5000
+    ),
     latch_fault=lambda hal: _world(hal).inject_fault("emcy", 1),
     fault_drive=_fault_can_drive,
     applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
