@@ -58,18 +58,26 @@ from durand.services.nmt import StateEnum
 __all__ = [
     "DURAND_TPDO_SYNC_WHILE_INACTIVE",
     "EDS_PATH",
+    "Cia402Device",
     "DevicePower",
     "DriveWiring",
     "DurandDrives",
     "EdsUnits",
+    "Errors",
     "JointCounts",
+    "LogWatch",
     "MasterProbe",
     "TimedFrame",
     "WallClockScheduler",
+    "claim_durand",
+    "create_node",
     "durand_dictionary",
+    "holds_durand",
+    "release_durand",
     "robot_file_drives",
     "sdo_requests",
     "sdo_responses",
+    "watch_durand_logs",
 ]
 
 T = TypeVar("T")
@@ -136,7 +144,53 @@ _DURAND_OWNED = frozenset(
 _ACCESS = {"ro": "ro", "wo": "wo", "rw": "rw", "rwr": "rw", "rww": "rw", "const": "const"}
 
 _active_lock = threading.Lock()
-_active: list[DurandDrives] = []  # durand's scheduler is process-global: one harness at a time
+_active: list[object] = []  # durand's scheduler is process-global: one harness at a time
+
+
+def claim_durand(owner: object) -> None:
+    """``owner`` (a harness) is the one that sets durand's process-global scheduler until :func:`release_durand`.
+
+    Raises:
+        RuntimeError: another harness holds it.
+    """
+    with _active_lock:
+        if _active:
+            raise RuntimeError(
+                f"a durand harness is already running ({type(_active[0]).__name__}; durand's scheduler is process-global)"
+            )
+        _active.append(owner)
+
+
+def release_durand(owner: object) -> None:
+    """``owner`` no longer holds durand's scheduler (nothing if it did not)."""
+    with _active_lock:
+        if owner in _active:
+            _active.remove(owner)
+
+
+def holds_durand(owner: object) -> bool:
+    """Whether ``owner`` holds durand's scheduler (:func:`claim_durand`)."""
+    with _active_lock:
+        return owner in _active
+
+
+def watch_durand_logs(handler: logging.Handler) -> Callable[[], None]:
+    """durand's log records go to ``handler`` alone (durand reports swallowed callback exceptions at DEBUG).
+
+    Returns the function that puts durand's logger back as it was.
+    """
+    logger = logging.getLogger("durand")
+    level, propagate = logger.level, logger.propagate
+    logger.setLevel(logging.DEBUG)
+    logger.propagate = False
+    logger.addHandler(handler)
+
+    def unwatch() -> None:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+    return unwatch
 
 
 def _durand_owned(index: int) -> bool:
@@ -204,6 +258,8 @@ class DriveWiring:
             encoders); ``nm_per_torque_count`` its scale.
         estop: the e-stop object (index, sub) or None; ``operator_mask``/``pilot_mask`` its bits;
             ``pressed_when_clear``: wired normally closed.
+        torque_gear: the gear ratio between the motor, whose torque 0x6071 and 0x6076 are, and the
+            arm (a robot file's ``motor_position.gear_ratio``; 1 for the DAROR drive).
     """
 
     motor: tuple[int, int]
@@ -216,6 +272,11 @@ class DriveWiring:
     operator_mask: int = 0
     pilot_mask: int = 0
     pressed_when_clear: bool = False
+    torque_gear: float = 1.0
+
+    def applied_torque_nm(self, permille: int, rated_torque_mnm: int) -> float:
+        """The torque at the gearbox's output of ``permille`` of the rated torque ``rated_torque_mnm`` (0x6076, mNm), N m."""
+        return permille * rated_torque_mnm / 1e6 * self.torque_gear
 
     @classmethod
     def daror(cls, od: canopen.ObjectDictionary) -> DriveWiring:
@@ -262,6 +323,7 @@ def robot_file_drives(path: Path) -> dict[int, tuple[Path, DriveWiring]]:
                 (estop["index"], estop.get("subindex", 0)) if wired else None,
                 1 << estop["operator_bit"] if wired else 0, 1 << estop["pilot_bit"] if wired else 0,
                 bool(estop.get("pressed_when_clear", False)) if wired else False,
+                gear,
             ),
         )  # fmt: skip
     return drives
@@ -310,7 +372,7 @@ def _next_power(state: DevicePower, controlword: int, previous: int) -> DevicePo
     return state if enable_operation else DevicePower.SWITCHED_ON  # operation enabled: 5 on disable operation
 
 
-class _Errors:
+class Errors:
     """Errors from the drives' threads (durand swallows them): collected, asserted empty by the tests."""
 
     def __init__(self) -> None:
@@ -355,13 +417,13 @@ def _durand_defect(exc_info: Any) -> str | None:
     return None
 
 
-class _LogWatch(logging.Handler):
+class LogWatch(logging.Handler):
     """durand's log records that report a swallowed exception (or worse): collected as errors.
 
     A known durand defect (:func:`_durand_defect`) is counted in :attr:`defects` instead.
     """
 
-    def __init__(self, errors: _Errors) -> None:
+    def __init__(self, errors: Errors) -> None:
         super().__init__(logging.DEBUG)
         self._errors = errors
         self.defects: dict[str, int] = {}
@@ -389,7 +451,7 @@ class WallClockScheduler(VirtualScheduler):
     while it fires events, the drives' receive threads while they handle a frame.
     """
 
-    def __init__(self, errors: _Errors) -> None:
+    def __init__(self, errors: Errors) -> None:
         super().__init__()
         self._lock: threading.RLock = threading.RLock()  # type: ignore[assignment]
         self._wake = threading.Condition(self._lock)
@@ -486,7 +548,7 @@ class _Network(durand.CANBusNetwork):  # type: ignore[misc]
     """
 
     def __init__(
-        self, bus: can.BusABC, node_id: int, lock: threading.RLock, synced: threading.Condition, errors: _Errors
+        self, bus: can.BusABC, node_id: int, lock: threading.RLock, synced: threading.Condition, errors: Errors
     ) -> None:
         super().__init__(bus)
         self._notifier.timeout = NOTIFIER_TIMEOUT_S  # stop() within 50 ms instead of 1 s
@@ -574,15 +636,31 @@ def durand_dictionary(eds: canopen.ObjectDictionary) -> ObjectDictionary:
     return od
 
 
-class _Cia402Device:
+#: The CiA 402 power states in which the power stage has its supply (CiA 402-2 figure 23: voltage enabled).
+_POWER_STAGE_STATES = (
+    DevicePower.READY_TO_SWITCH_ON,
+    DevicePower.SWITCHED_ON,
+    DevicePower.OPERATION_ENABLED,
+    DevicePower.QUICK_STOP_ACTIVE,
+)
+
+
+class Cia402Device:
     """The drive's application: the CiA 402 power state machine on controlword writes, the applied torque.
 
-    Runs in durand's callbacks (holding the harness's lock). Never writes the controlword or the
-    target torque (only the master does, by RPDO); keeps the statusword, the error code and the
-    modes of operation display in the dictionary with ``od.write`` (so the TPDOs carry them).
+    Runs in durand's callbacks (the wall-clock harness: holding its lock; the lock-step drive set:
+    on the caller's thread). Never writes the controlword or the target torque (only the master
+    does, by RPDO); keeps the statusword, the error code and the modes of operation display in the
+    dictionary with ``od.write`` (so the TPDOs carry them).
+
+    The safe torque off input, :attr:`power_cut`: None, either e-stop button removes the torque (the
+    wall-clock harness: the state machine keeps its state); True or False, the e-stop circuit's
+    cut as the plant decides it (the lock-step drive set: ``sto`` or ``ss1`` wiring), and while it
+    is cut a power stage without supply is SWITCH ON DISABLED, which it cannot leave (as the
+    project's simulated drive, hal/canopen/sim/drive.py).
     """
 
-    def __init__(self, node: durand.MinimalNode, errors: _Errors, wiring: DriveWiring) -> None:
+    def __init__(self, node: durand.MinimalNode, errors: Errors, wiring: DriveWiring) -> None:
         self.node = node
         self.wiring = wiring
         self.od: ObjectDictionary = node.object_dictionary
@@ -590,6 +668,7 @@ class _Cia402Device:
         self.previous_controlword = 0
         self.estop_operator = False
         self.estop_pilot = False
+        self.power_cut: bool | None = None
         self.applied_permille = 0
         self.controlwords: deque[int] = deque(maxlen=FRAME_LOG_LENGTH)  # every controlword the drive took
         self._errors = errors
@@ -619,6 +698,8 @@ class _Cia402Device:
         was = self.power
         self.power = _next_power(was, controlword, self.previous_controlword)
         self.previous_controlword = controlword
+        if self.power_cut and self.power in _POWER_STAGE_STATES:
+            self.power = DevicePower.SWITCH_ON_DISABLED  # safe torque off: no supply, no transition out of it
         self.publish()
         if was is DevicePower.FAULT and self.power is not DevicePower.FAULT:
             self.after_fault_reset()
@@ -647,6 +728,8 @@ class _Cia402Device:
     def publish(self) -> None:
         """The statusword and the applied torque from the state (the only place either changes)."""
         wiring = self.wiring
+        if self.power_cut and self.power in _POWER_STAGE_STATES:
+            self.power = DevicePower.SWITCH_ON_DISABLED  # the e-stop circuit cut the power stage's supply
         word = self.power.value | SW_REMOTE
         if wiring.estop_in_statusword:
             word = self._with_estop(word)
@@ -659,7 +742,8 @@ class _Cia402Device:
         torque_allowed = (
             self.power is DevicePower.OPERATION_ENABLED
             and self.od.read(MODES_OF_OPERATION_DISPLAY, 0) in (MODE_CST, MODE_TQ)
-            and not (self.estop_operator or self.estop_pilot)  # both e-stops drive the safe torque off input
+            # both e-stops drive the safe torque off input (sto), unless the caller says when the circuit cuts
+            and not (self.estop_operator or self.estop_pilot if self.power_cut is None else self.power_cut)
         )
         self.applied_permille = int(self.od.read(TARGET_TORQUE, 0)) if torque_allowed else 0
 
@@ -676,8 +760,62 @@ class _Cia402Device:
         self.node.emcy.set(0x0000, 0x00)
 
 
+def create_node(
+    network: durand.network.NetworkABC, node_id: int, eds: canopen.ObjectDictionary, wiring: DriveWiring, errors: Errors
+) -> tuple[durand.MinimalNode, Cia402Device]:
+    """A durand node on ``network`` with ``eds``'s values and the CiA 402 application behind it (sends its boot-up message).
+
+    Shared by the wall-clock harness (:class:`DurandDrives`) and the lock-step drive set
+    (tests/durand_lockstep.py): the dictionary is the EDS's (:func:`durand_dictionary`), the
+    objects durand makes itself get the EDS's values (or the device's own: 0x1000, 0x1018 from
+    [DeviceInfo], 0x6502 with the torque modes), every PDO is in the EDS's factory state.
+
+    Raises:
+        ValueError: an object durand fixes has another value in the EDS, or the EDS has an object
+            durand cannot hold.
+    """
+    node = durand.MinimalNode(network, node_id, durand_dictionary(eds))
+    _apply_owned_objects(node, eds)
+    _apply_factory_pdos(node, eds)
+    if SUPPORTED_DRIVE_MODES in eds and eds[SUPPORTED_DRIVE_MODES].default is None:
+        node.object_dictionary.write(SUPPORTED_DRIVE_MODES, 0, TORQUE_MODES)  # the device's own value
+    return node, Cia402Device(node, errors, wiring)
+
+
+def _apply_owned_objects(node: durand.MinimalNode, eds: canopen.ObjectDictionary) -> None:
+    """The EDS's values of the objects durand made itself; the ones durand fixes must agree with the EDS."""
+    od = node.object_dictionary
+    device_type = eds[0x1000].default
+    od.write(0x1000, 0, SERVO_DEVICE_TYPE if device_type is None else int(device_type))
+    od.write(0x1008, 0, str(eds[0x1008].default or "").encode())
+    info = eds.device_information
+    known = {1: info.vendor_number, 2: info.product_number, 3: info.revision_number}
+    for sub in range(1, 5):
+        value = eds[0x1018][sub].default if sub in eds[0x1018].subindices else None
+        od.write(0x1018, sub, int(value if value is not None else known.get(sub) or 0))
+    for index in (0x1001, 0x1005, 0x1014, PRODUCER_HEARTBEAT_TIME):
+        if index in eds and eds[index].default is not None and od.read(index, 0) != eds[index].default:
+            raise ValueError(
+                f"node {node.node_id}: durand's 0x{index:04X} is {od.read(index, 0)}, the EDS says {eds[index].default}"
+            )
+
+
+def _apply_factory_pdos(node: durand.MinimalNode, eds: canopen.ObjectDictionary) -> None:
+    """Each PDO of the EDS as the EDS's defaults have it (the factory state the master must overwrite)."""
+    od = node.object_dictionary
+    for pdos, comm_base, map_base in ((node.rpdo, 0x1400, 0x1600), (node.tpdo, 0x1800, 0x1A00)):
+        for number, pdo in enumerate(pdos):
+            if comm_base + number not in eds:
+                continue
+            comm, mapping = eds[comm_base + number], eds[map_base + number]
+            entries = [int(mapping[s].default) for s in range(1, int(mapping[0].default) + 1)]
+            pdo.mapping = [(entry >> 16, (entry >> 8) & 0xFF) for entry in entries]
+            pdo.transmission_type = int(comm[2].default)
+            od.write(comm_base + number, 1, int(comm[1].default), downloaded=True)  # as a download sets it
+
+
 class _Drive:
-    """One drive: its bus, durand's network adapter and node, its application."""
+    """One drive of the wall-clock harness: its bus, durand's network adapter and node, its application."""
 
     def __init__(
         self,
@@ -686,7 +824,7 @@ class _Drive:
         eds_path: Path,
         lock: threading.RLock,
         synced: threading.Condition,
-        errors: _Errors,
+        errors: Errors,
         wiring: DriveWiring | None = None,
     ) -> None:
         self.node_id = node_id
@@ -695,49 +833,12 @@ class _Drive:
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.network = _Network(self.bus, node_id, lock, synced, errors)
         self.node: durand.MinimalNode | None = None
-        self.device: _Cia402Device | None = None
+        self.device: Cia402Device | None = None
         self._errors = errors
 
     def create(self) -> None:
         """The node (sends its boot-up message) with the EDS's values; runs in the scheduler thread."""
-        self.node = durand.MinimalNode(self.network, self.node_id, durand_dictionary(self.eds))
-        self._apply_owned_objects()
-        self._apply_factory_pdos()
-        if SUPPORTED_DRIVE_MODES in self.eds and self.eds[SUPPORTED_DRIVE_MODES].default is None:
-            self.node.object_dictionary.write(SUPPORTED_DRIVE_MODES, 0, TORQUE_MODES)  # the device's own value
-        self.device = _Cia402Device(self.node, self._errors, self.wiring)
-
-    def _apply_owned_objects(self) -> None:
-        """The EDS's values of the objects durand made itself; the ones durand fixes must agree with the EDS."""
-        assert self.node is not None
-        od, eds = self.node.object_dictionary, self.eds
-        device_type = eds[0x1000].default
-        od.write(0x1000, 0, SERVO_DEVICE_TYPE if device_type is None else int(device_type))
-        od.write(0x1008, 0, str(eds[0x1008].default or "").encode())
-        info = eds.device_information
-        known = {1: info.vendor_number, 2: info.product_number, 3: info.revision_number}
-        for sub in range(1, 5):
-            value = eds[0x1018][sub].default if sub in eds[0x1018].subindices else None
-            od.write(0x1018, sub, int(value if value is not None else known.get(sub) or 0))
-        for index in (0x1001, 0x1005, 0x1014, PRODUCER_HEARTBEAT_TIME):
-            if index in eds and eds[index].default is not None and od.read(index, 0) != eds[index].default:
-                raise ValueError(
-                    f"node {self.node_id}: durand's 0x{index:04X} is {od.read(index, 0)}, the EDS says {eds[index].default}"
-                )
-
-    def _apply_factory_pdos(self) -> None:
-        """Each PDO of the EDS as the EDS's defaults have it (the factory state the master must overwrite)."""
-        assert self.node is not None
-        od = self.node.object_dictionary
-        for pdos, comm_base, map_base in ((self.node.rpdo, 0x1400, 0x1600), (self.node.tpdo, 0x1800, 0x1A00)):
-            for number, pdo in enumerate(pdos):
-                if comm_base + number not in self.eds:
-                    continue
-                comm, mapping = self.eds[comm_base + number], self.eds[map_base + number]
-                entries = [int(mapping[s].default) for s in range(1, int(mapping[0].default) + 1)]
-                pdo.mapping = [(entry >> 16, (entry >> 8) & 0xFF) for entry in entries]
-                pdo.transmission_type = int(comm[2].default)
-                od.write(comm_base + number, 1, int(comm[1].default), downloaded=True)  # as a download sets it
+        self.node, self.device = create_node(self.network, self.node_id, self.eds, self.wiring, self._errors)
 
 
 class DurandDrives:
@@ -765,15 +866,14 @@ class DurandDrives:
         self.eds_path = Path(eds)
         self._given = dict(drives or {})
         self.units = EdsUnits.from_eds(canopen.import_od(str(self.eds_path))) if not self._given else None
-        self._errors = _Errors()
+        self._errors = Errors()
         self._scheduler = WallClockScheduler(self._errors)
         self._lock = self._scheduler.lock
         self._synced = threading.Condition(self._lock)
         self._drives: dict[int, _Drive] = {}
-        self._log_watch = _LogWatch(self._errors)
+        self._log_watch = LogWatch(self._errors)
         self._previous_scheduler: AbstractScheduler | None = None
-        self._previous_log_level = logging.NOTSET
-        self._previous_propagate = True
+        self._unwatch_logs: Callable[[], None] = lambda: None
         self._running = False
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -793,12 +893,9 @@ class DurandDrives:
         Raises:
             RuntimeError: another harness is running in this process.
         """
-        with _active_lock:
-            if _active:
-                raise RuntimeError("a DurandDrives harness is already running (durand's scheduler is process-global)")
-            _active.append(self)
+        claim_durand(self)
         try:
-            self._watch_logs()
+            self._unwatch_logs = watch_durand_logs(self._log_watch)
             self._previous_scheduler = durand.get_scheduler()
             durand.set_scheduler(self._scheduler)
             self._scheduler.start()
@@ -816,7 +913,7 @@ class DurandDrives:
 
     def stop(self) -> None:
         """Heartbeats off, the scheduler and the receive threads stopped, the buses closed. Safe twice."""
-        if self in _active:
+        if holds_durand(self):
             if self._running and self._scheduler.thread is not None and self._scheduler.thread.is_alive():
                 try:
                     self.call(self._quiesce)
@@ -831,26 +928,13 @@ class DurandDrives:
             if self._previous_scheduler is not None:
                 durand.set_scheduler(self._previous_scheduler)
             self._unwatch_logs()
-            with _active_lock:
-                _active.remove(self)
+            self._unwatch_logs = lambda: None
+            release_durand(self)
 
     def _quiesce(self) -> None:
         for drive in self._drives.values():
             if drive.node is not None:  # no timer may fire on a closed bus
                 drive.node.object_dictionary.write(PRODUCER_HEARTBEAT_TIME, 0, 0)
-
-    def _watch_logs(self) -> None:
-        logger = logging.getLogger("durand")
-        self._previous_log_level, self._previous_propagate = logger.level, logger.propagate
-        logger.setLevel(logging.DEBUG)  # durand reports swallowed callback exceptions at DEBUG
-        logger.propagate = False
-        logger.addHandler(self._log_watch)
-
-    def _unwatch_logs(self) -> None:
-        logger = logging.getLogger("durand")
-        logger.removeHandler(self._log_watch)
-        logger.setLevel(self._previous_log_level)
-        logger.propagate = self._previous_propagate
 
     # --- running code with the drives ---------------------------------------------------------------
 
@@ -889,7 +973,7 @@ class DurandDrives:
         except KeyError:
             raise KeyError(f"no drive with node id {node_id} (drives: {self.node_ids})") from None
 
-    def _device(self, node_id: int) -> _Cia402Device:
+    def _device(self, node_id: int) -> Cia402Device:
         device = self._drive(node_id).device
         if device is None:
             raise RuntimeError(f"node {node_id} is not created")
