@@ -27,17 +27,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 import hal.interface
 from daror_runtime.cli import main
+from daror_runtime.hil import hil_config
 from hal.config import AnyHalConfig, CanSimHalConfig
-from hal.interface import Hal
-from tests.durand_drives import DriveWiring, robot_file_drives, sdo_responses
+from hal.interface import Command, DriveState, Hal
+from tests.durand_drives import DevicePower, DriveWiring, robot_file_drives, sdo_responses
 from tests.durand_lockstep import HEARTBEAT_OPERATIONAL, DurandCanHal, DurandDriveSet
 from tests.test_canopen_robot_golden import SESSION_PATH
-
-pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT_FILE = ROOT / "examples" / "robot" / "epos4.yaml"
@@ -120,6 +120,7 @@ def _prefix(tmp_path: Path, last_line: str) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_the_epos4_family_runs_the_demo_session_on_durand_drives_in_lock_step(
     hil: Callable[..., Run], tmp_path: Path
 ) -> None:
@@ -216,6 +217,7 @@ MISWIRED: dict[str, tuple[Callable[[DriveWiring], DriveWiring], str]] = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(MISWIRED))
 def test_a_drive_wired_otherwise_than_its_robot_file_fails_the_session(
     hil: Callable[..., Run], tmp_path: Path, name: str
@@ -226,3 +228,53 @@ def test_a_drive_wired_otherwise_than_its_robot_file_fails_the_session(
     assert run.transitions() != SESSION_PATH[:5]
     assert run.faults()[0][1] == first_fault
     assert run.drives.errors.snapshot() == []
+
+
+@pytest.fixture
+def backend(tmp_path: Path) -> Iterator[DurandCanHal]:
+    """The ``can-sim`` backend of ``daror hil`` for the EPOS4 robot file, over durand drives, opened."""
+    hal_ = DurandCanHal(hil_config(ROBOT_FILE, None, None, tmp_path / "can.log.gz"), DRIVES)
+    try:
+        hal_.open()
+        yield hal_
+    finally:
+        hal_.close()
+        hal_.durand.release()
+
+
+def test_a_tpdo_carries_the_plant_at_its_sync_and_the_plant_gets_the_torque_durand_applies(
+    backend: DurandCanHal,
+) -> None:
+    """Lock-step as the project's drives do it: what the master reads after a cycle is the plant at that cycle's SYNC,
+    in the robot file's units (the link encoder through 0x60E4:2, 65536 counts a turn), and a torque the
+    master sends acts from that SYNC on, in the EDS's scale; the e-stop circuit's cut switches durand's
+    CiA 402 application off."""
+    plant, drives = backend.plant, backend.durand
+    k = backend.description.sea.spring_stiffness_nm_per_rad
+    wiring = [DRIVES[n][1] for n in NODE_IDS]
+    torque = np.array([0.8, -0.8, 0.0, 0.0])  # 50 and -50 per mille of 160 mNm times 100
+    for _ in range(round(1.0 / PERIOD_S)):  # enable, then one second with the arm moving under the torques
+        truth = plant.read_without_faults()  # robot time stands still until the SYNC: what the SYNC samples
+        backend.write(Command(torque, True))
+        sample = backend.read()
+        for j, w in enumerate(wiring):
+            assert sample.q_rad[j] == round(truth.q_rad[j] / w.rad_per_link_count) * w.rad_per_link_count
+            assert sample.theta_rad[j] == round(truth.theta_rad[j] / w.rad_per_motor_count) * w.rad_per_motor_count
+            assert sample.tau_nm[j] == pytest.approx(k * (sample.theta_rad[j] - sample.q_rad[j]), abs=1e-12)
+    assert sample.drives == (DriveState.ENABLED,) * 4
+    assert [drives.device(n).applied_permille for n in NODE_IDS] == [50, -50, 0, 0]
+    np.testing.assert_allclose(drives.applied_motor_torque_nm, torque, atol=1e-12)
+    np.testing.assert_allclose(plant.applied_motor_torque_nm, torque, atol=1e-12)
+    moved = plant.read_without_faults().q_rad
+    assert abs(moved[0] - truth.q_rad[0]) > 0  # the arm moves: a sample taken a tick late would differ
+
+    plant.press_estop(0, True)  # the operator's button: the plant reads it in its next tick, sto cuts there
+    backend.write(Command(torque, True))
+    assert backend.read().estop == (False, False)  # that SYNC sampled the plant before its tick
+    assert [drives.device(n).power for n in NODE_IDS] == [DevicePower.SWITCH_ON_DISABLED] * 4  # cut in the tick
+    backend.write(Command(torque, True))
+    assert backend.read().estop == (True, False)  # joint 1's 0x60FD, bit 16 cleared (normally closed)
+    assert drives.read(11, 0x60FD, 0) == 1 << 17
+    assert [drives.device(n).power for n in NODE_IDS] == [DevicePower.SWITCH_ON_DISABLED] * 4
+    assert plant.applied_motor_torque_nm.tolist() == [0.0] * 4
+    assert drives.errors.snapshot() == []
