@@ -34,7 +34,8 @@ import hal.interface
 from daror_runtime.cli import main
 from daror_runtime.hil import hil_config
 from hal.config import AnyHalConfig, CanSimHalConfig
-from hal.interface import Command, DriveState, Hal
+from hal.errors import InputError
+from hal.interface import Command, DriveState, Hal, HalFaultError
 from tests.durand_drives import DevicePower, DriveWiring, robot_file_drives, sdo_responses
 from tests.durand_lockstep import HEARTBEAT_OPERATIONAL, DurandCanHal, DurandDriveSet
 from tests.test_canopen_robot_golden import SESSION_PATH
@@ -277,4 +278,50 @@ def test_a_tpdo_carries_the_plant_at_its_sync_and_the_plant_gets_the_torque_dura
     assert drives.read(11, 0x60FD, 0) == 1 << 17
     assert [drives.device(n).power for n in NODE_IDS] == [DevicePower.SWITCH_ON_DISABLED] * 4
     assert plant.applied_motor_torque_nm.tolist() == [0.0] * 4
+    assert drives.errors.snapshot() == []
+
+
+def _cycle(backend: DurandCanHal, enable: bool = True) -> tuple[Any, str | None]:
+    """One cycle at zero torque: the sample and the fault the backend latched in it (None: none)."""
+    backend.write(Command(np.zeros(4), enable))
+    try:
+        return backend.read(), None
+    except HalFaultError as exc:
+        return None, str(exc)
+
+
+def test_faults_injected_into_durand_drives_reach_the_master_as_on_the_project_drives(backend: DurandCanHal) -> None:
+    """``emcy`` and ``drive_fault``: durand's EMCY producer and 0x603F, the drive in FAULT; ``heartbeat_loss``: durand's
+    producer off, the drive lost after the master's consumer time (250 ms) of robot time."""
+    drives = backend.durand
+    for _ in range(40):
+        sample, fault = _cycle(backend)
+        assert fault is None
+    assert sample.drives == (DriveState.ENABLED,) * 4
+    backend.world.inject_fault("emcy", 2)
+    sample, fault = _cycle(backend)
+    assert fault == "drive 12: EMCY 0x1000 generic error, error register 0x01"
+    assert drives.device(12).power is DevicePower.FAULT
+    assert drives.read(12, 0x603F, 0) == 0x1000
+    assert drives.traffic(12).sent[0x080 + 12] == 1  # durand's EMCY producer sent it
+    backend.world.inject_fault("drive_fault", 4)
+    assert _cycle(backend)[1] == "drive 14: EMCY 0x2320 current, error register 0x03"
+    assert drives.device(14).power is DevicePower.FAULT
+    backend.world.inject_fault("heartbeat_loss", 3)
+    t0 = drives.t_s
+    faults = []
+    while drives.t_s - t0 < 0.5:
+        _, fault = _cycle(backend)
+        if fault is not None:
+            faults.append((drives.t_s - t0, fault))
+    assert [f for _, f in faults] == ["drive 13 lost: no heartbeat for 252 ms (limit 250 ms)"]  # a SYNC's 2.5 ms
+    assert 0.25 - HEARTBEAT_S <= faults[0][0] <= 0.25 + 2 * PERIOD_S  # the consumer's 250 ms after the last beat
+    assert drives.read(13, 0x1017, 0) == 0
+    assert [e[1:] for e in drives.events if e[2].startswith("injected")] == [
+        (2, "injected emcy"),
+        (4, "injected drive_fault"),
+        (3, "injected heartbeat_loss"),
+    ]
+    with pytest.raises(InputError, match="durand drives take heartbeat_loss, emcy, drive_fault"):
+        backend.world.inject_fault("frozen_pdo", 1)
     assert drives.errors.snapshot() == []
