@@ -299,6 +299,10 @@ class TrafficLog:
         """Queue one frame the master sent (``sent``) or received, at robot time ``robot_t_s`` (never waits)."""
         self._pending.append((cob_id, data, robot_t_s, sent))
 
+    def received(self, frames: list[Frame]) -> None:
+        """Queue frames the master received, each at its own time (:meth:`frame` for a batch; never waits)."""
+        self._pending.extend([(cob_id, data, t_s, False) for cob_id, data, t_s in frames])
+
     def _run(self) -> None:
         while not self._stop.wait(self.WRITE_EVERY_S):
             self._write_pending()

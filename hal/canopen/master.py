@@ -338,13 +338,14 @@ class CanMaster:
     # --- frames out --------------------------------------------------------------------------
 
     def _send(self, cob_id: int, data: bytes) -> None:
+        now = self._now()  # the frame's time, on the bus and in the log
         try:
-            self._transmit(cob_id, data, self._now())
+            self._transmit(cob_id, data, now)
         except can.CanError as exc:
             raise HalError(f"sending frame 0x{cob_id:03X} failed: {exc}") from None
         self.frames_sent += 1
         if self.traffic is not None:
-            self.traffic.frame(cob_id, data, self._now(), sent=True)
+            self.traffic.frame(cob_id, data, now, sent=True)
 
     def _send_message(self, cob_id: int, data: bytes, now_s: float) -> None:
         self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False, timestamp=now_s))
@@ -683,9 +684,8 @@ class CanMaster:
 
     def _log_received(self, frames: list[Frame]) -> None:
         self.frames_received += len(frames)
-        if self.traffic is not None:
-            for frame in frames:
-                self.traffic.frame(frame.cob_id, frame.data, frame.t_s, sent=False)
+        if self.traffic is not None and frames:
+            self.traffic.received(frames)
 
     def _dispatch(self, frames: list[Frame]) -> None:
         """Decode ``frames`` into the drives' state.

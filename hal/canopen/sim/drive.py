@@ -150,6 +150,8 @@ _STOP_OBJECTS = (
 #: The states whose torque comes from a stop ramp (the drive's own, nobody commands it).
 _RAMPING_STATES = (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
 _INT16 = (-(1 << 15), (1 << 15) - 1)
+_CONTROLWORD_KEY = (obj.CONTROLWORD, 0)
+_TARGET_TORQUE_KEY = (obj.TARGET_TORQUE, 0)
 _INT32 = (-(1 << 31), (1 << 31) - 1)
 #: CAN identifiers are 11 bits: a COB-ID's bits 11-28 are 0, and bit 29 (a 29-bit frame) is refused.
 _CAN_ID_MASK = 0x7FF
@@ -178,6 +180,9 @@ _MAX_MAPPING_ENTRIES = 0x40
 _Plan = tuple[int | None, int, PdoCodec, tuple[tuple[int, int], ...]]
 #: A valid TPDO as a SYNC sends it: comm index, CAN-ID, transmission type, its codec's pack, its objects' (key, stored).
 _TpdoSource = tuple[int, int, int, Callable[..., bytes], tuple[tuple[tuple[int, int], bool], ...]]
+#: A valid synchronous RPDO as a steady SYNC applies it: comm index, its codec's unpack, data length, and per
+#: object its (index, sub) and its EDS limits (None: an object whose write acts, written the general way).
+_SteadyRpdo = tuple[int, Callable[[bytes], tuple[Any, ...]], int, tuple[tuple[tuple[int, int], Any], ...]]
 #: A value no object has (a missing entry in the stored values).
 _UNSET = object()
 
@@ -285,6 +290,7 @@ class SimulatedSeaDrive:
         self._valid: tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]] | None = None
         self._consumer: tuple[int, int] | None = None  # 0x1016:1 as (node, ms), derived from the object
         self._tpdo_plan: tuple[_TpdoSource, ...] | None = None  # the valid TPDOs, derived with _valid
+        self._steady_rpdos: dict[int, _SteadyRpdo] | None = None  # the synchronous RPDOs by CAN-ID, derived with _valid
         # (power state, controlword) whose CiA 402 transition, the controlword repeated, is none (a memo)
         self._cw_idle: tuple[PowerState, int] | None = None
         self._statusword: tuple[PowerState, int] | None = None  # (power state, its statusword), the last one
@@ -525,6 +531,110 @@ class SimulatedSeaDrive:
         if self._rpdo_pending:
             self._apply_pending_rpdos(now_s)
         self._send_tpdos(now_s)
+
+    def steady_sync_ready(self, rpdo: tuple[int, bytes] | None, now_s: float) -> bool:
+        """True if :meth:`steady_sync` may take this cycle: ``rpdo`` (the one frame for the drive since the last
+        SYNC, or None) and then the SYNC at ``now_s``, s, would take the steady path of :meth:`receive` and
+        :meth:`on_sync` with nothing to report.
+
+        Steady: powered, OPERATIONAL, no stop ramp, TPDOs not frozen, no dropout, nothing buffered from
+        an earlier RPDO, no RPDO deadline lost and no length error in force (either would send an EMCY
+        when the frame arrives); the frame on a valid synchronous RPDO's CAN-ID with that RPDO's
+        length. The caller checks the power stage's supply (the plant's cut).
+        """
+        if (
+            not self._powered
+            or self._nmt is not NmtState.OPERATIONAL
+            or self._power in _RAMPING_STATES
+            or self._pdo_frozen
+            or self._rpdo_pending
+            or self._rpdo_deadline_lost
+            or self._pdo_length_error
+            or (self._drop_until_s is not None and now_s < self._drop_until_s)
+        ):
+            return False
+        if rpdo is None:
+            return True
+        found = self._steady_rpdo_plan().get(rpdo[0])
+        return found is not None and len(rpdo[1]) == found[2]
+
+    def steady_sync(
+        self,
+        rpdo: tuple[int, bytes] | None,
+        q_rad: float,
+        theta_rad: float,
+        tau_nm: float,
+        estop_operator: bool,
+        estop_pilot: bool,
+        now_s: float,
+    ) -> float:
+        """:meth:`receive` of ``rpdo`` (or no frame), then :meth:`on_sync` with the power stage supplied; the torque
+        the power stage applies then, N m (:attr:`applied_torque_nm`).
+
+        One call for what a cycle of a session nearly always is (issue 25: the same steps, in the same
+        order, as the two general calls, without the layers between them). Only after
+        :meth:`steady_sync_ready` said True for the same frame and time.
+
+        Raises:
+            ValueError: an angle or a torque that is not finite (the RPDO was taken, as on the general path).
+        """
+        if not (math.isfinite(q_rad) and math.isfinite(theta_rad) and math.isfinite(tau_nm)):
+            if rpdo is not None:
+                self.receive(rpdo[0], rpdo[1], now_s)
+            self.on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)  # raises
+        values = self._values
+        if rpdo is not None:
+            comm, unpack, _, objects = self._steady_rpdo_plan()[rpdo[0]]
+            received = unpack(rpdo[1])
+            self._rpdo_heard_s[comm] = now_s
+        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        self._power_cut = False
+        for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):  # _sample's
+            counts = round(x / scale)
+            values[key] = bounds[0] if counts < bounds[0] else bounds[1] if counts > bounds[1] else counts
+        self._sync_count += 1
+        if rpdo is not None:  # _apply_rpdo's writes, in mapping order
+            for (key, limits), value in zip(objects, received, strict=True):
+                if limits is not None:
+                    if _in_limits(value, limits):
+                        values[key] = value
+                elif key == _CONTROLWORD_KEY and self._controlword_idle(value):
+                    pass  # the same controlword again in the state it left: its write would store the same value
+                elif self._write_problem(key[0], key[1], value) is None:
+                    self._write(key[0], key[1], value, now_s)
+        send = self._send
+        for cob, data in self._pack_tpdos():  # _send_tpdos's
+            send(cob, data)
+        if self._power is not PowerState.OPERATION_ENABLED:  # _applied_permille's, powered and supplied, no ramp
+            return 0.0
+        target = values.get(_TARGET_TORQUE_KEY, _UNSET)
+        target = int(self._get(*_TARGET_TORQUE_KEY) if target is _UNSET else target)
+        limit = int(self._get(obj.MAX_TORQUE, 0)) if self._has_max_torque else _INT16[1]
+        return float(max(-limit, min(limit, target))) * self._nm_per_permille
+
+    def _controlword_idle(self, controlword: int) -> bool:
+        """True if writing ``controlword`` now would do nothing: the stored one, in the state it was found idle in
+        (:meth:`_apply_controlword`'s first test; it passed the range test when it was stored)."""
+        idle = self._cw_idle
+        return (
+            idle is not None
+            and not self._power_cut
+            and idle[0] is self._power
+            and idle[1] == controlword
+            and self._values.get(_CONTROLWORD_KEY) == controlword
+        )
+
+    def _steady_rpdo_plan(self) -> dict[int, _SteadyRpdo]:
+        """The valid synchronous RPDOs (transmission 0-240) by CAN-ID, for :meth:`steady_sync`; once per change."""
+        plan = self._steady_rpdos
+        if plan is None:
+            plan = {}
+            for cob, (slot, (_, transmission, codec, keys)) in self._valid_pdos()[0].items():
+                if transmission <= 240:
+                    objects = tuple((key, self._plain_limits(*key)) for key in keys)
+                    plan[cob] = (slot.comm, codec.unpack, codec.length, objects)
+            self._steady_rpdos = plan
+        return plan
 
     def on_inputs(self, estop_operator: bool, estop_pilot: bool, power_cut: bool | None, now_s: float) -> None:
         """The hardwired inputs at ``now_s``, s: the e-stop buttons (statusword bits 14, 15) and the safe torque off.
@@ -852,6 +962,7 @@ class SimulatedSeaDrive:
         self._deadlines = None
         self._valid = None
         self._tpdo_plan = None
+        self._steady_rpdos = None
 
     def _valid_pdos(self) -> tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]]:
         """The valid PDOs and their plans: the RPDOs by CAN-ID (the first slot of an ID), the TPDOs in order.

@@ -85,6 +85,7 @@ class SimulatedDriveSet:
         ]
         self._by_node = {d.node_id: d for d in self.drives}
         self._torques = np.zeros(N_JOINTS)
+        self._applied = [0.0] * len(self.drives)  # what each power stage applies, N m (a steady cycle's)
         self._scheduled: list[tuple[float, str, int, float | None]] = []
         #: What happened to the drives, for a HIL run's report: (robot time s, joint 1-4, what), what
         #: ``injected KIND`` (a fault injected into its drive) or ``power stage on``/``off`` (from that
@@ -96,7 +97,7 @@ class SimulatedDriveSet:
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
         self._pending_first: tuple[int, bytes] | None = None  # the frame a thread's blocking receive took
-        self._routes_of: tuple[tuple[int, ...], dict[int, SimulatedSeaDrive]] = ((), {})
+        self._routes_of: tuple[tuple[int, ...], dict[int, SimulatedSeaDrive], dict[int, int]] = ((), {}, {})
         self._take: Callable[[], tuple[int, bytes] | None] = _nothing
         self._put: Callable[[int, bytes], None] = _lose
         self.attach(bus)
@@ -112,7 +113,9 @@ class SimulatedDriveSet:
         """Use ``bus`` from now on: python-can's (a thread, :meth:`start_thread`) or the lock-step link
         (:mod:`hal.canopen.sim.link`); None: detached (frames the drives send are lost, as on an unplugged cable)."""
         self.bus = bus
+        self._frames: deque[tuple[int, bytes]] | None = None  # the lock-step link's frames to the drives
         if isinstance(bus, LockstepLink):
+            self._frames = bus.to_drives
             self._take: Callable[[], tuple[int, bytes] | None] = _taker(bus.to_drives)
             self._put: Callable[[int, bytes], None] = bus.send_from_drive
         elif bus is not None:
@@ -141,13 +144,24 @@ class SimulatedDriveSet:
         """
         if self.bus is None:
             return
+        lockstep = self._clock is None  # robot time moves only at a SYNC; a thread's clock runs on its own
+        drives = self.drives
+        if not (lockstep and self._steady_cycle()):
+            self._process_frames(lockstep)
+        now = self.t_s
+        for drive in drives:
+            drive.advance(now)
+        for _ in range(self.line.take_lost_syncs()):
+            self.tick_without_sync()  # a SYNC reached no drive (the master's controller is bus-off): time goes on
+
+    def _process_frames(self, lockstep: bool) -> None:
+        """:meth:`step`'s frames one by one: each to the drive it is for, a SYNC to all (the general path)."""
         take = self._take
         drives = self.drives
         routes = self._routes()
         frame, self._pending_first = self._pending_first, None
         if frame is None:
             frame = take()
-        lockstep = self._clock is None  # robot time moves only at a SYNC; a thread's clock runs on its own
         now = self.t_s
         while frame is not None:
             cob_id, data = frame
@@ -165,11 +179,52 @@ class SimulatedDriveSet:
                     for drive in drives:  # NMT, heartbeats, anything else: every drive takes what is for it
                         drive.receive(cob_id, data, now)
             frame = take()
+
+    def _steady_cycle(self) -> bool:
+        """The cycle of a running session in one pass, if it is one; False (nothing done) if not.
+
+        In lock-step nearly every step is the master's cycle: at most one RPDO for each drive, then
+        the SYNC, with every drive steady (:meth:`SimulatedSeaDrive.steady_sync_ready`), no fault
+        due and the power stages supplied. Then each drive takes its RPDO and the SYNC in one call
+        (:meth:`SimulatedSeaDrive.steady_sync`) and the plant runs its tick: the same frames, values
+        and order as :meth:`_process_frames` gives (each drive's frames reach only that drive, so
+        taking its RPDO just before its SYNC changes nothing), without a call per layer (issue 25).
+        """
+        frames = self._frames
+        if not frames or frames[-1][0] != SYNC_COB_ID or self._pending_first is not None:
+            return False
         now = self.t_s
-        for drive in drives:
-            drive.advance(now)
-        for _ in range(self.line.take_lost_syncs()):
-            self.tick_without_sync()  # a SYNC reached no drive (the master's controller is bus-off): time goes on
+        if (self._scheduled and self._scheduled[0][0] <= now + 1e-12) or self.plant.power_cut:
+            return False  # an injection (_inject_due) or a cut power stage: the general path
+        drives = self.drives
+        routes = self._steady_routes()
+        rpdos: list[tuple[int, bytes] | None] = [None] * len(drives)
+        last = len(frames) - 1
+        for k, frame in enumerate(frames):
+            if k == last:
+                break
+            j = routes.get(frame[0])
+            if j is None or rpdos[j] is not None:
+                return False
+            rpdos[j] = frame
+        for drive, rpdo in zip(drives, rpdos, strict=True):
+            if not drive.steady_sync_ready(rpdo, now):
+                return False
+        frames.clear()
+        sample = self.plant.read_without_faults()
+        operator, pilot = sample.estop[0], sample.estop[1]
+        q, theta, tau = sample.q_rad, sample.theta_rad, sample.tau_nm
+        applied = self._applied
+        for j, drive in enumerate(drives):
+            applied[j] = drive.steady_sync(rpdos[j], float(q[j]), float(theta[j]), float(tau[j]), operator, pilot, now)
+        self.syncs += 1
+        self._plant_tick(operator, pilot, applied)
+        return True
+
+    def _steady_routes(self) -> dict[int, int]:
+        """CAN-ID -> the index of the one drive a frame is for (:meth:`_routes`, derived with it)."""
+        self._routes()
+        return self._routes_of[2]
 
     # --- drives on their own thread (real time, as real drives) ----------------------------------
 
@@ -228,7 +283,9 @@ class SimulatedDriveSet:
         """
         generations = tuple(drive.pdo_generation for drive in self.drives)
         if generations != self._routes_of[0]:
-            self._routes_of = (generations, self._derive_routes())
+            routes = self._derive_routes()
+            index = {id(drive): j for j, drive in enumerate(self.drives)}
+            self._routes_of = (generations, routes, {cob: index[id(drive)] for cob, drive in routes.items()})
         return self._routes_of[1]
 
     def _derive_routes(self) -> dict[int, SimulatedSeaDrive]:
@@ -277,7 +334,7 @@ class SimulatedDriveSet:
             drive.on_inputs(operator, pilot, cut, now)
         self._plant_tick(operator, pilot)
 
-    def _plant_tick(self, operator: bool, pilot: bool) -> None:
+    def _plant_tick(self, operator: bool, pilot: bool, applied_nm: list[float] | None = None) -> None:
         """The plant runs one tick with the torques the drives' power stages apply; then the drives' time moves on.
 
         The plant decides in its tick whether the e-stop circuit cut the power (at the press with
@@ -291,7 +348,7 @@ class SimulatedDriveSet:
         enable = False
         stage_on = self._stage_on
         for j, drive in enumerate(self.drives):
-            torques[j] = drive.applied_torque_nm
+            torques[j] = drive.applied_torque_nm if applied_nm is None else applied_nm[j]
             enable = enable or torques[j] != 0.0
             on = drive.power_state in _STAGE_ON and not drive.power_cut
             if on is not stage_on[j]:  # a change: a handful a session, for the HIL report
