@@ -25,6 +25,14 @@ The test's own thread never touches durand: :meth:`DurandDrives.call` runs a fun
 scheduler thread and returns its result. Errors durand swallows (its callbacks run in "ignore"
 mode, its listener logs and goes on) are collected in :attr:`DurandDrives.errors`.
 
+What is not about threads is shared with the lock-step drive set (tests/durand_lockstep.py, which
+runs the same drives on the caller's thread, in lock-step with the simulated plant): the node
+built from an EDS (:func:`create_node`, :func:`durand_dictionary`), the CiA 402 application
+(:class:`Cia402Device`), the wiring (:class:`DriveWiring`, :func:`robot_file_drives`), the
+collection of durand's swallowed errors (:class:`Errors`, :class:`LogWatch`,
+:func:`watch_durand_logs`) and the guard that lets one harness at a time own durand's
+process-global scheduler (:func:`claim_durand`).
+
 Units are the EDS's for the DAROR drive: torques in per mille of the rated torque 0x6076 (mNm);
 the motor-side position 0x6064 in 0x608F:1 increments per 0x608F:2 revolutions; the load-side
 position 0x2010 in 0x2011 increments per revolution. A robot file's drive: its node's scales.
