@@ -56,6 +56,7 @@ from hal.config import CanSimHalConfig
 from hal.errors import HalError, InputError
 from hal.interface import Command
 from hal.robot import RobotDescription
+from hal.sim.backend import SimHal
 from tests.durand_drives import (
     MOTOR_RATED_TORQUE,
     PRODUCER_HEARTBEAT_TIME,
@@ -97,7 +98,7 @@ class LockstepScheduler(VirtualScheduler):
 
     durand 0.5.0's ``VirtualScheduler.run`` never advances its time while it fires events (a timer
     that re-arms itself, as the heartbeat does, is due at once again and loops forever), and its
-    ``cancel`` fails on an entry that already fired (the inhibit timer cancels one). Here an event's
+    ``cancel`` raises KeyError on an entry that already fired. Here an event's
     time is the scheduler's while it fires (a re-armed timer counts from it), events fire in time
     order (equal times: in the order they were added) and cancelling a fired entry is nothing. An
     event's failure is collected in ``errors``, never raised into the master's tick.
@@ -245,7 +246,7 @@ class DurandDriveSet:
         ValueError: not four drives.
     """
 
-    def __init__(self, plant: Any, drives: Mapping[int, tuple[Path, DriveWiring]]) -> None:
+    def __init__(self, plant: SimHal, drives: Mapping[int, tuple[Path, DriveWiring]]) -> None:
         if len(drives) != 4:
             raise ValueError(f"{len(drives)} drives; the robot has 4 joints")
         self.plant = plant
