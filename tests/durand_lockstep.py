@@ -580,19 +580,20 @@ class DurandCanHal(SimulatedCanHal):
         return self.durand
 
     def _start(self, master: CanMaster) -> None:
-        """The master's start-up, its waits robot time for the drives (D169); then open as :class:`SimulatedCanHal` is.
+        self._owed_s = 0.0  # a new start-up: no robot time owed from an earlier one
+        super()._start(master)
+
+    def _master_wait(self, seconds: float) -> None:
+        """The master's start-up waits robot time for the drives (D169): :meth:`_robot_time_passes`.
 
         The project's drives answer everything the start-up waits for at once (their heartbeat at
-        NMT start included), so ``SimulatedCanHal`` gives its master a wait in which no time passes.
-        durand's heartbeat producer sends on its timer only (the first OPERATIONAL heartbeat one
-        period after NMT start): the master's start-up would wait for it while robot time stood
-        still. Here each wait of the master is robot time: the drives and the plant run a period
-        without SYNC for each period waited (the master's own SYNCs go on at their period meanwhile,
-        as on hardware).
+        NMT start included), so ``SimulatedCanHal``'s master waits without time passing. durand's
+        heartbeat producer sends on its timer only (the first OPERATIONAL heartbeat one period after
+        NMT start): the master's start-up would wait for it while robot time stood still. Here each
+        wait of the master is robot time: the drives and the plant run a period without SYNC for
+        each period waited (the master's own SYNCs go on at their period meanwhile, as on hardware).
         """
-        self._owed_s = 0.0
-        master._wait = self._robot_time_passes  # the one hook: CanMaster's wait (SimulatedCanHal gives none)
-        super()._start(master)
+        self._robot_time_passes(seconds)
 
     def _robot_time_passes(self, seconds: float) -> None:
         """The master waits ``seconds`` (s): the drive set runs a SYNC period without SYNC for each whole period waited."""

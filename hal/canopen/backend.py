@@ -585,9 +585,18 @@ class SimulatedCanHal(CanHal):
         self._start(
             CanMaster(
                 self._bus, self._source, self.profiles, self.settings(), self._now,
-                pump=drives.step, wait=lambda s: None, traffic=self._traffic, transmit=link.send,
+                pump=drives.step, wait=self._master_wait, traffic=self._traffic, transmit=link.send,
             )
         )  # fmt: skip
+
+    def _master_wait(self, seconds: float) -> None:
+        """How the master's start-up waits ``seconds`` (s) for answers: not at all, no time passes.
+
+        The simulated drives answer within the call that sent the request (the lock-step pump), so
+        nothing is gained by waiting. A drive set whose timers must run while the master waits
+        (tests/durand_lockstep.py: durand's first heartbeat comes a period after NMT start, D169)
+        overrides it to let robot time pass.
+        """
 
     def _shutdown(self) -> None:
         super()._shutdown()  # the master's bus: this backend made it, CanHal shuts it down
