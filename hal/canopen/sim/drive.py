@@ -371,6 +371,11 @@ class SimulatedSeaDrive:
         return self._power
 
     @property
+    def ramping(self) -> bool:
+        """True while a stop ramp of its own is under way (QUICK STOP ACTIVE, FAULT REACTION ACTIVE)."""
+        return self._power in _RAMPING_STATES
+
+    @property
     def applied_torque_nm(self) -> float:
         """The torque the power stage applies, N m.
 

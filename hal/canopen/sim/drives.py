@@ -146,11 +146,18 @@ class SimulatedDriveSet:
             return
         lockstep = self._clock is None  # robot time moves only at a SYNC; a thread's clock runs on its own
         drives = self.drives
-        if not (lockstep and self._steady_cycle()):
+        if lockstep and self._steady_cycle():
+            # The plant's tick just advanced every drive to this time and nothing arrived since: advancing
+            # again changes only a stop ramp under way (a ramp from no torque ends at its second step).
+            now = self.t_s
+            for drive in drives:
+                if drive.ramping:
+                    drive.advance(now)
+        else:
             self._process_frames(lockstep)
-        now = self.t_s
-        for drive in drives:
-            drive.advance(now)
+            now = self.t_s
+            for drive in drives:
+                drive.advance(now)
         for _ in range(self.line.take_lost_syncs()):
             self.tick_without_sync()  # a SYNC reached no drive (the master's controller is bus-off): time goes on
 
