@@ -151,6 +151,7 @@ _STOP_OBJECTS = (
 _RAMPING_STATES = (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
 _INT16 = (-(1 << 15), (1 << 15) - 1)
 _CONTROLWORD_KEY = (obj.CONTROLWORD, 0)
+_STATUSWORD_KEY = (obj.STATUSWORD, 0)
 _TARGET_TORQUE_KEY = (obj.TARGET_TORQUE, 0)
 _INT32 = (-(1 << 31), (1 << 31) - 1)
 #: CAN identifiers are 11 bits: a COB-ID's bits 11-28 are 0, and bit 29 (a 29-bit frame) is refused.
@@ -183,6 +184,8 @@ _TpdoSource = tuple[int, int, int, Callable[..., bytes], tuple[tuple[tuple[int, 
 #: A valid synchronous RPDO as a steady SYNC applies it: comm index, its codec's unpack, data length, and per
 #: object its (index, sub) and its EDS limits (None: an object whose write acts, written the general way).
 _SteadyRpdo = tuple[int, Callable[[bytes], tuple[Any, ...]], int, tuple[tuple[tuple[int, int], Any], ...]]
+#: A TPDO as a steady SYNC packs it: :data:`_TpdoSource` with the statusword's key None (computed per SYNC).
+_SteadyTpdo = tuple[int, int, int, Callable[..., bytes], tuple[tuple[tuple[int, int] | None, bool], ...]]
 #: A value no object has (a missing entry in the stored values).
 _UNSET = object()
 
@@ -291,6 +294,9 @@ class SimulatedSeaDrive:
         self._consumer: tuple[int, int] | None = None  # 0x1016:1 as (node, ms), derived from the object
         self._tpdo_plan: tuple[_TpdoSource, ...] | None = None  # the valid TPDOs, derived with _valid
         self._steady_rpdos: dict[int, _SteadyRpdo] | None = None  # the synchronous RPDOs by CAN-ID, derived with _valid
+        self._steady: tuple[dict[int, _SteadyRpdo], tuple[_SteadyTpdo, ...]] | None = None  # _steady_layout's
+        # (power state, e-stop operator, e-stop pilot, statusword): the statusword a steady SYNC sent last
+        self._steady_statusword: tuple[Any, ...] = (None, None, None, 0)
         # (power state, controlword) whose CiA 402 transition, the controlword repeated, is none (a memo)
         self._cw_idle: tuple[PowerState, int] | None = None
         self._statusword: tuple[PowerState, int] | None = None  # (power state, its statusword), the last one
@@ -588,16 +594,18 @@ class SimulatedSeaDrive:
                 self.receive(rpdo[0], rpdo[1], now_s)
             self.on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)  # raises
         values = self._values
+        rpdo_plan, tpdos = self._steady_layout()
         if rpdo is not None:
-            comm, unpack, _, objects = self._steady_rpdo_plan()[rpdo[0]]
+            comm, unpack, _, objects = rpdo_plan[rpdo[0]]
             received = unpack(rpdo[1])
             self._rpdo_heard_s[comm] = now_s
-        self._estop_operator, self._estop_pilot = bool(estop_operator), bool(estop_pilot)
+        operator, pilot = bool(estop_operator), bool(estop_pilot)
+        self._estop_operator, self._estop_pilot = operator, pilot
         self._power_cut = False
         for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):  # _sample's
             counts = round(x / scale)
             values[key] = bounds[0] if counts < bounds[0] else bounds[1] if counts > bounds[1] else counts
-        self._sync_count += 1
+        sync_count = self._sync_count = self._sync_count + 1
         if rpdo is not None:  # _apply_rpdo's writes, in mapping order
             for (key, limits), value in zip(objects, received, strict=True):
                 if limits is not None:
@@ -607,15 +615,52 @@ class SimulatedSeaDrive:
                     pass  # the same controlword again in the state it left: its write would store the same value
                 elif self._write_problem(key[0], key[1], value) is None:
                     self._write(key[0], key[1], value, now_s)
-        send = self._send
-        for cob, data in self._pack_tpdos():  # _send_tpdos's
-            send(cob, data)
-        if self._power is not PowerState.OPERATION_ENABLED:  # _applied_permille's, powered and supplied, no ramp
+        # _pack_tpdos and _send_tpdos, with the statusword of this state and inputs computed once
+        power = self._power
+        cached = self._steady_statusword
+        if cached[0] is power and cached[1] is operator and cached[2] is pilot:
+            statusword = cached[3]
+        else:
+            statusword = self._computed_value(_STATUSWORD_KEY)
+            self._steady_statusword = (power, operator, pilot, statusword)
+        get, send, last = self._get, self._send, self._tpdo_last
+        for comm, cob, transmission, pack, fields in tpdos:
+            data = pack(
+                *[
+                    statusword if key is None else values[key] if stored and key in values else get(*key)
+                    for key, stored in fields
+                ]
+            )
+            # 1-240: every n-th SYNC; 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
+            due = sync_count % transmission == 0 if 1 <= transmission <= 240 else last.get(comm) != data
+            if due:
+                last[comm] = data
+                send(cob, data)
+        if power is not PowerState.OPERATION_ENABLED:  # _applied_permille's, powered and supplied, no ramp
             return 0.0
         target = values.get(_TARGET_TORQUE_KEY, _UNSET)
         target = int(self._get(*_TARGET_TORQUE_KEY) if target is _UNSET else target)
         limit = int(self._get(obj.MAX_TORQUE, 0)) if self._has_max_torque else _INT16[1]
         return float(max(-limit, min(limit, target))) * self._nm_per_permille
+
+    def _steady_layout(self) -> tuple[dict[int, _SteadyRpdo], tuple[_SteadyTpdo, ...]]:
+        """What :meth:`steady_sync` needs of the PDOs, once per change of their parameters: the synchronous RPDOs
+        by CAN-ID, and the valid TPDOs as :meth:`_tpdo_sources` gives them with the statusword's key None
+        (computed once a SYNC, per state and inputs)."""
+        layout = self._steady
+        if layout is None:
+            tpdos = tuple(
+                (
+                    comm,
+                    cob,
+                    transmission,
+                    pack,
+                    tuple((None if key == _STATUSWORD_KEY else key, stored) for key, stored in keys),
+                )
+                for comm, cob, transmission, pack, keys in self._tpdo_sources()
+            )
+            layout = self._steady = (self._steady_rpdo_plan(), tpdos)
+        return layout
 
     def _controlword_idle(self, controlword: int) -> bool:
         """True if writing ``controlword`` now would do nothing: the stored one, in the state it was found idle in
@@ -968,6 +1013,7 @@ class SimulatedSeaDrive:
         self._valid = None
         self._tpdo_plan = None
         self._steady_rpdos = None
+        self._steady = None
 
     def _valid_pdos(self) -> tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]]:
         """The valid PDOs and their plans: the RPDOs by CAN-ID (the first slot of an ID), the TPDOs in order.
