@@ -80,6 +80,7 @@ __all__ = [
     "claim_durand",
     "create_node",
     "durand_dictionary",
+    "fire_due_events",
     "holds_durand",
     "release_durand",
     "robot_file_drives",
@@ -449,6 +450,30 @@ class LogWatch(logging.Handler):
             self._errors.add(f"durand logged ({record.name}, {record.levelname}) {message}{detail}")
 
 
+def fire_due_events(scheduler: VirtualScheduler, until_s: float, errors: Errors) -> None:
+    """Fire every event of ``scheduler`` due at or before ``until_s`` (s), each at its own time; then the time is ``until_s``.
+
+    Events fire in time order (equal times: in the order they were added: the lower entry), the
+    scheduler's time set to each one's as it fires (a timer re-armed in it counts from there). An
+    event's failure (a timer of durand's, or a bug here) is collected in ``errors``; the rest fire.
+    The wall-clock and the lock-step schedulers share it (durand 0.5.0's entry and time fields).
+    """
+    due_at = scheduler._timestamp_dict
+    while due_at:
+        entry = min(due_at, key=lambda e: (due_at[e], e))
+        due = due_at[entry]
+        if due > until_s:
+            break
+        del due_at[entry]
+        event = scheduler._entry_dict.pop(entry)
+        scheduler._time = max(scheduler._time, due)
+        try:
+            event.callback(*event.args, **event.kwargs)
+        except Exception as exc:  # collected, never raised into the caller's thread or tick
+            errors.add(f"scheduler event {event.callback!r}: {type(exc).__name__}: {exc}")
+    scheduler._time = max(scheduler._time, until_s)
+
+
 class WallClockScheduler(VirtualScheduler):
     """durand's VirtualScheduler, run by one thread on the wall clock.
 
@@ -493,20 +518,7 @@ class WallClockScheduler(VirtualScheduler):
     def run(self, duration: float) -> None:
         """Fire every event due within ``duration`` of the scheduler's time, in time order, each at its time."""
         with self._lock:
-            end = self._time + duration
-            while self._timestamp_dict:
-                entry = min(self._timestamp_dict, key=self._timestamp_dict.__getitem__)
-                due = self._timestamp_dict[entry]
-                if due > end:
-                    break
-                del self._timestamp_dict[entry]
-                event = self._entry_dict.pop(entry)
-                self._time = max(self._time, due)
-                try:
-                    event.callback(*event.args, **event.kwargs)
-                except Exception as exc:  # a timer of durand's, or a bug here: collected, the thread goes on
-                    self._errors.add(f"scheduler event {event.callback!r}: {type(exc).__name__}: {exc}")
-            self._time = max(self._time, end)
+            fire_due_events(self, self._time + duration, self._errors)
 
     def start(self) -> None:
         self.thread = threading.Thread(target=self._loop, name="durand drives scheduler", daemon=True)

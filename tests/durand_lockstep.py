@@ -71,6 +71,7 @@ from tests.durand_drives import (
     TimedFrame,
     claim_durand,
     create_node,
+    fire_due_events,
     holds_durand,
     release_durand,
     watch_durand_logs,
@@ -129,20 +130,7 @@ class LockstepScheduler(VirtualScheduler):
 
     def run_until(self, t_s: float) -> None:
         """Fire every event due at or before robot time ``t_s`` (s), each at its own time; then the time is ``t_s``."""
-        due_at = self._timestamp_dict
-        while due_at:
-            entry = min(due_at, key=lambda e: (due_at[e], e))
-            due = due_at[entry]
-            if due > t_s:
-                break
-            del due_at[entry]
-            event = self._entry_dict.pop(entry)
-            self._time = max(self._time, due)
-            try:
-                event.callback(*event.args, **event.kwargs)
-            except Exception as exc:  # a timer of durand's, or a bug here: collected, the tick goes on
-                self._errors.add(f"scheduler event {event.callback!r}: {type(exc).__name__}: {exc}")
-        self._time = max(self._time, t_s)
+        fire_due_events(self, t_s, self._errors)
 
     def restart(self, t_s: float) -> None:
         """No event left, the time ``t_s`` (s): a new session's drives start with no timer of the last one's."""
