@@ -82,6 +82,7 @@ from hal.canopen.cia301.pdo import COB_ID_INVALID, MappedObject, PdoCodec, PdoMa
 from hal.canopen.cia402.statemachine import PowerState, device_next_state, statusword_of
 from hal.canopen.dictionary import DriveDictionary
 from hal.canopen.profile import DriveProfile, daror_node, profile_of
+from hal.canopen.sim.steady_program import SteadyProgram, steady_program
 from hal.canopen.sim.stop_ramp import StopRamp
 from hal.errors import HalConfigError
 
@@ -295,6 +296,7 @@ class SimulatedSeaDrive:
         self._tpdo_plan: tuple[_TpdoSource, ...] | None = None  # the valid TPDOs, derived with _valid
         self._steady_rpdos: dict[int, _SteadyRpdo] | None = None  # the synchronous RPDOs by CAN-ID, derived with _valid
         self._steady: tuple[dict[int, _SteadyRpdo], tuple[_SteadyTpdo, ...]] | None = None  # _steady_layout's
+        self._steady_program: SteadyProgram | None = None  # steady_sync's code for that layout
         # (power state, e-stop operator, e-stop pilot, statusword): the statusword a steady SYNC sent last
         self._steady_statusword: tuple[Any, ...] = (None, None, None, 0)
         # (power state, controlword) whose CiA 402 transition, the controlword repeated, is none (a memo)
@@ -583,65 +585,42 @@ class SimulatedSeaDrive:
         the power stage applies then, N m (:attr:`applied_torque_nm`).
 
         One call for what a cycle of a session nearly always is (issue 25: the same steps, in the same
-        order, as the two general calls, without the layers between them). Only after
-        :meth:`steady_sync_ready` said True for the same frame and time.
+        order, as the two general calls, without the layers between them), run by straight-line code
+        generated for the drive's PDO layout (:mod:`hal.canopen.sim.steady_program`, D171; made again
+        after a change of the PDO parameters). Only after :meth:`steady_sync_ready` said True for the
+        same frame and time.
 
         Raises:
             ValueError: an angle or a torque that is not finite (the RPDO was taken, as on the general path).
         """
-        if not (math.isfinite(q_rad) and math.isfinite(theta_rad) and math.isfinite(tau_nm)):
-            if rpdo is not None:
-                self.receive(rpdo[0], rpdo[1], now_s)
-            self.on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)  # raises
-        values = self._values
-        rpdo_plan, tpdos = self._steady_layout()
+        program = self._steady_program
+        if program is None:
+            rpdo_plan, tpdos = self._steady_layout()
+            program = self._steady_program = steady_program(
+                self, rpdo_plan, tpdos, self._sensors, _STATUSWORD_KEY, _CONTROLWORD_KEY, _TARGET_TORQUE_KEY,
+                (obj.MAX_TORQUE, 0) if self._has_max_torque else None, _INT16[1],
+            )  # fmt: skip
+        return program(rpdo, q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s)
+
+    def _steady_sync_general(
+        self,
+        rpdo: tuple[int, bytes] | None,
+        q_rad: float,
+        theta_rad: float,
+        tau_nm: float,
+        estop_operator: bool,
+        estop_pilot: bool,
+        now_s: float,
+    ) -> float:
+        """:meth:`steady_sync` the general way (:meth:`receive`, :meth:`on_sync`): for a reading that is not finite.
+
+        Raises:
+            ValueError: an angle or a torque that is not finite (always, here: the RPDO was taken first).
+        """
         if rpdo is not None:
-            comm, unpack, _, objects = rpdo_plan[rpdo[0]]
-            received = unpack(rpdo[1])
-            self._rpdo_heard_s[comm] = now_s
-        operator, pilot = bool(estop_operator), bool(estop_pilot)
-        self._estop_operator, self._estop_pilot = operator, pilot
-        self._power_cut = False
-        for (key, scale, bounds), x in zip(self._sensors, (theta_rad, q_rad, tau_nm), strict=False):  # _sample's
-            counts = round(x / scale)
-            values[key] = bounds[0] if counts < bounds[0] else bounds[1] if counts > bounds[1] else counts
-        sync_count = self._sync_count = self._sync_count + 1
-        if rpdo is not None:  # _apply_rpdo's writes, in mapping order
-            for (key, limits), value in zip(objects, received, strict=True):
-                if limits is not None:
-                    if _in_limits(value, limits):
-                        values[key] = value
-                elif key == _CONTROLWORD_KEY and self._controlword_idle(value):
-                    pass  # the same controlword again in the state it left: its write would store the same value
-                elif self._write_problem(key[0], key[1], value) is None:
-                    self._write(key[0], key[1], value, now_s)
-        # _pack_tpdos and _send_tpdos, with the statusword of this state and inputs computed once
-        power = self._power
-        cached = self._steady_statusword
-        if cached[0] is power and cached[1] is operator and cached[2] is pilot:
-            statusword = cached[3]
-        else:
-            statusword = self._computed_value(_STATUSWORD_KEY)
-            self._steady_statusword = (power, operator, pilot, statusword)
-        get, send, last = self._get, self._send, self._tpdo_last
-        for comm, cob, transmission, pack, fields in tpdos:
-            data = pack(
-                *[
-                    statusword if key is None else values[key] if stored and key in values else get(*key)
-                    for key, stored in fields
-                ]
-            )
-            # 1-240: every n-th SYNC; 0 (acyclic synchronous), 254/255 (event-driven): on a change of their data
-            due = sync_count % transmission == 0 if 1 <= transmission <= 240 else last.get(comm) != data
-            if due:
-                last[comm] = data
-                send(cob, data)
-        if power is not PowerState.OPERATION_ENABLED:  # _applied_permille's, powered and supplied, no ramp
-            return 0.0
-        target = values.get(_TARGET_TORQUE_KEY, _UNSET)
-        target = int(self._get(*_TARGET_TORQUE_KEY) if target is _UNSET else target)
-        limit = int(self._get(obj.MAX_TORQUE, 0)) if self._has_max_torque else _INT16[1]
-        return float(max(-limit, min(limit, target))) * self._nm_per_permille
+            self.receive(rpdo[0], rpdo[1], now_s)
+        self.on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)
+        return self.applied_torque_nm
 
     def _steady_layout(self) -> tuple[dict[int, _SteadyRpdo], tuple[_SteadyTpdo, ...]]:
         """What :meth:`steady_sync` needs of the PDOs, once per change of their parameters: the synchronous RPDOs
@@ -1014,6 +993,7 @@ class SimulatedSeaDrive:
         self._tpdo_plan = None
         self._steady_rpdos = None
         self._steady = None
+        self._steady_program = None
 
     def _valid_pdos(self) -> tuple[dict[int, tuple[_PdoSlot, _Plan]], tuple[tuple[_PdoSlot, _Plan], ...]]:
         """The valid PDOs and their plans: the RPDOs by CAN-ID (the first slot of an ID), the TPDOs in order.
