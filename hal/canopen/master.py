@@ -50,7 +50,6 @@ import numpy as np
 
 from hal.canopen import objects as obj
 from hal.canopen.bus import Frame, FrameSource, TrafficLog
-from hal.canopen.calibration import angle_rad, spring_torque_nm
 from hal.canopen.cia301.emcy import EmcyClass, EmcyMessage, EmcyWarnings, classify_emcy, parse_emcy
 from hal.canopen.cia301.heartbeat import HeartbeatConsumer
 from hal.canopen.cia301.nmt import (
@@ -79,6 +78,7 @@ from hal.canopen.cycle_budget import CycleBudget
 from hal.canopen.health import BusHealth
 from hal.canopen.profile import DriveProfile, UnitCheck, decode_supported_modes, robot_bus_load
 from hal.canopen.reaction import ReactionPlan, format_ramp_s, plan_reaction
+from hal.canopen.tpdo_handler import TpdoHandler, tpdo_handler
 from hal.errors import HalConfigError, HalError
 from hal.interface import DriveState
 
@@ -270,22 +270,20 @@ class CanMaster:
             _Drive(p, PowerStepper(max(2, math.ceil(p.enable_timeout_s / settings.period_s)))) for p in profiles
         ]
         self._by_node = {d.node_id: d for d in self.drives}
-        # COB-ID -> (drive, what, TPDO number - 1): one dict lookup per received frame
-        self._routes: dict[int, tuple[_Drive, str, int]] = {}
-        # COB-ID -> (unpack, the _Drive fields in mapping order, data length, one of them is the statusword)
-        self._tpdo_decoders: dict[
-            int, tuple[Callable[[bytes], tuple[int | float | bool, ...]], tuple[str, ...], int, bool]
-        ] = {}
+        # COB-ID -> (drive, what): one dict lookup per received frame that is not a TPDO
+        self._routes: dict[int, tuple[_Drive, str]] = {}
+        # COB-ID -> the TPDO's handler, generated for its mapping (hal/canopen/tpdo_handler.py, D171)
+        self._tpdo_handlers: dict[int, TpdoHandler] = {}
         for drive in self.drives:
             pdos = drive.profile.pdos
             for k, (pdo, names) in enumerate(zip(pdos.tpdos, _tpdo_fields(drive.profile), strict=True)):
-                cob_id = pdo.cob_id(drive.node_id)
-                self._routes[cob_id] = (drive, "tpdo", k)
                 codec = self._codec(drive.profile, pdo)
-                self._tpdo_decoders[cob_id] = (codec.unpack, names, codec.length, "statusword" in names)
-            self._routes[HEARTBEAT_BASE + drive.node_id] = (drive, "heartbeat", 0)
-            self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy", 0)
-            self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo", 0)
+                self._tpdo_handlers[pdo.cob_id(drive.node_id)] = tpdo_handler(
+                    drive, k, codec.unpack, codec.codes, names, codec.length, _power_of, self._latch
+                )
+            self._routes[HEARTBEAT_BASE + drive.node_id] = (drive, "heartbeat")
+            self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy")
+            self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo")
         self._rpdo_cob = [d.profile.pdos.rpdo.cob_id(d.node_id) for d in self.drives]
         self._pack_rpdo = [self._codec(d.profile, d.profile.pdos.rpdo).pack for d in self.drives]
         self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
@@ -665,12 +663,12 @@ class CanMaster:
         alpha = self._alpha
         q_new, dq_new, theta_new, tau_new = [], [], [], []
         for j, (drive, scale) in enumerate(zip(self.drives, self._scales, strict=True)):
-            q = angle_rad(float(drive.load_counts), scale.link_zero_counts, scale.rad_per_link_count)
-            theta = angle_rad(float(drive.motor_counts), scale.motor_zero_counts, scale.rad_per_motor_count)
-            if scale.spring_k_nm_per_rad is None:
-                measured_nm = float(drive.torque_counts) * scale.nm_per_torque_count
-            else:  # the spring torque of the encoders around the spring: k (theta - q)
-                measured_nm = scale.spring_k_nm_per_rad * (theta - q)
+            rad_per_link, rad_per_motor, nm_per_count, spring_k, link_zero, motor_zero, tare_nm = scale
+            # calibration.angle_rad and spring_torque_nm written out (their formulas; a call each cost more)
+            q = (float(drive.load_counts) - link_zero) * rad_per_link
+            theta = (float(drive.motor_counts) - motor_zero) * rad_per_motor
+            # the drive's torque object, or the spring torque of the encoders around the spring: k (theta - q)
+            measured_nm = float(drive.torque_counts) * nm_per_count if spring_k is None else spring_k * (theta - q)
             dq = 0.0
             if not first:
                 raw = (q - q_old[j]) / dt_s
@@ -682,7 +680,7 @@ class CanMaster:
             q_new.append(q)
             dq_new.append(dq)
             theta_new.append(theta)
-            tau_new.append(spring_torque_nm(measured_nm, scale.torque_tare_nm))
+            tau_new.append(measured_nm - tare_nm)
         arrays = [np.array(values) for values in (q_new, dq_new, theta_new, tau_new)]
         for array in arrays:
             array.flags.writeable = False
@@ -707,37 +705,30 @@ class CanMaster:
         values are kept, but it does not make the drive's data of the last SYNC fresh.
         """
         routes = self._routes
+        handlers = self._tpdo_handlers
         sync = self.syncs - 1
         sync_s = self._last_sync_s
         latency = -1.0
         for frame in frames:
-            route = routes.get(frame.cob_id)
+            cob_id, data, t_s = frame
+            handler = handlers.get(cob_id)
+            if handler is not None:
+                delay = handler(data, t_s, sync, sync_s)
+                if delay > latency:
+                    latency = delay
+                continue
+            route = routes.get(cob_id)
             if route is None:
-                if frame.cob_id != SYNC_COB_ID:
+                if cob_id != SYNC_COB_ID:
                     self.unknown_frames += 1
                 continue
-            drive, what, k = route
-            if what == "tpdo":
-                unpack, names, length, has_statusword = self._tpdo_decoders[frame.cob_id]
-                if len(frame.data) != length:  # (PdoCodec.decode's test, without its call a frame)
-                    self._latch(f"drive {drive.node_id}: TPDO{k + 1} of {len(frame.data)} bytes; expected {length}")
-                    continue
-                for name, value in zip(names, unpack(frame.data), strict=True):
-                    setattr(drive, name, int(value))
-                if has_statusword:
-                    power = _power_of(drive.statusword or 0)
-                    if drive.emcy is not None and drive.power is PowerState.FAULT and power is not PowerState.FAULT:
-                        drive.emcy = None  # a fault reset cleared it, even from a drive that sends no error reset EMCY
-                    drive.power = power
-                if frame.t_s >= sync_s:
-                    drive.tpdo_syncs[k] = sync
-                    latency = max(latency, frame.t_s - sync_s)
-            elif what == "heartbeat":
+            drive, what = route
+            if what == "heartbeat":
                 self._on_heartbeat(drive, frame)
             elif what == "emcy":
-                self._on_emcy(drive, parse_emcy(frame.data))
+                self._on_emcy(drive, parse_emcy(data))
             else:
-                done = self.sdo.on_response(drive.node_id, frame.data)
+                done = self.sdo.on_response(drive.node_id, data)
                 if done is not None and done.error and drive.recovery is not None:
                     self._recovery_failed(drive, done.error)
         if latency >= 0.0:

@@ -185,6 +185,8 @@ class PdoCodec:
     def __init__(self, mapping: PdoMapping, data_types: tuple[int, ...]) -> None:
         codes = "".join(struct_format(t) for t in data_types)
         self.mapping = mapping
+        #: The ``struct`` code of each mapped object, in order (little-endian).
+        self.codes = codes
         self._struct = struct.Struct("<" + codes)
         if self._struct.size != mapping.length:
             raise ValueError(
