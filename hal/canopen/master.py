@@ -832,6 +832,7 @@ class CanMaster:
         packs = self._pack_rpdo
         following = self.settings.ramp_s is not None
         commanded: list[int | None] = []
+        torques = torque_nm.tolist() if torque_nm is not None else None  # Python floats: one call, not one a joint
         for j, drive in enumerate(self.drives):
             seen = drive.lost is None and drive.recovery is None  # a lost drive's last statusword is stale
             healthy = seen and drive.emcy is None
@@ -843,9 +844,9 @@ class CanMaster:
                 self._latch(f"drive {drive.node_id}: {outcome.timed_out}")
             drive.controlword = outcome.controlword
             permille = 0
-            if wanted and healthy and torque_nm is not None:
+            if wanted and healthy and torques is not None:
                 peak = peaks[j]
-                permille = max(-peak, min(peak, round(float(torque_nm[j]) / nm_per_permille[j])))
+                permille = max(-peak, min(peak, round(torques[j] / nm_per_permille[j])))
             self._send(self._rpdo_cob[j], packs[j](outcome.controlword, permille))
             if following:
                 commanded.append(

@@ -179,12 +179,16 @@ def _towards_torque(state: PowerState) -> int:
     raise KeyError(state)  # the fault states are handled before: a bug
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
 class StepOutcome:
     """What the master sends a drive this tick, and a fault to report (a drive that did not follow)."""
 
     controlword: int
     timed_out: str | None = None
+
+
+#: The outcome of each controlword with nothing to report: nearly every step's, made once (frozen, shared).
+_QUIET_OUTCOMES: dict[int, StepOutcome] = {}
 
 
 class PowerStepper:
@@ -266,4 +270,9 @@ class PowerStepper:
         if command != self._command:
             self._waited = 0
         self._command = command
+        if timed_out is None:
+            quiet = _QUIET_OUTCOMES.get(command)
+            if quiet is None:
+                quiet = _QUIET_OUTCOMES[command] = StepOutcome(command)
+            return quiet
         return StepOutcome(command, timed_out)
