@@ -48,12 +48,13 @@ from hal.canopen.sim.drive import DEFAULT_DROP_S, SimulatedSeaDrive
 from hal.canopen.sim.link import LockstepLink
 from hal.capabilities import BUS_FAULT_KINDS
 from hal.errors import HalError, InputError
-from hal.interface import Command
+from hal.interface import CheckedCommand
 from hal.robot import N_JOINTS
 from hal.sim.backend import SimHal
 
 __all__ = ["SimulatedDriveSet"]
 
+_new_tuple = tuple.__new__  # a CheckedCommand without the NamedTuple's Python-level __new__ (every tick)
 #: The power states in which a drive's power stage applies torque: commanded, or ramping by itself (a tuple:
 #: membership by identity, no Python-level Enum.__hash__ per drive and tick).
 _STAGE_ON = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
@@ -363,7 +364,8 @@ class SimulatedDriveSet:
                 self.events.append((self.t_s, j + 1, "power stage on" if on else "power stage off"))
         plant = self.plant
         try:
-            plant.write(Command(torques.copy(), enable))
+            # torques is float64 (4,) by construction: a CheckedCommand the plant takes without converting it
+            plant.write(_new_tuple(CheckedCommand, (torques.copy(), enable, ())))
         except HalError as exc:
             raise HalError(f"simulated plant behind the CAN drives: {exc}") from None
         now = self.t_s
