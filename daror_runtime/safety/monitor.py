@@ -411,7 +411,7 @@ class SafetyMonitor:
 
     def _check_isb(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
         angles = self._isb_angles(sample.q_rad)  # type: ignore[misc]
-        if np.all((angles >= self._isb_lower) & (angles <= self._isb_upper)):
+        if ((angles >= self._isb_lower) & (angles <= self._isb_upper)).all():  # the method: no np.all wrapper a tick
             return
         names = ISB_ANGLE_NAMES
         for j in range(N_JOINTS):
