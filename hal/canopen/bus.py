@@ -24,22 +24,29 @@ at the first frame a filter rejects, even with matching frames queued behind it.
 
 :class:`TrafficLog` writes every frame the master sends or receives in candump's ``-L`` format
 as python-can's ``CanutilsLogWriter`` writes them, stamped ``epoch_s + robot time`` (docs/canopen.md: the
-standard tools read a log whose first second is not 0).
+standard tools read a log whose first second is not 0); the lines are formatted and written by a
+process of their own (:mod:`hal.canopen.traffic_writer`), off the GIL the tick needs.
 """
 
 from __future__ import annotations
 
-import gzip
+import locale
+import marshal
+import os
+import subprocess
+import sys
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
+from itertools import repeat, starmap
 from pathlib import Path
 from typing import NamedTuple
 
 import can
 
+from hal.canopen.traffic_writer import LENGTH
 from hal.errors import HalError
 
 __all__ = ["Frame", "FrameSource", "ListenedFrames", "PolledFrames", "ReceiveClock", "TrafficLog"]
@@ -235,15 +242,27 @@ class ListenedFrames(FrameSource):
 
 
 class TrafficLog:
-    """Every frame on the master's side of the bus, in candump ``-L`` format (python-can's writer).
+    """Every frame on the master's side of the bus, in candump ``-L`` format (python-can's writer's lines).
 
-    The tick only appends the frame to a queue (:meth:`frame`: no I/O, never waits); a writer
-    thread formats the lines as python-can's ``CanutilsLogWriter`` does (:meth:`_stamp`; the writer
-    owns the file) and writes them in one batch every :data:`WRITE_EVERY_S`. A write that fails is latched (:attr:`error`): the backend raises it as a
-    fault at the next read, as the recorder's failure is one (the audit trail is part of the run).
+    The tick only appends the frame to a queue (:meth:`frame`, :meth:`received`: no I/O, never
+    waits). A writer thread takes what is queued every :data:`WRITE_EVERY_S` and ships it, one
+    ``marshal`` of the batch's tuples a write, down a pipe to a writer process of its own
+    (:mod:`hal.canopen.traffic_writer`, standard library only), which formats the lines as
+    python-can's ``CanutilsLogWriter`` does and writes each batch with one write, flushed: the
+    formatting runs on another core, not in a thread that holds the GIL the tick needs (the thread
+    holds it under 0.1 us a frame; docs/performance.md). A write that fails, or a writer process that
+    ends before :meth:`close`, is latched (:attr:`error`): the backend raises it as a fault at the
+    next read, as the recorder's failure is one (the audit trail is part of the run).
 
-    A path ending in ``.gz`` is written gzip-compressed by the same thread (level
-    :data:`GZIP_LEVEL`, each write flushed to the OS as a whole deflate block, so a crash loses
+    The file is created (or, with ``append``, opened) here, before the writer process starts, and
+    handed to it: an existing log is never overwritten, and a log that cannot be created raises here.
+    If this process dies, the writer reads the end of its input, writes what it was given (the frames
+    still queued here, at most :data:`WRITE_EVERY_S` of them, are lost), closes the log and exits; it
+    ignores SIGINT, SIGTERM and SIGHUP (they reach the whole process group, and the session closes
+    the log in order).
+
+    A path ending in ``.gz`` is written gzip-compressed by the writer process (level
+    :data:`GZIP_LEVEL`, each batch flushed to the OS as a whole deflate block, so a crash loses
     no more than a plain log does): ``zcat can.log.gz | canplayer vcan0=daror`` and ``log2asc``
     read it from their standard input, Python's ``gzip.open`` directly (docs/canopen.md, D137). A log
     opened again with ``append`` gets a second gzip member, which every reader concatenates.
@@ -255,48 +274,57 @@ class TrafficLog:
         append: continue an existing log (the same backend opened again).
 
     Raises:
-        HalError: the file exists (and not ``append``) or cannot be created.
+        HalError: the file exists (and not ``append``), cannot be created or opened, or the writer
+            process cannot be started.
     """
 
-    #: How often the writer thread writes what the tick queued, s.
+    #: How often the writer thread ships what the tick queued to the writer process, s.
     WRITE_EVERY_S = 0.02
     #: zlib's level for a ``.gz`` log (docs/performance.md: size and time of levels 1 and 6).
     GZIP_LEVEL = 6
+    #: The writer process's script (standard library only, run with ``python -I -S``).
+    WRITER_SCRIPT = Path(__file__).with_name("traffic_writer.py")
 
     def __init__(self, path: Path, epoch_s: int, channel: str = "can0", append: bool = False) -> None:
         self.path = Path(path)
         self.epoch_s = int(epoch_s)
-        if not append:
-            try:
-                with open(self.path, "x"):  # a new file: an existing log is never overwritten
-                    pass
-            except FileExistsError:
-                raise HalError(f"{self.path}: exists; the bus log is not overwritten: expected a new file") from None
-            except OSError as exc:
-                raise HalError(f"{self.path}: cannot be created ({exc.strerror})") from None
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | (0 if append else os.O_EXCL)
         try:
-            if self.path.suffix == ".gz":
-                # closed with the writer (stop(), from close()): it lives as long as the log
-                stream = gzip.open(self.path, "at", compresslevel=self.GZIP_LEVEL, encoding="ascii", newline="")  # noqa: SIM115
-                self._writer = can.CanutilsLogWriter(stream, channel=channel)
-            else:
-                self._writer = can.CanutilsLogWriter(str(self.path), channel=channel, append=True)
+            fd = os.open(self.path, flags, 0o666)  # a new file unless append: an existing log is never overwritten
+        except FileExistsError:
+            raise HalError(f"{self.path}: exists; the bus log is not overwritten: expected a new file") from None
         except OSError as exc:
-            raise HalError(f"{self.path}: cannot be opened ({exc.strerror})") from None
-        # python-can's writer names a numbered channel canN, and clamps a time before its first frame's
-        self._line_channel = f"can{channel}" if channel.isdigit() else channel
-        self._first_s: float | None = None
-        self._stamped_s: float | None = None  # the time of the last line's stamp, and its text
-        self._stamp_text = ""
+            raise HalError(f"{self.path}: cannot be {'opened' if append else 'created'} ({exc.strerror})") from None
+        gz = self.path.suffix == ".gz"
+        # the lines' encoding as before the writer process: gzip.open's ascii, python-can's writer the locale's
+        encoding = "ascii" if gz else locale.getpreferredencoding(False)
+        command = [sys.executable, "-I", "-S", str(self.WRITER_SCRIPT), str(fd), str(self.path), str(self.epoch_s)]
+        command += [channel, str(self.GZIP_LEVEL) if gz else "plain", encoding]
+        try:
+            self._process = subprocess.Popen(
+                command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=(fd,)
+            )
+        except (OSError, ValueError) as exc:
+            raise HalError(f"{self.path}: the bus log's writer process cannot be started ({exc})") from None
+        finally:
+            os.close(fd)  # the writer process has its own
+        assert self._process.stdin is not None
+        self._to_writer = self._process.stdin.fileno()
         self._pending: deque[tuple[int, bytes, float, bool]] = deque()
         self.error: str | None = None
+        #: Lines in the file, as the writer process reports at its end (after :meth:`close`).
         self.frames_written = 0
+        self._ended = False  # the writer process has ended and its report is read
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="CAN traffic log", daemon=True)
         self._thread.start()
 
     def frame(self, cob_id: int, data: bytes, robot_t_s: float, sent: bool) -> None:
-        """Queue one frame the master sent (``sent``) or received, at robot time ``robot_t_s`` (never waits)."""
+        """Queue one frame the master sent (``sent``) or received, at robot time ``robot_t_s`` (never waits).
+
+        The values are Python's own int, bytes, float and bool (``marshal`` ships them; the writer
+        latches a frame of other types, a numpy scalar, as an :attr:`error`).
+        """
         self._pending.append((cob_id, data, robot_t_s, sent))
 
     def received(self, frames: list[Frame]) -> None:
@@ -305,44 +333,72 @@ class TrafficLog:
 
     def _run(self) -> None:
         while not self._stop.wait(self.WRITE_EVERY_S):
-            self._write_pending()
-        self._write_pending()
+            self._ship_pending()
+        self._ship_pending()
+        self._end_writer()
 
-    def _write_pending(self) -> None:
-        pending, epoch, file = self._pending, self.epoch_s, self._writer.file
-        lines = []
-        try:
-            while pending:
-                cob_id, data, t_s, sent = pending.popleft()
-                lines.append(f"{self._stamp(epoch + t_s)}{cob_id:03X}#{data.hex().upper()}{' T' if sent else ' R'}\n")
-            if lines:
-                file.write("".join(lines))  # one write a batch: the writer thread holds the GIL less
-                self.frames_written += len(lines)
-            file.flush()  # whole lines reach the OS: a crash loses at most the queue
-        except (OSError, ValueError) as exc:  # a full disk, a removed stick: latched, raised by the backend
-            self.error = self.error or f"{self.path}: the bus log cannot be written: {exc}"
+    def _ship_pending(self) -> None:
+        """Send what is queued to the writer process as one batch (drop it once the log has failed)."""
+        pending = self._pending
+        if not self._ended and self._process.poll() is not None:
+            self._end_writer()  # it ended before close(): killed, or it reported a failed write
+        if self.error is not None:
             pending.clear()
+            return
+        count = len(pending)
+        if not count:
+            return
+        # the oldest ``count`` frames, popped in C (only this thread pops; the tick may append meanwhile)
+        batch = list(starmap(pending.popleft, repeat((), count)))
+        try:
+            payload = marshal.dumps(batch)
+        except ValueError as exc:  # a frame of a type marshal does not know
+            self._latch(f"a frame cannot be sent to the writer process ({exc})")
+            return
+        message = memoryview(LENGTH.pack(len(payload)) + payload)
+        try:
+            while message:  # a pipe takes at most its capacity a write: the rest once the writer read it
+                message = message[os.write(self._to_writer, message) :]
+        except OSError:  # a broken pipe: the writer process has ended
+            self._end_writer()
 
-    def _stamp(self, timestamp_s: float) -> str:
-        """A line's start, ``(time) channel ``, as python-can's ``CanutilsLogWriter`` writes it for a standard data frame.
+    def _end_writer(self) -> None:
+        """Close the writer process's input, wait for it to end, and take its report (count, failure)."""
+        if self._ended:
+            return
+        self._ended = True
+        process = self._process
+        try:
+            out, err = process.communicate()  # closes its input: it writes what it was given, and ends
+        except OSError:
+            out, err = b"", b""
+        try:
+            written, failure = marshal.loads(out)
+        except (EOFError, ValueError, TypeError):  # no report: it died
+            written, failure = None, None
+        if isinstance(written, int):
+            self.frames_written = written
+        if failure:
+            self._latch(f"the bus log cannot be written: {failure}")
+        elif written is None or process.returncode != 0 or not self._stop.is_set():
+            code = process.returncode
+            how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
+            said = err.decode(errors="replace").split("\n")
+            last = next((line.strip() for line in reversed(said) if line.strip()), "")
+            self._latch(
+                f"the bus log's writer process (pid {process.pid}) ended unexpectedly ({how}{': ' + last if last else ''})"
+            )
 
-        Its rules, kept: a time before the log's first frame is written as that first time; the
-        channel of a number is ``canN``. The lines are formatted here because building a
-        ``can.Message`` per frame for the writer cost the session more than its drives (D163); the
-        frames of a cycle share their time, so its text is made once a cycle.
-        """
-        if timestamp_s == self._stamped_s:
-            return self._stamp_text
-        first = self._first_s
-        if first is None:
-            first = self._first_s = timestamp_s or 0.0
-        self._stamped_s = timestamp_s
-        self._stamp_text = f"({max(timestamp_s, first):f}) {self._line_channel} "
-        return self._stamp_text
+    def _latch(self, message: str) -> None:
+        """Keep the first failure, one line naming the log (:attr:`error`)."""
+        self.error = self.error or f"{self.path}: {' '.join(message.split())}"
 
     def close(self) -> None:
-        """Write what is queued and close the file (waits for the writer thread). Safe twice."""
+        """Write what is queued, close the log and wait for the writer process to end. Safe twice.
+
+        :attr:`frames_written` is the writer's count after it; a failure is latched in :attr:`error`.
+        """
         if self._thread.is_alive():
             self._stop.set()
             self._thread.join()
-            self._writer.stop()
+        self._end_writer()  # the thread does it; here too should the thread have died
