@@ -41,6 +41,7 @@ from hal.interface import CheckedCommand, CheckedSample, Command, DriveState, Ha
 from hal.kernels import BACKEND_STEP, CompiledFunction
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
 from hal.sim import dynamics
+from hal.sim.pilot import SimulatedPilot
 from hal.sim.plant import DynamicPlant, PlantTruth, joint_vector
 from hal.sim.scenario import Scenario, load_scenario
 from hal.sim.sensors import SECONDS_PER_MINUTE
@@ -136,6 +137,7 @@ class SimHal(Hal):
         self._drive_vector[dynamics.S_FIFO_LENGTH] = self._plant.command_delay_ticks + 1
         self._zero_torque = np.zeros(N_JOINTS)
         self._external: FloatArray | ExternalTorque | None = None
+        self._external_pilot: SimulatedPilot | None = None  # the external torque when it is a SimulatedPilot
         self._estop = (False, False)
         self._estop_pressed_s: float | None = None  # robot time of the press that started the e-stop circuit
         self._power_cut = False
@@ -147,6 +149,9 @@ class SimHal(Hal):
         self._batches: SimLockStepBatches | None = None
         # The plant's own arrays, which the tick kernel integrates in place (DynamicPlant never replaces them).
         self._x, self._p, self._work = self._plant.state, self._plant.params, self._plant.work
+        # Views the pilot's kernel reads (the true q, q') and writes (the external torque) every tick.
+        self._true_q, self._true_dq = self._x[:N_JOINTS], self._x[_DQ]
+        self._external_slot = self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS]
         self._tick_kernel = dynamics.hal_tick_entry()
         self._reset_session()
         self._load_kernel()
@@ -323,7 +328,9 @@ class SimHal(Hal):
 
         ``None`` removes it; a (4,) array is constant; a callable ``f(t_s, q_true, dq_true)``
         returning (4,) is called once per tick with the plant time and true state at the start of
-        the tick.
+        the tick (copies: it may keep them). A :class:`~hal.sim.pilot.SimulatedPilot` (that very
+        class) is evaluated by :meth:`~hal.sim.pilot.SimulatedPilot.torque_into` instead: the same
+        torque to the bit, computed from views of the state straight into the drive vector.
 
         Raises:
             ShapeError: an array not of shape (4,) (a callable's result is checked each tick).
@@ -331,9 +338,12 @@ class SimHal(Hal):
         """
         if torque is None or callable(torque):
             self._external = torque
+            # The exact type: a subclass may compute its torque otherwise than SimulatedPilot.torque_into.
+            self._external_pilot = torque if type(torque) is SimulatedPilot else None
             self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = 0.0
         else:
             self._external = joint_vector(torque, "external torque")
+            self._external_pilot = None
             self._drive_vector[dynamics.S_INPUTS + N_JOINTS : dynamics.S_INPUTS + 2 * N_JOINTS] = self._external
 
     def press_estop(self, which: int, pressed: bool) -> None:
@@ -512,7 +522,19 @@ class SimHal(Hal):
         return torque  # type: ignore[return-value]
 
     def _external_inputs(self) -> None:
-        """Evaluate a callable external torque (the pilot) for this tick into the drive vector."""
+        """Evaluate a callable external torque (the pilot) for this tick into the drive vector (Nm).
+
+        Raises:
+            ShapeError: the callable's torque is not of shape (4,).
+            InputError: it has a non-finite element (the drive vector keeps the previous tick's torque).
+        """
+        pilot = self._external_pilot
+        if pilot is not None:
+            # Views of the state instead of copies (the pilot's kernel only reads them), and the
+            # torque straight into the drive vector, finite or not written at all.
+            if not pilot.torque_into(self._tick * self._dt, self._true_q, self._true_dq, self._external_slot):
+                raise InputError(f"external torque: every element must be finite, got {pilot.torque_nm.tolist()}")
+            return
         external = self._external
         if callable(external):
             state = self._plant.state

@@ -29,7 +29,8 @@ Bodies are one composite rigid body per rotor frame (mass, CoM and full inertia 
 the CoM in that rotor frame); :mod:`hal.sim.plant` combines links and Dummy Arm segments.
 
 The kernels of the simulated drives (command FIFO, encoders, velocity filter; used by
-:mod:`hal.sim.backend`) are at the end of this file, for the reason given there.
+:mod:`hal.sim.backend`) and of the simulated pilot (:mod:`hal.sim.pilot`) are at the end of
+this file, for the reason given there.
 Units: rad, rad/s, Nm, kg, m, kg m^2, s.
 """
 
@@ -858,3 +859,108 @@ def hal_tick_entry() -> Callable[..., int]:
     before the call (``hal.sim.backend.SimHal.write``; ``tests/test_kernel_entry_points.py`` checks both).
     """
     return hal_tick.compile(HAL_TICK_SIGNATURE)
+
+
+# --- the simulated pilot (hal.sim.pilot) ------------------------------------------------------------
+# Here for the same reason as the drives' kernels: it calls bias_torque.
+
+# Pilot vector ``v`` layout: the pilot's impedance, the support it feels and its scratch.
+PILOT_STIFFNESS = 0  # K, Nm/rad, 4
+PILOT_DAMPING = 4  # D, Nms/rad, 4
+PILOT_FELT_SUPPORT = 8  # the spring torque the pilot feels (low-passed), Nm, 4
+PILOT_ZERO = 12  # zeros: the joint speeds of g(q) = bias_torque(q, 0), 4
+PILOT_GRAVITY = 16  # g(q), Nm, 4
+PILOT_TORQUE = 20  # the torque of the last evaluation, finite or not, Nm, 4
+PILOT_VECTOR_SIZE = 24
+
+
+@_kernel
+def pilot_torque(
+    q: FloatArray,
+    dq: FloatArray,
+    x: FloatArray,
+    p: FloatArray,
+    work: FloatArray,
+    v: FloatArray,
+    q_from: FloatArray,
+    q_to: FloatArray,
+    moving: bool,
+    shape: float,
+    adapt: bool,
+    alpha: float,
+    carried: float,
+    out: FloatArray,
+) -> bool:
+    """The pilot's torque on the links (Nm) into ``v[PILOT_TORQUE:]``, and into ``out`` (4,) if finite.
+
+    ``tau = K (q_target - q) - D q' + carried (g(q) - clip(s, min(g, 0), max(g, 0)))`` with
+    ``q_target = q_from + (q_to - q_from) shape`` while ``moving``, else ``q_from``; the felt
+    support ``s`` (Nm) first moves by ``alpha`` of the way to the plant's spring torque
+    ``k (theta - q) + d_s (theta' - q')`` at state ``x`` (``k``, ``d_s`` from ``p``: the values
+    ``DynamicPlant.spring_torque_nm`` multiplies with) when ``adapt``; the last term only where
+    ``carried > 0``. The same IEEE operations in the same order as the pilot's numpy formula on
+    arrays (kept in ``tests/test_pilot_fast_path.py``), no fast-math: the torque is numpy's to the
+    bit. Returns False, ``out`` untouched, if an element is not finite.
+    """
+    for j in range(N_JOINTS):
+        target = q_from[j] + (q_to[j] - q_from[j]) * shape if moving else q_from[j]
+        v[PILOT_TORQUE + j] = v[PILOT_STIFFNESS + j] * (target - q[j]) - v[PILOT_DAMPING + j] * dq[j]
+    if adapt:
+        for j in range(N_JOINTS):
+            spring = p[P_STIFFNESS + j] * (x[N_JOINTS + j] - x[j]) + p[P_SPRING_DAMPING + j] * (
+                x[3 * N_JOINTS + j] - x[2 * N_JOINTS + j]
+            )
+            v[PILOT_FELT_SUPPORT + j] += alpha * (spring - v[PILOT_FELT_SUPPORT + j])
+    if carried > 0.0:
+        gravity = v[PILOT_GRAVITY : PILOT_GRAVITY + N_JOINTS]
+        bias_torque(q, v[PILOT_ZERO : PILOT_ZERO + N_JOINTS], p, work, gravity)
+        for j in range(N_JOINTS):
+            g = gravity[j]
+            # np.minimum(g, 0.0) and np.maximum(g, 0.0): a NaN propagates, a tie (g = -0.0) gives the 0.0.
+            low = g if g < 0.0 or g != g else 0.0
+            high = g if g > 0.0 or g != g else 0.0
+            # np.clip(s, low, high), i.e. np.minimum(np.maximum(s, low), high) elementwise: a NaN
+            # propagates, a tie (signed zeros) gives the bound, as numpy's SIMD loops do.
+            felt = v[PILOT_FELT_SUPPORT + j]
+            felt = felt if felt > low or felt != felt else low
+            felt = felt if felt < high or felt != felt else high
+            v[PILOT_TORQUE + j] += carried * (g - felt)
+    for j in range(N_JOINTS):
+        if not math.isfinite(v[PILOT_TORQUE + j]):
+            return False
+    for j in range(N_JOINTS):
+        out[j] = v[PILOT_TORQUE + j]
+    return True
+
+
+#: The numba types :func:`pilot_torque` is resolved for (:func:`pilot_torque_entry`): ``q``,
+#: ``dq``, ``q_from`` and ``q_to`` as read-only float64 vectors of any strides (a view of the
+#: plant's state fits, and so does any float64 (4,) array the caller checked), the plant's state,
+#: parameters, the pilot's scratch and its vector (float64, C order), the flags and scalars, and
+#: ``out`` as a writable float64 vector in C order (a slice of the drive vector fits).
+PILOT_TORQUE_SIGNATURE = (
+    types.Array(types.float64, 1, "A", readonly=True),
+    types.Array(types.float64, 1, "A", readonly=True),
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.float64[::1],
+    types.Array(types.float64, 1, "A", readonly=True),
+    types.Array(types.float64, 1, "A", readonly=True),
+    types.boolean,
+    types.float64,
+    types.boolean,
+    types.float64,
+    types.float64,
+    types.float64[::1],
+)
+
+
+def pilot_torque_entry() -> Callable[..., bool]:
+    """:func:`pilot_torque`'s compiled entry point for :data:`PILOT_TORQUE_SIGNATURE` (loaded or compiled once).
+
+    Like :func:`hal_tick_entry`'s, it checks no argument type: the caller passes arrays made with
+    these types (``hal.sim.pilot.SimulatedPilot`` checks ``q`` and ``dq`` unless they are the
+    backend's views of the plant's state).
+    """
+    return pilot_torque.compile(PILOT_TORQUE_SIGNATURE)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hal.errors import InputError
+from hal.errors import InputError, ShapeError
 from hal.robot import N_JOINTS, FloatArray
 from hal.sim import dynamics
 from hal.sim.plant import DynamicPlant, joint_vector
@@ -59,6 +59,11 @@ class _Move:
     q_from: FloatArray
     q_to: FloatArray
 
+    def shape(self, t_s: float) -> float:
+        """The share (0-1) of the way from ``q_from`` to ``q_to`` at ``t_s`` (s), minimum-jerk timing."""
+        s = (t_s - self.start_s) / self.duration_s
+        return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+
 
 def move_duration_s(q_from: FloatArray, q_to: FloatArray, peak_speed_rad_s: float) -> float:
     """The duration (s) of a minimum-jerk move whose fastest joint peaks at ``peak_speed_rad_s``."""
@@ -79,6 +84,10 @@ class SimulatedPilot:
 
     Raises:
         InputError: a share outside [0, 1], negative impedances, or a non-positive adaptation time.
+
+    The torque is computed in one compiled kernel (:func:`hal.sim.dynamics.pilot_torque`), the
+    same operations in the same order as numpy on arrays, so bit for bit what the formula gives
+    with numpy; the simulated HAL calls it through :meth:`torque_into` every tick.
     """
 
     def __init__(
@@ -90,20 +99,30 @@ class SimulatedPilot:
         damping_nms_per_rad: Sequence[float] = DEFAULT_DAMPING_NMS_PER_RAD,
         adaptation_s: float = DEFAULT_ADAPTATION_S,
     ) -> None:
-        self._plant = plant
+        # The plant's own arrays (DynamicPlant never replaces them): its state for the spring
+        # torque, its parameters for the spring constants and g(q).
+        self._state = plant.state
         self._params = plant.params
         self._work = dynamics.new_work()  # the pilot's own scratch: never the plant's
-        self._zero = np.zeros(N_JOINTS)
-        self._gravity = np.zeros(N_JOINTS)
         self._k_nominal = np.asarray(stiffness_nm_per_rad, dtype=float)
-        self._k = self._k_nominal.copy()
-        self._d = np.asarray(damping_nms_per_rad, dtype=float)
-        if self._k.shape != (N_JOINTS,) or self._d.shape != (N_JOINTS,) or np.any(self._k < 0) or np.any(self._d < 0):
+        damping = np.asarray(damping_nms_per_rad, dtype=float)
+        if (
+            self._k_nominal.shape != (N_JOINTS,)
+            or damping.shape != (N_JOINTS,)
+            or np.any(self._k_nominal < 0)
+            or np.any(damping < 0)
+        ):
             raise InputError("pilot stiffness and damping need four non-negative values each")
         if not (math.isfinite(adaptation_s) and adaptation_s > 0.0):
             raise InputError(f"the pilot's adaptation time must be a positive number of seconds, got {adaptation_s}")
         self._adaptation_s = adaptation_s
-        self._felt_support = np.zeros(N_JOINTS)  # a session starts with the drives off: the pilot holds the arm
+        # Impedance, felt support (zero: a session starts with the drives off, the pilot holds the
+        # arm) and scratch in one array (dynamics.PILOT_*): each array argument of a kernel call costs.
+        self._vector = np.zeros(dynamics.PILOT_VECTOR_SIZE)
+        self._vector[dynamics.PILOT_STIFFNESS : dynamics.PILOT_STIFFNESS + N_JOINTS] = self._k_nominal
+        self._vector[dynamics.PILOT_DAMPING : dynamics.PILOT_DAMPING + N_JOINTS] = damping
+        self._kernel = dynamics.pilot_torque_entry()
+        self._discarded = np.empty(N_JOINTS)  # the kernel's out when the caller wants the torque whatever it is
         self._last_t_s: float | None = None
         self._moves: list[_Move] = []
         self._hold = joint_vector(q_rad, "pilot pose").copy()
@@ -123,18 +142,23 @@ class SimulatedPilot:
         """Scale the pilot's stiffness (0: limp, the robot moves the arm freely; 1: as constructed)."""
         if not 0.0 <= scale <= 2.0:
             raise InputError(f"pilot stiffness scale must be in [0, 2], got {scale}")
-        self._k = self._k_nominal * scale
+        self._vector[dynamics.PILOT_STIFFNESS : dynamics.PILOT_STIFFNESS + N_JOINTS] = self._k_nominal * scale
+
+    def _move_at(self, t_s: float) -> _Move | None:
+        """The move under way at ``t_s`` (s), None while the pilot holds ``_hold``; finished moves are dropped."""
+        moves = self._moves
+        while moves and t_s >= moves[0].start_s + moves[0].duration_s:
+            self._hold = moves.pop(0).q_to
+        if not moves or t_s < moves[0].start_s:
+            return None
+        return moves[0]
 
     def target(self, t_s: float) -> FloatArray:
         """Where the pilot wants the arm at ``t_s`` (4,), rad."""
-        while self._moves and t_s >= self._moves[0].start_s + self._moves[0].duration_s:
-            self._hold = self._moves.pop(0).q_to
-        if not self._moves or t_s < self._moves[0].start_s:
+        move = self._move_at(t_s)
+        if move is None:
             return self._hold
-        move = self._moves[0]
-        s = (t_s - move.start_s) / move.duration_s
-        shape = s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
-        return move.q_from + (move.q_to - move.q_from) * shape
+        return move.q_from + (move.q_to - move.q_from) * move.shape(t_s)
 
     def stop(self, t_s: float) -> None:
         """Stop where the target is at ``t_s``: every planned move is dropped."""
@@ -187,18 +211,53 @@ class SimulatedPilot:
     def moving(self) -> bool:
         return bool(self._moves)
 
+    @property
+    def torque_nm(self) -> FloatArray:
+        """The torque of the last evaluation (4,), Nm, finite or not (a copy)."""
+        return self._vector[dynamics.PILOT_TORQUE : dynamics.PILOT_TORQUE + N_JOINTS].copy()
+
     def __call__(self, t_s: float, q_rad: FloatArray, dq_rad_s: FloatArray) -> FloatArray:
-        torque = self._k * (self.target(t_s) - q_rad) - self._d * dq_rad_s
+        """The pilot's torque (4,), Nm, at plant time ``t_s`` (s) and link state ``q_rad``, ``dq_rad_s``.
+
+        A new array, finite or not (the caller checks). The felt support follows the plant's spring
+        torque now, with the adaptation lag over the time since the previous evaluation.
+
+        Raises:
+            ShapeError: ``q_rad`` or ``dq_rad_s`` is not of shape (4,).
+        """
+        q = np.asarray(q_rad, dtype=np.float64)
+        dq = np.asarray(dq_rad_s, dtype=np.float64)
+        if q.shape != (N_JOINTS,) or dq.shape != (N_JOINTS,):
+            raise ShapeError(f"the pilot needs q and dq of shape ({N_JOINTS},), got {q.shape} and {dq.shape}")
+        self.torque_into(t_s, q, dq, self._discarded)
+        return self.torque_nm
+
+    def torque_into(self, t_s: float, q_rad: FloatArray, dq_rad_s: FloatArray, out: FloatArray) -> bool:
+        """The pilot's torque (Nm) at ``t_s`` (s) and ``q_rad``, ``dq_rad_s`` into ``out``; False if not finite.
+
+        What :meth:`__call__` computes, without allocating: the simulated HAL's tick passes views
+        of the plant's state and its drive vector. A torque with a non-finite element is not
+        written (``out`` keeps what it held; :attr:`torque_nm` has it).
+
+        The types are not checked (the compiled entry point reads the arrays as such): ``q_rad``
+        and ``dq_rad_s`` float64 arrays of shape (4,), ``out`` a writable C-contiguous float64
+        array of shape (4,).
+        """
+        move = self._move_at(t_s)
+        if move is None:
+            q_from = q_to = self._hold
+            moving, shape = False, 0.0
+        else:
+            q_from, q_to = move.q_from, move.q_to
+            moving, shape = True, move.shape(t_s)
         dt = 0.0 if self._last_t_s is None else max(t_s - self._last_t_s, 0.0)
         self._last_t_s = t_s
-        if dt > 0.0:  # the support the pilot feels follows the springs' torque with the adaptation lag
-            self._felt_support += (1.0 - math.exp(-dt / self._adaptation_s)) * (
-                self._plant.spring_torque_nm() - self._felt_support
-            )
-        if self._carried > 0.0:  # g(q) straight from the plant's compiled kernel: q comes from the plant itself
-            dynamics.bias_torque(q_rad, self._zero, self._params, self._work, self._gravity)
-            gravity = self._gravity
-            # Support counts between 0 and the full weight, per joint: beyond it the robot pushes.
-            felt = np.clip(self._felt_support, np.minimum(gravity, 0.0), np.maximum(gravity, 0.0))
-            torque += self._carried * (gravity - felt)
-        return torque
+        # The support the pilot feels follows the springs' torque with the adaptation lag (only
+        # when time moved on). g(q) comes from the plant's compiled bias_torque inside the kernel;
+        # support counts there between 0 and the full weight, per joint: beyond it the robot pushes.
+        adapt = dt > 0.0
+        alpha = 1.0 - math.exp(-dt / self._adaptation_s) if adapt else 0.0
+        return self._kernel(
+            q_rad, dq_rad_s, self._state, self._params, self._work, self._vector,
+            q_from, q_to, moving, shape, adapt, alpha, self._carried, out,
+        )  # fmt: skip
