@@ -78,13 +78,19 @@ class SlopeFollower:
     _last_write_s: float = field(default=-math.inf, init=False)
     _lower_since_s: float | None = field(default=None, init=False)
     _lower_largest: int = field(default=0, init=False)
+    # wanted()'s answers by torque (a pure function of it; at most the 2 x peak + 2 torques a drive can be sent)
+    _wanted_of: dict[int | None, int] = field(default_factory=dict, init=False, repr=False)
 
     def wanted(self, torque_permille: int | None) -> int:
         """The slope for ``torque_permille`` (None: the drive is not commanded torque: the peak's)."""
-        if torque_permille is None:
-            return slope_for(self.peak_permille, self.ramp_s)
-        floor = FLOOR_FRACTION * self.peak_permille
-        return slope_for(max(abs(torque_permille), floor), self.ramp_s)
+        found = self._wanted_of.get(torque_permille)
+        if found is None:  # once per torque: due() runs per drive and cycle (issue 25)
+            if torque_permille is None:
+                found = slope_for(self.peak_permille, self.ramp_s)
+            else:
+                found = slope_for(max(abs(torque_permille), FLOOR_FRACTION * self.peak_permille), self.ramp_s)
+            self._wanted_of[torque_permille] = found
+        return found
 
     def due(self, torque_permille: int | None, now_s: float) -> int | None:
         """The slope to write now (per mille per second), or None: nothing to write this cycle.
