@@ -415,7 +415,7 @@ class CanHal(Hal):
                     self._torque_off()
                     raise ShapeError(f"motor_torque_nm: expected shape ({N_JOINTS},), got {shape}")
                 torque = np.asarray(torque, dtype=float)
-            if not all(math.isfinite(float(t)) for t in torque):
+            if not all(map(math.isfinite, torque.tolist())):  # Python floats, tested in C: no generator a tick
                 self._torque_off()
                 raise HalError(f"motor_torque_nm = {np.asarray(torque).tolist()} is not finite; torque removed")
         self._sample = None

@@ -194,8 +194,12 @@ def steady_program(
         "    target = values.get(TARGET_KEY, UNSET)",
         f"    target = int(get({target_torque_key[0]:#06x}, {target_torque_key[1]}) if target is UNSET else target)",
     ]
-    if max_torque_key is not None:
-        lines.append(f"    limit = int(get({max_torque_key[0]:#06x}, {max_torque_key[1]}))")
+    if max_torque_key is not None:  # _get's answer: a stored value, else the factory's (never computed)
+        names["MAX_KEY"] = max_torque_key
+        lines.append("    limit = values.get(MAX_KEY, UNSET)")
+        lines.append(
+            f"    limit = int(get({max_torque_key[0]:#06x}, {max_torque_key[1]}) if limit is UNSET else limit)"
+        )
     else:
         lines.append(f"    limit = {int16_high}")
     lines.append("    return float(max(-limit, min(limit, target))) * NM_PER_PERMILLE")
