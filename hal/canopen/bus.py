@@ -42,7 +42,7 @@ from collections import deque
 from collections.abc import Callable
 from itertools import repeat, starmap
 from pathlib import Path
-from typing import NamedTuple
+from typing import IO, NamedTuple, cast
 
 import can
 
@@ -308,8 +308,7 @@ class TrafficLog:
             raise HalError(f"{self.path}: the bus log's writer process cannot be started ({exc})") from None
         finally:
             os.close(fd)  # the writer process has its own
-        assert self._process.stdin is not None
-        self._to_writer = self._process.stdin.fileno()
+        self._to_writer = cast(IO[bytes], self._process.stdin).fileno()  # stdin=PIPE: always a pipe
         self._pending: deque[tuple[int, bytes, float, bool]] = deque()
         self.error: str | None = None
         #: Lines in the file, as the writer process reports at its end (after :meth:`close`).

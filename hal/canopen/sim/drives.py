@@ -221,10 +221,11 @@ class SimulatedDriveSet:
         frames.clear()
         sample = self.plant.read_without_faults()
         operator, pilot = sample.estop[0], sample.estop[1]
-        q, theta, tau = sample.q_rad, sample.theta_rad, sample.tau_nm
+        # Python floats, three calls (the same values as float() of each element: twelve calls)
+        q, theta, tau = sample.q_rad.tolist(), sample.theta_rad.tolist(), sample.tau_nm.tolist()
         applied = self._applied
         for j, drive in enumerate(drives):
-            applied[j] = drive.steady_sync(rpdos[j], float(q[j]), float(theta[j]), float(tau[j]), operator, pilot, now)
+            applied[j] = drive.steady_sync(rpdos[j], q[j], theta[j], tau[j], operator, pilot, now)
         self.syncs += 1
         self._plant_tick(operator, pilot, applied)
         return True
