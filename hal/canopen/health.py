@@ -270,7 +270,9 @@ class BusHealth:
                 read = None
             if read is not None:
                 self._by_read = read
-        worst = max(self._by_frame, self._by_read, key=_RANK.__getitem__)
+        by_frame, by_read = self._by_frame, self._by_read
+        # nearly always one state (error-active): no rank look-up then (an Enum's hash is a Python call)
+        worst = by_frame if by_frame is by_read else max(by_frame, by_read, key=_RANK.__getitem__)
         if worst is not self.state:
             self._enter(worst, t_s)
 
