@@ -354,11 +354,12 @@ class SimulatedDriveSet:
             HalError: the plant failed (diverged).
         """
         torques = self._torques
-        enable = False
+        applied = [drive.applied_torque_nm for drive in self.drives] if applied_nm is None else applied_nm
+        torques[:] = applied
+        # any torque that is not zero (a NaN counts, -0.0 does not), in Python floats: one call, not four
+        enable = applied.count(0.0) != len(applied)
         stage_on = self._stage_on
         for j, drive in enumerate(self.drives):
-            torques[j] = drive.applied_torque_nm if applied_nm is None else applied_nm[j]
-            enable = enable or torques[j] != 0.0
             on = drive.power_state in _STAGE_ON and not drive.power_cut
             if on is not stage_on[j]:  # a change: a handful a session, for the HIL report
                 stage_on[j] = on
