@@ -18,6 +18,7 @@ tests/test_canopen_robot_file.py and the slow session test).
 
 from __future__ import annotations
 
+import gc
 import itertools
 import math
 import time
@@ -72,7 +73,14 @@ def rig() -> Iterator[Rig]:
         stack.callback(hal.close)
         for n in NODE_IDS:
             drives.call(lambda n=n: _heartbeat_period_from_operational(drives.node(n)))
-        hal.open()
+        # The wall-clock start-up the tests time: a full collection of this process's heap (late in the
+        # suite, thousands of tests' objects: hundreds of ms holding the GIL) must not stall durand's
+        # threads meanwhile (a first OPERATIONAL heartbeat 0.45 s after NMT start once, in a clean run).
+        gc.disable()
+        try:
+            hal.open()
+        finally:
+            gc.enable()
         yield Rig(drives, hal)
         hal.close()
         assert [drives.power(n) for n in NODE_IDS] == [DevicePower.SWITCH_ON_DISABLED] * 4  # close disables
