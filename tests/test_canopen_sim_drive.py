@@ -280,6 +280,22 @@ def test_a_non_finite_sensor_value_is_a_simulation_bug(bad: float) -> None:
     assert bench.drive.value(obj.POSITION_ACTUAL) == round(0.3 / RAD_PER_INC)  # nothing changed
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_the_steady_sync_meets_a_non_finite_reading_as_the_general_path_does(bad: float) -> None:
+    """The generated steady program takes the general way for a non-finite reading: the RPDO taken, ValueError."""
+    bench = rig()
+    bench.enable()
+    bench.sync(0.002, theta=0.3)
+    frame = (RPDO1, struct.pack("<Hh", CW_ENABLE_OPERATION, 300))
+    assert bench.drive.steady_sync_ready(frame, 0.004)
+    with pytest.raises(ValueError, match="non-finite"):
+        bench.drive.steady_sync(frame, bad, 0.3, 0.0, False, False, 0.004)
+    assert bench.drive.value(obj.POSITION_ACTUAL) == round(0.3 / RAD_PER_INC)  # nothing sampled
+    assert bench.drive.applied_torque_nm == 0.0
+    bench.sync(0.006, theta=0.3)  # the RPDO was received: it acts at the next SYNC, as on the general path
+    assert bench.drive.applied_torque_nm == pytest.approx(3.0)
+
+
 def test_a_tpdo_of_transmission_type_n_goes_every_nth_sync_since_the_node_started() -> None:
     bench = rig()
     bench.configure()

@@ -12,8 +12,6 @@ refused with the message it had, and any other callable takes the generic path.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import pytest
@@ -32,6 +30,7 @@ from hal.sim.pilot import (
     SimulatedPilot,
 )
 from hal.sim.plant import DynamicPlant, joint_vector
+from tests.test_kernel_entry_points import Spy
 
 EXTERNAL = slice(dynamics.S_INPUTS + N_JOINTS, dynamics.S_INPUTS + 2 * N_JOINTS)
 
@@ -306,18 +305,6 @@ def test_the_pilot_refuses_q_and_dq_of_another_shape(hal: SimHal) -> None:
         pilot(0.0, np.zeros(3), np.zeros(4))
     with pytest.raises(ShapeError):
         pilot(0.0, np.zeros(4), np.zeros((1, 4)))
-
-
-class Spy:
-    """Stands in for the pilot's entry point: records every call's arguments, then calls it."""
-
-    def __init__(self, entry: Callable[..., Any]) -> None:
-        self.entry = entry
-        self.calls: list[tuple[object, ...]] = []
-
-    def __call__(self, *args: object) -> Any:
-        self.calls.append(args)
-        return self.entry(*args)
 
 
 def test_what_reaches_the_pilots_entry_point_fits_its_signature(hal: SimHal) -> None:

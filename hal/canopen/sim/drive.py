@@ -602,26 +602,6 @@ class SimulatedSeaDrive:
             )  # fmt: skip
         return program(rpdo, q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s)
 
-    def _steady_sync_general(
-        self,
-        rpdo: tuple[int, bytes] | None,
-        q_rad: float,
-        theta_rad: float,
-        tau_nm: float,
-        estop_operator: bool,
-        estop_pilot: bool,
-        now_s: float,
-    ) -> float:
-        """:meth:`steady_sync` the general way (:meth:`receive`, :meth:`on_sync`): for a reading that is not finite.
-
-        Raises:
-            ValueError: an angle or a torque that is not finite (always, here: the RPDO was taken first).
-        """
-        if rpdo is not None:
-            self.receive(rpdo[0], rpdo[1], now_s)
-        self.on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)
-        return self.applied_torque_nm
-
     def _steady_layout(self) -> tuple[dict[int, _SteadyRpdo], tuple[_SteadyTpdo, ...]]:
         """What :meth:`steady_sync` needs of the PDOs, once per change of their parameters: the synchronous RPDOs
         by CAN-ID, and the valid TPDOs as :meth:`_tpdo_sources` gives them with the statusword's key None

@@ -45,7 +45,7 @@ def steady_program(
     """The steady SYNC of ``drive`` for this layout, compiled.
 
     The steps, as :meth:`SimulatedSeaDrive.steady_sync` documents them: a reading that is not
-    finite goes the general way (``drive._steady_sync_general``, which raises); the RPDO is
+    finite goes the general way (``receive``, then ``on_sync``, which raises); the RPDO is
     unpacked and its arrival time stored; the e-stop inputs stored, the power stage supplied; the
     sensors quantised into their objects (saturated at their types); the SYNC counted; the RPDO's
     objects written in mapping order (an object with limits stored when in range; the controlword
@@ -79,7 +79,8 @@ def steady_program(
         "write_problem": drive._write_problem,
         "controlword_idle": drive._controlword_idle,
         "computed": drive._computed_value,
-        "general": drive._steady_sync_general,
+        "receive": drive.receive,
+        "on_sync": drive.on_sync,
         "STATUSWORD_KEY": statusword_key,
         "OPERATION_ENABLED": PowerState.OPERATION_ENABLED,
         "UNSET": _UNSET,
@@ -96,7 +97,10 @@ def steady_program(
     lines = [
         "def program(rpdo, q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s):",
         "    if not (isfinite(q_rad) and isfinite(theta_rad) and isfinite(tau_nm)):",
-        "        return general(rpdo, q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s)",
+        "        if rpdo is not None:  # the general way: it raises ValueError, the RPDO taken first",
+        "            receive(rpdo[0], rpdo[1], now_s)",
+        "        on_sync(q_rad, theta_rad, tau_nm, estop_operator, estop_pilot, now_s, False)",
+        "        return drive.applied_torque_nm",
     ]
     written_by_rpdo = {key for _, _, _, objects in rpdos.values() for key, _ in objects}
     # 1. the RPDO unpacked, its arrival stored
