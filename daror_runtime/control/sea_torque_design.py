@@ -48,6 +48,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from daror_runtime.control import lti_conversion
 from daror_runtime.control.base import ControlDesignError
 from daror_runtime.control.filters import DiscreteTransferFunction
 from hal.robot import FloatArray, SeaConstants
@@ -173,10 +174,11 @@ def zoh_locked_plant(plant: SeaPlant, period_s: float) -> DiscreteTransferFuncti
 
 
 def _ss_to_tf_zoh(a: FloatArray, b: FloatArray, c: FloatArray, period_s: float) -> tuple[FloatArray, FloatArray]:
-    from scipy import signal
-
-    ad, bd, cd, dd, _ = signal.cont2discrete((a, b, c, np.zeros((c.shape[0], b.shape[1]))), period_s, method="zoh")
-    num, den = signal.ss2tf(ad, bd, cd, dd)
+    # scipy.signal's cont2discrete and ss2tf, to the bit, without importing scipy.signal (~0.5 s)
+    ad, bd, cd, dd, _ = lti_conversion.cont2discrete_ss(
+        a, b, c, np.zeros((c.shape[0], b.shape[1])), period_s, method="zoh"
+    )
+    num, den = lti_conversion.ss2tf(ad, bd, cd, dd)
     return np.asarray(num, dtype=float).ravel(), np.asarray(den, dtype=float).ravel()
 
 

@@ -20,7 +20,6 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import qmc
 
 from hal.isb import AngleRange, IsbLimits, Shoulder
 from hal.robot import N_JOINTS, FloatArray
@@ -116,6 +115,9 @@ def candidate_poses(
         min_sigma: smallest singular value of the shoulder Jacobian at a pose or via.
         via_deg: joint offset of the vias, degrees; ``None``: poses are approached once.
     """
+    # here: scipy.stats takes ~0.4 s to import, and a session imports this module without designing
+    from scipy.stats import qmc
+
     inner = shrunk(limits, margin_deg)
     lo, hi = inner.lower_rad, inner.upper_rad
     sample = qmc.Sobol(d=N_JOINTS, scramble=True, seed=seed).random(count)
