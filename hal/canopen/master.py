@@ -173,6 +173,9 @@ class _Drive:
     torque_counts: int = 0
     estop_word: int = 0
     tpdo_syncs: list[int] = field(default_factory=list)  # per TPDO: the SYNC whose TPDO arrived last
+    #: The SYNC all of whose TPDOs arrived last (-1: none yet): min(tpdo_syncs), kept by _dispatch (read
+    #: twelve times a cycle: a field, not a property; issue 25).
+    last_sync: int = -1
     lost: str | None = None  # a key of LOST_CODES while lost
     lost_why: str = ""
     emcy: EmcyMessage | None = None  # an error reported by EMCY and not reset yet
@@ -186,12 +189,12 @@ class _Drive:
 
     def __post_init__(self) -> None:
         self.node_id = self.profile.node_id
-        self.tpdo_syncs = [-1] * len(self.profile.pdos.tpdos)
+        self.forget_tpdos()
 
-    @property
-    def last_sync(self) -> int:
-        """The SYNC all of whose TPDOs arrived last (-1: none yet)."""
-        return min(self.tpdo_syncs)
+    def forget_tpdos(self) -> None:
+        """No TPDO arrived yet (a start, a drive brought back)."""
+        self.tpdo_syncs = [-1] * len(self.profile.pdos.tpdos)
+        self.last_sync = -1
 
 
 class _JointScale(NamedTuple):
@@ -733,6 +736,8 @@ class CanMaster:
                     self._recovery_failed(drive, done.error)
         if latency >= 0.0:
             self.last_tpdo_latency_s = latency
+        for drive in self.drives:  # the handlers set tpdo_syncs (only they, and forget_tpdos)
+            drive.last_sync = min(drive.tpdo_syncs)
 
     def _on_heartbeat(self, drive: _Drive, frame: Frame) -> None:
         state = parse_heartbeat(frame.data)
@@ -1014,7 +1019,7 @@ class CanMaster:
                 self._reaction_configured(drive)
                 self._send(*nmt_frame(NmtCommand.START, drive.node_id))
                 recovery.phase, recovery.since_s = "start", now
-                drive.tpdo_syncs = [-1] * len(drive.tpdo_syncs)
+                drive.forget_tpdos()
                 drive.power = None
             elif recovery.phase == "start":
                 if drive.last_sync >= self.syncs - 1 >= 0:

@@ -251,6 +251,8 @@ class SdoClient:
 
     def startable(self) -> int:
         """How many nodes have a transfer queued and none in flight: the most :meth:`frames_due` would start."""
+        if not any(self._queues.values()):  # nearly every cycle: nothing queued (one C call, no generator)
+            return 0
         return sum(1 for node_id, queue in self._queues.items() if queue and node_id not in self._in_flight)
 
     def frames_due(self, now_s: float, limit: int | None = None) -> list[tuple[int, bytes]]:
@@ -259,6 +261,8 @@ class SdoClient:
         ``limit``: start at most this many (None: one per idle node). The nodes take turns: the one
         that started last goes to the back, so a limit never starves a node.
         """
+        if not self._in_flight and not any(self._queues.values()):  # nearly every cycle: nothing to do
+            return []
         for node_id, transfer in list(self._in_flight.items()):
             if transfer.sent_at_s is not None and now_s - transfer.sent_at_s > self.timeout_s:
                 transfer.done = True

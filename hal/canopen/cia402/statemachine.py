@@ -189,6 +189,8 @@ class StepOutcome:
 
 #: The outcome of each controlword with nothing to report: nearly every step's, made once (frozen, shared).
 _QUIET_OUTCOMES: dict[int, StepOutcome] = {}
+#: A session's step with torque wanted from a drive in OPERATION ENABLED (PowerStepper.step's first test)
+_QUIET_ENABLE_OPERATION = _QUIET_OUTCOMES[CW_ENABLE_OPERATION] = StepOutcome(CW_ENABLE_OPERATION)
 
 
 class PowerStepper:
@@ -228,6 +230,14 @@ class PowerStepper:
         master wrote twice without reading, or the drive's TPDO is late) is no tick the drive
         "stayed" in it: the wait is not counted (a late drive is the watchdogs' to judge).
         """
+        # Nearly every tick of a session, answered first: what the general steps below give for it
+        if (
+            state is PowerState.OPERATION_ENABLED
+            and want_torque
+            and self._command == CW_ENABLE_OPERATION
+            and not self._reset_phase
+        ):
+            return _QUIET_ENABLE_OPERATION
         if self._reset_phase:
             if state is PowerState.FAULT or self._reset_phase == 2:
                 command = CW_DISABLE_VOLTAGE if self._reset_phase == 1 else CW_FAULT_RESET

@@ -80,6 +80,9 @@ class SlopeFollower:
     _lower_largest: int = field(default=0, init=False)
     # wanted()'s answers by torque (a pure function of it; at most the 2 x peak + 2 torques a drive can be sent)
     _wanted_of: dict[int | None, int] = field(default_factory=dict, init=False, repr=False)
+    # the torques whose slope is within the tolerance of ``_fitting_held`` (due() answers None at once while held is it)
+    _fitting: set[int | None] = field(default_factory=set, init=False, repr=False)
+    _fitting_held: int = field(default=-1, init=False, repr=False)
 
     def wanted(self, torque_permille: int | None) -> int:
         """The slope for ``torque_permille`` (None: the drive is not commanded torque: the peak's)."""
@@ -100,6 +103,9 @@ class SlopeFollower:
                 commanded torque).
             now_s: the master's time, s.
         """
+        if torque_permille in self._fitting and self._fitting_held == self.held:  # nearly every cycle (issue 25)
+            self._lower_since_s = None
+            return None
         wanted = self.wanted(torque_permille)
         if wanted > self.held * (1.0 + TOLERANCE):
             self._lower_since_s = None
@@ -113,6 +119,10 @@ class SlopeFollower:
                 return self._write(self._lower_largest, now_s)
             return None
         self._lower_since_s = None  # within the tolerance: the drive's ramp fits
+        if self._fitting_held != self.held:
+            self._fitting.clear()
+            self._fitting_held = self.held
+        self._fitting.add(torque_permille)
         return None
 
     def _write(self, slope: int, now_s: float) -> int | None:

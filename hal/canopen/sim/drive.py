@@ -313,6 +313,8 @@ class SimulatedSeaDrive:
         self._heard_s: dict[int, float] = {}
         self._consumer_set_s = 0.0
         self._consumer_lost = False
+        # Before this time the heartbeat consumer cannot fire (-inf: not known; derived by _check_consumer)
+        self._consumer_quiet_until_s = -math.inf
         self._rpdo_deadline_lost = False  # the RPDO deadline ran out (once per loss: until an RPDO comes)
         self._communication_errors: set[int] = set()  # losses of the master in force without a fault
         self._ramp: StopRamp | None = None  # the torque ramp of a quick stop or fault reaction under way
@@ -435,6 +437,7 @@ class SimulatedSeaDrive:
         self._powered = True
         self._values.clear()
         self._consumer = None
+        self._consumer_quiet_until_s = -math.inf
         self._fault_register = 0
         self._drop_until_s = None
         self._power = PowerState.SWITCH_ON_DISABLED
@@ -677,7 +680,7 @@ class SimulatedSeaDrive:
         # SYNC per drive, and most of the time none of them has anything to do.
         if self._power in _RAMPING_STATES:
             self._step_stop(now_s)
-        if not self._consumer_lost:
+        if not self._consumer_lost and now_s >= self._consumer_quiet_until_s:
             self._check_consumer(now_s)
         if self._nmt is NmtState.OPERATIONAL and self._power in _COMMANDED_STATES and not self._rpdo_deadline_lost:
             self._check_rpdo_deadline(now_s)
@@ -858,6 +861,7 @@ class SimulatedSeaDrive:
             self._consumer_set_s = now_s
             self._consumer_lost = False
             self._consumer = None
+            self._consumer_quiet_until_s = -math.inf
         slot = self._slots.get(index)
         if slot is not None:
             self._codecs.pop(slot.comm, None)
@@ -1081,6 +1085,7 @@ class SimulatedSeaDrive:
         self._heard_s.clear()
         self._consumer_set_s = now_s
         self._consumer_lost = False
+        self._consumer_quiet_until_s = -math.inf
         self._rpdo_deadline_lost = False
         if self._communication_errors:
             self._communication_errors.clear()  # communication faults are gone with a reset communication
@@ -1413,6 +1418,7 @@ class SimulatedSeaDrive:
         if node_id == self._node_id or parse_heartbeat(data) is None:
             return
         self._heard_s[node_id] = now_s
+        self._consumer_quiet_until_s = -math.inf
         if node_id == self._consumed()[0]:
             self._consumer_lost = False
             self._master_back(ERROR_HEARTBEAT, now_s)
@@ -1433,12 +1439,22 @@ class SimulatedSeaDrive:
         """
         node, time_ms = self._consumed()
         heard = self._heard_s.get(node)
-        if time_ms == 0 or node == 0 or heard is None or self._consumer_lost:
+        if time_ms == 0 or node == 0 or heard is None:
+            # Nothing to watch until a heartbeat or a write of 0x1016 (each sets the time back to -inf)
+            self._consumer_quiet_until_s = math.inf
             return
-        silent_s = now_s - max(heard, self._consumer_set_s)
+        if self._consumer_lost:
+            return
+        since_s = max(heard, self._consumer_set_s)
+        silent_s = now_s - since_s
         if self._nmt is NmtState.OPERATIONAL and silent_s > time_ms / 1000.0 + _TIME_EPS_S:
             self._consumer_lost = True
             self._lose_master(ERROR_HEARTBEAT, now_s)
+        else:
+            # advance() skips this check until then (issue 25): before it, silent_s <= time_ms / 1000 up to
+            # rounding (1e-13 s at 1e3 s), which the test's _TIME_EPS_S (1e-9 s) covers. Any NMT state: a
+            # drive that becomes OPERATIONAL earlier is not silent long enough yet.
+            self._consumer_quiet_until_s = since_s + time_ms / 1000.0
 
     # ------------------------------------------------------------------ the bus
 
