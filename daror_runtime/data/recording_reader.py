@@ -17,7 +17,6 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from daror_runtime.data.load import check_raw_log
 from daror_runtime.data.recorder import DTYPE, FORMAT_NAME, FORMAT_VERSION, VALUE_BYTES
 from daror_runtime.data.schema import DQ_COLUMNS, Q_COLUMNS, TAU_CMD_COLUMNS, TAU_COLUMNS, THETA_COLUMNS, RawLog
 from daror_runtime.errors import DataError
@@ -226,5 +225,8 @@ def recording_to_raw_log(
         tau_cmd_nm=arrays.get("tau_cmd"),
         source=str(path),
     )
+    # here: data.load brings the table readers along (~25 ms), which a session's start-up does not need
+    from daror_runtime.data.load import check_raw_log
+
     check_raw_log(raw, lambda row, column: f"{path}: row {int(rows[row])}, column {column}")
     return raw

@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path, write_dataset
 from daror_runtime.errors import InputError
 from daror_runtime.identification.design import DesignSettings, design_protocol
 from daror_runtime.identification.protocol import IdentificationRun, finish_recording, plan_run
@@ -104,6 +103,9 @@ def widened(limits: IsbLimits, tolerance_deg: float) -> IsbLimits:
 
 def next_free_path(directory: Path, stem: str, suffix: str) -> Path:
     """``directory/stem.suffix``, or ``stem_2.suffix``, ... : a file is never overwritten."""
+    # here: data.load brings the table readers along (~25 ms), which a session's start-up does not need
+    from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path
+
     path = directory / f"{stem}{suffix}"
     n = 2
     while path.exists() or raw_log_path(path, RAW_LOG_SUFFIX).exists():
@@ -200,6 +202,8 @@ def finish_run(run: IdentificationRun) -> RunSummary:
         ProtocolAbortedError: no stop of the trajectory held still, or the recorder dropped rows.
         DataError: the recording cannot be read back.
     """
+    from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path, write_dataset
+
     data = finish_recording(run)
     raw_path = raw_log_path(run.dataset_path, RAW_LOG_SUFFIX)
     write_dataset(raw_path, data.raw)

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import structlog
 
-from daror_runtime.data.load import load_stationary
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import InputError, ModelFileError, UsageError
 from daror_runtime.fsm.signals import SelectedModel
@@ -66,6 +65,9 @@ def train_model(
         UsageError: the registry does not let a session train ``kind`` (capability ``session_training``).
         DataError, IdentifiabilityError: the data cannot train the model.
     """
+    # here: data.load brings the table readers along (~25 ms), which a session's start-up does not need
+    from daror_runtime.data.load import load_stationary
+
     entry = kind_entry(kind)
     if not entry.session_training:
         raise UsageError(f"model kind {kind} cannot be trained in a session")
@@ -120,6 +122,8 @@ def read_model_candidate(path: Path, validation_path: Path, description: RobotDe
         NotHeldOutError: the validation file is the one the model was trained on.
         DataError: the raw log beside the validation file (a hysteresis model's path) is not this run's.
     """
+    from daror_runtime.data.load import load_stationary
+
     model, document = load_model(path)
     if document.robot.geometry != description.geometry:
         raise ModelFileError(f"{path}: the model was fitted for another robot geometry than this session's")
