@@ -918,6 +918,28 @@ def test_start_resets_the_consumer() -> None:
     assert consumer.newly_lost(5.25) == [4]
 
 
+@pytest.mark.parametrize("step_s", [1 / 1024, 0.0025, 0.001])
+def test_a_loss_is_reported_at_the_first_check_past_the_consumer_time(step_s: float) -> None:
+    """Checked every tick: the loss comes at the first tick whose silence exceeds the time, not one later."""
+    consumer = HeartbeatConsumer((1, 2), timeout_s=0.1)
+    consumer.start(0.0)
+    now, heard = 0.0, {1: 0.0, 2: 0.0}
+    reported: dict[int, float] = {}
+    for n in range(1, 600):
+        now = n * step_s
+        if n % 7 == 0 and now < 0.3:  # node 2 beats until 0.3 s; node 1 until 0.2 s
+            consumer.on_heartbeat(2, NmtState.OPERATIONAL, now)
+            heard[2] = now
+        if n % 11 == 0 and now < 0.2:
+            consumer.on_heartbeat(1, NmtState.OPERATIONAL, now)
+            heard[1] = now
+        for node in consumer.newly_lost(now):
+            reported[node] = now
+    for node in (1, 2):
+        first = next(k * step_s for k in range(1, 600) if k * step_s - heard[node] > 0.1)
+        assert reported[node] == first
+
+
 def test_a_heartbeat_of_a_node_not_watched_is_ignored() -> None:
     consumer = HeartbeatConsumer((1,), timeout_s=0.1)
     consumer.start(0.0)

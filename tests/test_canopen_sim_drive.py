@@ -528,6 +528,25 @@ def test_a_producer_time_of_zero_stops_the_heartbeat() -> None:
 # ---------------------------------------------------------------------------- heartbeat consumer
 
 
+@pytest.mark.parametrize("step_s", [1 / 1024, 0.0025, 0.001])
+def test_the_rpdo_deadline_faults_at_the_first_advance_past_it(step_s: float) -> None:
+    """advance() skips the deadline check while no deadline can run out: never past the first late advance."""
+    bench = rig()
+    bench.enable()
+    assert bench.write(0x1400, 5, u16(10)) == ok(0x1400, 5)  # RPDO1's event timer: a 10 ms deadline
+    deadline_s = 0.010
+    last_rpdo_s, faulted_at = 0.0, None
+    for n in range(1, 400):
+        now = n * step_s
+        if now < 0.1:  # the master commands until 0.1 s, then goes quiet
+            bench.step(CW_ENABLE_OPERATION, 0, now)
+            last_rpdo_s = now
+        bench.drive.advance(now)
+        if faulted_at is None and any(data[:2] == struct.pack("<H", 0x8250) for data in bench.on(EMCY)):
+            faulted_at = now
+    assert faulted_at == next(k * step_s for k in range(1, 400) if k * step_s - last_rpdo_s > deadline_s)
+
+
 def consumer_rig(consumer_ms: int = 100) -> Rig:
     bench = rig()
     assert bench.write(obj.CONSUMER_HEARTBEAT_TIME, 1, u32(MASTER << 16 | consumer_ms)) == ok(0x1016, 1)

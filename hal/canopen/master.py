@@ -288,6 +288,15 @@ class CanMaster:
             self._routes[EMCY_BASE + drive.node_id] = (drive, "emcy")
             self._routes[SDO_RESPONSE_BASE + drive.node_id] = (drive, "sdo")
         self._rpdo_cob = [d.profile.pdos.rpdo.cob_id(d.node_id) for d in self.drives]
+        # Each drive's e-stop inputs (its profile's): (in the statusword, pressed when clear, operator's bits, pilot's)
+        self._estop_bits = [
+            None
+            if d.profile.estop is None
+            else (d.profile.estop_in_statusword, d.profile.estop_pressed_when_clear,
+                  d.profile.estop_operator_mask, d.profile.estop_pilot_mask)
+            for d in self.drives
+        ]  # fmt: skip
+        self._pack_sample = struct.Struct(f"={4 * len(self.drives)}d").pack  # _update_arrays' four arrays, as bytes
         self._pack_rpdo = [self._codec(d.profile, d.profile.pdos.rpdo).pack for d in self.drives]
         self.heartbeats = HeartbeatConsumer(settings.node_ids, settings.heartbeat_consumer_ms / 1000.0)
         self.sdo = SdoClient(timeout_s=settings.sdo_timeout_s)
@@ -636,6 +645,8 @@ class CanMaster:
         fresh = True
         for drive in self.drives:
             missed = last - drive.last_sync
+            if missed == 0 and drive.lost is None:
+                continue  # nearly every drive and tick: its TPDOs of the last SYNC came (none of the tests below acts)
             if missed > 0 and drive.lost is None and drive.recovery is None:
                 # A drive already lost (shown in FAULT, without torque) does not hold the others'
                 # readings back; one that just went quiet does, until it counts as lost.
@@ -684,10 +695,16 @@ class CanMaster:
             dq_new.append(dq)
             theta_new.append(theta)
             tau_new.append(measured_nm - tare_nm)
-        # One read-only block, its rows the four arrays (C-contiguous float64 views: two numpy calls, not eight)
-        block = np.array((q_new, dq_new, theta_new, tau_new))
-        block.flags.writeable = False
-        self.q_rad, self.dq_rad_s, self.theta_rad, self.tau_nm = block
+        # One read-only block (numpy over immutable bytes: the floats' bits as they are), the four arrays
+        # C-contiguous float64 views of it (one numpy call and four slices, not np.array of four lists)
+        n = len(q_new)
+        block = np.frombuffer(self._pack_sample(*q_new, *dq_new, *theta_new, *tau_new))
+        self.q_rad, self.dq_rad_s, self.theta_rad, self.tau_nm = (
+            block[:n],
+            block[n : 2 * n],
+            block[2 * n : 3 * n],
+            block[3 * n :],
+        )
         self._last_fresh_sync = sync
         self.sample_t_s = self._last_sync_s
 
@@ -793,32 +810,46 @@ class CanMaster:
         """The drives as the HAL reports them: states, fault codes, and the e-stop inputs (operator, pilot)."""
         states, codes = [], []
         operator = pilot = False
-        for drive in self.drives:
-            code = 0
-            if drive.lost is not None or drive.recovery is not None:
-                state = DriveState.FAULT
-                code = LOST_CODES[drive.lost or "recovery"]
+        for drive, estop in zip(self.drives, self._estop_bits, strict=True):
+            if (
+                drive.power is PowerState.OPERATION_ENABLED
+                and drive.controlword == CW_ENABLE_OPERATION
+                and drive.lost is None
+                and drive.recovery is None
+                and drive.emcy is None
+            ):  # nearly every drive and tick of a session: what the general steps below give for it
+                states.append(DriveState.ENABLED)
+                codes.append(0)
             else:
-                state = drive_state(drive.power)
-                if state is DriveState.ENABLED and drive.controlword != CW_ENABLE_OPERATION:
-                    # The master commanded torque off: a drive may sample its statusword at that SYNC
-                    # before it applies the command (CiA 301 leaves the order open). It is not counted
-                    # as enabled; one that stays enabled is reported by its power stepper.
-                    state = DriveState.DISABLED
-                if drive.emcy is not None:
-                    state, code = DriveState.FAULT, drive.emcy.code
-                elif state is DriveState.FAULT:
-                    code = 0x1000  # a fault the drive shows without (yet) an EMCY: generic error
-            states.append(state)
-            codes.append(code)
-            profile = drive.profile
-            if profile.estop is not None:
-                word = (drive.statusword or 0) if profile.estop_in_statusword else drive.estop_word
-                if profile.estop_pressed_when_clear:
+                state, code = self._drive_state(drive)
+                states.append(state)
+                codes.append(code)
+            if estop is not None:
+                in_statusword, pressed_when_clear, operator_mask, pilot_mask = estop
+                word = (drive.statusword or 0) if in_statusword else drive.estop_word
+                if pressed_when_clear:
                     word = ~word
-                operator = operator or bool(word & profile.estop_operator_mask)
-                pilot = pilot or bool(word & profile.estop_pilot_mask)
+                operator = operator or bool(word & operator_mask)
+                pilot = pilot or bool(word & pilot_mask)
         return tuple(states), tuple(codes), (operator, pilot)
+
+    @staticmethod
+    def _drive_state(drive: _Drive) -> tuple[DriveState, int]:
+        """One drive's state and fault code as the HAL reports them (:meth:`drive_states`)."""
+        code = 0
+        if drive.lost is not None or drive.recovery is not None:
+            return DriveState.FAULT, LOST_CODES[drive.lost or "recovery"]
+        state = drive_state(drive.power)
+        if state is DriveState.ENABLED and drive.controlword != CW_ENABLE_OPERATION:
+            # The master commanded torque off: a drive may sample its statusword at that SYNC
+            # before it applies the command (CiA 301 leaves the order open). It is not counted
+            # as enabled; one that stays enabled is reported by its power stepper.
+            state = DriveState.DISABLED
+        if drive.emcy is not None:
+            state, code = DriveState.FAULT, drive.emcy.code
+        elif state is DriveState.FAULT:
+            code = 0x1000  # a fault the drive shows without (yet) an EMCY: generic error
+        return state, code
 
     # --- the tick: write ---------------------------------------------------------------------------
 

@@ -8,9 +8,15 @@ loss is reported once, by :meth:`HeartbeatConsumer.newly_lost`.
 
 from __future__ import annotations
 
+import math
+
 from hal.canopen.cia301.nmt import NmtState
 
 __all__ = ["HeartbeatConsumer"]
+
+#: How much earlier than the exact due time :meth:`HeartbeatConsumer.newly_lost` looks again, s: its
+#: skip never hides a loss that the exact test ``now - last > timeout`` would find (rounding of the sum).
+_DUE_MARGIN_S = 1e-9
 
 
 class HeartbeatConsumer:
@@ -26,6 +32,7 @@ class HeartbeatConsumer:
         self._last_s: dict[int, float] = dict.fromkeys(node_ids, 0.0)
         self._state: dict[int, NmtState | None] = dict.fromkeys(node_ids, None)
         self._lost: set[int] = set()
+        self._quiet_until_s = -math.inf  # no node can be newly lost before this time (-inf: look)
 
     def start(self, now_s: float) -> None:
         """Consume from ``now_s`` on: every node has one consumer time for its first heartbeat."""
@@ -33,6 +40,7 @@ class HeartbeatConsumer:
             self._last_s[node_id] = now_s
             self._state[node_id] = None
         self._lost.clear()
+        self._quiet_until_s = -math.inf
 
     def on_heartbeat(self, node_id: int, state: NmtState, now_s: float) -> None:
         """A heartbeat (or boot-up message) of ``node_id`` in ``state`` arrived at ``now_s``."""
@@ -40,6 +48,7 @@ class HeartbeatConsumer:
             self._last_s[node_id] = now_s
             self._state[node_id] = state
             self._lost.discard(node_id)
+            self._quiet_until_s = -math.inf
 
     def state(self, node_id: int) -> NmtState | None:
         """The NMT state the node's last heartbeat reported (None before the first)."""
@@ -54,9 +63,14 @@ class HeartbeatConsumer:
 
     def newly_lost(self, now_s: float) -> list[int]:
         """Nodes whose heartbeat is overdue at ``now_s`` and were not lost before (each loss reported once)."""
-        found = []
+        found: list[int] = []
+        if now_s < self._quiet_until_s:  # nearly every tick: no heartbeat can be overdue yet (issue 25)
+            return found
+        watched = [last_s for node_id, last_s in self._last_s.items() if node_id not in self._lost]
         for node_id, last_s in self._last_s.items():
             if node_id not in self._lost and now_s - last_s > self.timeout_s:
                 self._lost.add(node_id)
                 found.append(node_id)
+        if not found and watched:
+            self._quiet_until_s = min(watched) + self.timeout_s - _DUE_MARGIN_S
         return found

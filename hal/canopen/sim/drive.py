@@ -305,6 +305,8 @@ class SimulatedSeaDrive:
         self._rpdo_pending: dict[int, tuple[tuple[MappedObject, Any], ...]] = {}
         self._rpdo_heard_s: dict[int, float] = {}  # when each RPDO last arrived (its deadline monitoring)
         self._operational_since_s = 0.0
+        # Before this time no RPDO deadline can run out (-inf: look; derived by _check_rpdo_deadline)
+        self._rpdo_quiet_until_s = -math.inf
         self._tpdo_last: dict[int, bytes] = {}
         self._sync_count = 0
         self._hb_period_s: float | None = None
@@ -682,7 +684,12 @@ class SimulatedSeaDrive:
             self._step_stop(now_s)
         if not self._consumer_lost and now_s >= self._consumer_quiet_until_s:
             self._check_consumer(now_s)
-        if self._nmt is NmtState.OPERATIONAL and self._power in _COMMANDED_STATES and not self._rpdo_deadline_lost:
+        if (
+            self._nmt is NmtState.OPERATIONAL
+            and self._power in _COMMANDED_STATES
+            and not self._rpdo_deadline_lost
+            and now_s >= self._rpdo_quiet_until_s
+        ):
             self._check_rpdo_deadline(now_s)
         period = self._hb_period_s
         if period is not None and now_s + _TIME_EPS_S >= self._hb_origin_s + self._hb_next * period:
@@ -700,12 +707,17 @@ class SimulatedSeaDrive:
         if deadlines is None:
             deadlines = self._deadlines = self._rpdo_deadlines()
         heard_s = self._rpdo_heard_s
+        quiet_until_s = math.inf
         for comm, deadline_s in deadlines:
             heard = heard_s.get(comm, self._operational_since_s)
             if now_s - heard > deadline_s:
                 self._rpdo_deadline_lost = True
                 self._lose_master(ERROR_RPDO_TIMEOUT, now_s)
                 return
+            quiet_until_s = min(quiet_until_s, heard + deadline_s - _TIME_EPS_S)
+        # advance() skips this check until then (issue 25). An RPDO heard since only moves its deadline
+        # later (time runs forward), so the time stays safe until the deadlines or the operational start change.
+        self._rpdo_quiet_until_s = quiet_until_s
 
     def _rpdo_deadlines(self) -> tuple[tuple[int, float], ...]:
         """(communication index, deadline s) of each valid RPDO with an event timer (0x1400:5, ms; 0: none), in order."""
@@ -973,6 +985,7 @@ class SimulatedSeaDrive:
     def _pdo_parameters_changed(self) -> None:
         self.pdo_generation += 1
         self._deadlines = None
+        self._rpdo_quiet_until_s = -math.inf
         self._valid = None
         self._tpdo_plan = None
         self._steady_rpdos = None
@@ -1052,6 +1065,7 @@ class SimulatedSeaDrive:
             self._rpdo_heard_s.clear()
             self._rpdo_deadline_lost = False
             self._operational_since_s = now_s
+            self._rpdo_quiet_until_s = -math.inf
         elif self._nmt is NmtState.OPERATIONAL or state is NmtState.STOPPED:
             self._lose_pdos()  # STOPPED: no SDO either, the drive could not be commanded at all
         self._nmt = state
