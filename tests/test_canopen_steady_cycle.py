@@ -105,3 +105,28 @@ def test_the_steady_cycle_sends_and_reads_what_the_general_path_does(tmp_path_fa
     assert fast.general_cycles > 0  # start-up at least: both paths ran in the same session
     assert fast.seen == general.seen
     assert (folder / "steady.log").read_bytes() == (folder / "general.log").read_bytes()
+
+
+def test_a_running_session_takes_the_steady_cycle_with_the_master_s_heartbeat(tmp_path: Path) -> None:
+    """Every cycle of an enabled session is steady, the ones that carry the master's heartbeat too (one in 40),
+    and the drives hear it: their consumers would fault them within 250 ms without it."""
+    run = _Run(tmp_path / "bus.log", steady=True)
+    counted = run.hal.drive_set._steady_cycle
+    general_at: list[int] = []  # the ticks whose cycle took the general path
+
+    def watched() -> bool:
+        took = counted()
+        if not took:
+            general_at.append(len(run.seen))
+        return took
+
+    run.hal.drive_set._steady_cycle = watched  # type: ignore[method-assign]
+    run.run([("torque", np.full(4, 0.5), 600)])
+    lines = (tmp_path / "bus.log").read_text().splitlines()
+    master_beats = [line for line in lines if line.split()[2].startswith("77F#")]
+    assert len(master_beats) >= 10  # 1.2 s: the master's heartbeat every 100 ms
+    assert general_at
+    assert all(n < 60 or n == len(run.seen) for n in general_at)
+    last = run.seen[-1]
+    assert last[0] != "fault"
+    assert [d.name for d in last[-2]] == ["ENABLED"] * 4

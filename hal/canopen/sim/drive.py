@@ -576,6 +576,13 @@ class SimulatedSeaDrive:
         found = self._steady_rpdo_plan().get(rpdo[0])
         return found is not None and len(rpdo[1]) == found[2]
 
+    def heartbeat_is_quiet(self) -> bool:
+        """True if another node's heartbeat would only be recorded (the consumer's time): no loss of the master is
+        in force, so it clears nothing and sends nothing. Such a heartbeat and an RPDO then touch disjoint
+        state, and the steady cycle (:meth:`hal.canopen.sim.drives.SimulatedDriveSet._steady_cycle`) may hand
+        the drive the master's heartbeat before the cycle's RPDO that preceded it on the bus."""
+        return not self._communication_errors and not self._consumer_lost
+
     def steady_sync(
         self,
         rpdo: tuple[int, bytes] | None,

@@ -40,7 +40,7 @@ from collections.abc import Callable
 import can
 import numpy as np
 
-from hal.canopen.cia301.nmt import SDO_REQUEST_BASE, SYNC_COB_ID
+from hal.canopen.cia301.nmt import HEARTBEAT_BASE, SDO_REQUEST_BASE, SYNC_COB_ID
 from hal.canopen.cia402.statemachine import PowerState
 from hal.canopen.profile import DriveProfile
 from hal.canopen.sim.bus import LineFaults
@@ -57,6 +57,8 @@ __all__ = ["SimulatedDriveSet"]
 _new_tuple = tuple.__new__  # a CheckedCommand without the NamedTuple's Python-level __new__ (every tick)
 #: The power states in which a drive's power stage applies torque: commanded, or ramping by itself (a tuple:
 #: membership by identity, no Python-level Enum.__hash__ per drive and tick).
+#: Heartbeat COB-IDs of nodes 1-127 (a drive hears the master's; the steady cycle takes one a cycle).
+_HEARTBEAT_FIRST, _HEARTBEAT_LAST = HEARTBEAT_BASE + 1, HEARTBEAT_BASE + 127
 _STAGE_ON = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
 
 
@@ -207,18 +209,32 @@ class SimulatedDriveSet:
         drives = self.drives
         routes = self._steady_routes()
         rpdos: list[tuple[int, bytes] | None] = [None] * len(drives)
+        heartbeat = None  # the master's heartbeat in this cycle (every 100 ms: one cycle in 40 at 400 Hz)
         last = len(frames) - 1
         for k, frame in enumerate(frames):
             if k == last:
                 break
             j = routes.get(frame[0])
-            if j is None or rpdos[j] is not None:
+            if j is None:
+                if heartbeat is None and _HEARTBEAT_FIRST <= frame[0] <= _HEARTBEAT_LAST:
+                    heartbeat = frame
+                    continue
+                return False
+            if rpdos[j] is not None:
                 return False
             rpdos[j] = frame
         for drive, rpdo in zip(drives, rpdos, strict=True):
             if not drive.steady_sync_ready(rpdo, now):
                 return False
+        if heartbeat is not None:
+            for drive in drives:
+                if not drive.heartbeat_is_quiet():
+                    return False
         frames.clear()
+        if heartbeat is not None:
+            # Every drive takes it (the general path's unrouted frame), before its RPDO: see heartbeat_is_quiet
+            for drive in drives:
+                drive.receive(heartbeat[0], heartbeat[1], now)
         sample = self.plant.read_without_faults()
         operator, pilot = sample.estop[0], sample.estop[1]
         # Python floats, three calls (the same values as float() of each element: twelve calls)
