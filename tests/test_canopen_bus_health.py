@@ -496,9 +496,9 @@ def test_listened_frames_use_the_interfaces_stamp_and_keep_error_frames_apart() 
         source.close()
         master.shutdown()
         drives.shutdown()
-    assert [f.cob_id for f in frames] == [0x181, 0x182]
-    assert 100.0 - 0.010 - 0.5 < frames[0].t_s <= 100.0 - 0.010  # 10 ms old when stamped, less when taken
-    assert frames[1].t_s == 100.0  # no stamp: the time it was taken
+    assert [cob_id for cob_id, _, _ in frames] == [0x181, 0x182]
+    assert 100.0 - 0.010 - 0.5 < frames[0][2] <= 100.0 - 0.010  # 10 ms old when stamped, less when taken
+    assert frames[1][2] == 100.0  # no stamp: the time it was taken
     assert errors == [(CAN_ERR_BUSOFF, _frame())]
     assert source.receive_time_report() | {"source": ""} == {"source": "", "stamped": 1, "fallbacks": 1}
 

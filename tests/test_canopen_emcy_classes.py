@@ -106,16 +106,16 @@ def _cycle(master: CanMaster, source: ScriptedFrames, clock: Clock, extra: list[
     for node in NODES:
         state = PowerState.FAULT if fault and node == 2 else PowerState.OPERATION_ENABLED
         frames += [
-            Frame(0x180 + node, struct.pack("<Hi", statusword_of(state), 0), t),
-            Frame(0x280 + node, struct.pack("<ih", 0, 0), t),
-            Frame(0x700 + node, b"\x05", t),
+            (0x180 + node, struct.pack("<Hi", statusword_of(state), 0), t),
+            (0x280 + node, struct.pack("<ih", 0, 0), t),
+            (0x700 + node, b"\x05", t),
         ]
     source.queued = frames + extra
     master.receive()
 
 
 def _emcy(code: int, register: int) -> Frame:
-    return Frame(0x082, emcy_frame_data(code, register), 0.0)
+    return (0x082, emcy_frame_data(code, register), 0.0)
 
 
 #: One step of a sequence: an EMCY of node 2 (code, register), the operator's fault reset, or a spell in FAULT.

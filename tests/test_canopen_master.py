@@ -63,13 +63,13 @@ def rig() -> Iterator[Rig]:
 def tpdos(node: int, t_s: float, state: PowerState = PowerState.SWITCH_ON_DISABLED, counts: int = 0) -> list[Frame]:
     """A drive's TPDO1 (statusword, motor position) and TPDO2 (load position, torque) received at ``t_s``."""
     return [
-        Frame(0x180 + node, struct.pack("<Hi", statusword_of(state), counts), t_s),
-        Frame(0x280 + node, struct.pack("<ih", counts, 0), t_s),
+        (0x180 + node, struct.pack("<Hi", statusword_of(state), counts), t_s),
+        (0x280 + node, struct.pack("<ih", counts, 0), t_s),
     ]
 
 
 def heartbeats(t_s: float) -> list[Frame]:
-    return [Frame(0x700 + node, b"\x05", t_s) for node in NODES]
+    return [(0x700 + node, b"\x05", t_s) for node in NODES]
 
 
 def cycle(master: CanMaster, source: ScriptedFrames, clock: Clock, frames: list[Frame], enable: bool = False) -> bool:
@@ -109,10 +109,10 @@ def test_a_lost_drive_does_not_hold_back_the_others(rig: Rig) -> None:
     assert cycle(master, source, clock, every_drive(clock.t_s + 1e-4))
     quiet = [f for node in (1, 3, 4) for f in tpdos(node, 0.0)]
     for _ in range(3):  # drive 2 stops answering: each cycle is stale, the third one loses it
-        frames = [Frame(f.cob_id, f.data, clock.t_s + 1e-4) for f in quiet]
+        frames = [(cob_id, data, clock.t_s + 1e-4) for cob_id, data, _ in quiet]
         assert not cycle(master, source, clock, frames)
     assert master.drive_states()[0][1] is DriveState.FAULT
-    frames = [Frame(f.cob_id, f.data, clock.t_s + 1e-4) for f in quiet]
+    frames = [(cob_id, data, clock.t_s + 1e-4) for cob_id, data, _ in quiet]
     assert cycle(master, source, clock, frames)  # lost, it no longer holds the other three back
 
 
@@ -138,7 +138,7 @@ def test_an_emcy_fault_ends_when_the_drive_leaves_fault_even_without_an_error_re
     master, source, clock = rig
     master.heartbeats.start(0.0)
     cycle(master, source, clock, every_drive(clock.t_s + 1e-4))
-    emcy = Frame(0x082, bytes((0x10, 0x23, 0x03, 0, 0, 0, 0, 0)), clock.t_s + 1e-4)
+    emcy = (0x082, bytes((0x10, 0x23, 0x03, 0, 0, 0, 0, 0)), clock.t_s + 1e-4)
     faulted = [
         f
         for node in NODES

@@ -1499,7 +1499,7 @@ def test_polled_frames_drain_in_order_and_skip_what_is_not_a_standard_data_frame
     clock = iter([12.5, 13.0])
     source = PolledFrames(master, lambda: next(clock))
     sent = _send_mixed(drives)
-    assert source.drain() == [Frame(cob_id, data, 12.5) for cob_id, data in sent]
+    assert source.drain() == [(cob_id, data, 12.5) for cob_id, data in sent]
     assert source.drain() == []
     source.close()
 
@@ -1561,9 +1561,9 @@ def test_listened_frames_receive_in_the_notifier_thread(virtual_pair: tuple[can.
         frames = _drain_until(source, len(sent))
     finally:
         source.close()
-    assert [(f.cob_id, f.data) for f in frames] == sent
+    assert [(cob_id, data) for cob_id, data, _ in frames] == sent
     # stamped on reception: the master's clock then, less the frame's age on the interface's own stamp (D153)
-    ages = [float(k) - f.t_s for k, f in enumerate(frames, start=1)]
+    ages = [float(k) - t_s for k, (_, _, t_s) in enumerate(frames, start=1)]
     assert all(0.0 <= age < 0.5 for age in ages), ages
     assert threading.current_thread().name not in threads  # received outside the caller's thread
     drives.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))

@@ -42,7 +42,7 @@ from collections import deque
 from collections.abc import Callable
 from itertools import repeat, starmap
 from pathlib import Path
-from typing import IO, NamedTuple, cast
+from typing import IO, cast
 
 import can
 
@@ -52,12 +52,10 @@ from hal.errors import HalError
 __all__ = ["Frame", "FrameSource", "ListenedFrames", "PolledFrames", "ReceiveClock", "TrafficLog"]
 
 
-class Frame(NamedTuple):
-    """One received frame: COB-ID, data, the time it was received (s, the source's clock)."""
-
-    cob_id: int
-    data: bytes
-    t_s: float
+#: One received frame: ``(COB-ID, data, the time it was received in s on the source's clock)``. A plain tuple,
+#: not a NamedTuple: the bus log ships a received batch to its writer process as it is (``marshal`` takes
+#: tuples of its own types only), instead of a tuple rebuilt per frame in the tick (issue 25).
+Frame = tuple[int, bytes, float]
 
 
 class ReceiveClock:
@@ -162,7 +160,7 @@ class PolledFrames(FrameSource):
                 continue
             if message.is_remote_frame or message.is_extended_id:
                 continue  # the DAROR bus carries standard data frames only
-            frames.append(Frame(message.arbitration_id, bytes(message.data), now))
+            frames.append((message.arbitration_id, bytes(message.data), now))
 
 
 class _StoringListener(can.Listener):
@@ -185,7 +183,7 @@ class _StoringListener(can.Listener):
         if msg.is_error_frame:
             self._error_frames.append((msg.arbitration_id, bytes(msg.data)))
         elif not (msg.is_remote_frame or msg.is_extended_id):
-            self._frames.append(Frame(msg.arbitration_id, bytes(msg.data), self._clock(msg.timestamp)))
+            self._frames.append((msg.arbitration_id, bytes(msg.data), self._clock(msg.timestamp)))
 
     def on_error(self, exc: Exception) -> None:
         # Latched (the first one; the tick raises it) and handled, so python-can keeps the thread
@@ -309,7 +307,8 @@ class TrafficLog:
         finally:
             os.close(fd)  # the writer process has its own
         self._to_writer = cast(IO[bytes], self._process.stdin).fileno()  # stdin=PIPE: always a pipe
-        self._pending: deque[tuple[int, bytes, float, bool]] = deque()
+        # a frame (cob_id, data, robot_t_s, sent), or a list of received frames as drained (the writer's protocol)
+        self._pending: deque[tuple[int, bytes, float, bool] | list[Frame]] = deque()
         self.error: str | None = None
         #: Lines in the file, as the writer process reports at its end (after :meth:`close`).
         self.frames_written = 0
@@ -327,8 +326,12 @@ class TrafficLog:
         self._pending.append((cob_id, data, robot_t_s, sent))
 
     def received(self, frames: list[Frame]) -> None:
-        """Queue frames the master received, each at its own time (:meth:`frame` for a batch; never waits)."""
-        self._pending.extend([(cob_id, data, t_s, False) for cob_id, data, t_s in frames])
+        """Queue frames the master received, each at its own time (never waits).
+
+        The list is queued as it is (one append a tick, not a tuple per frame): the caller does not
+        change it afterwards (a drained list is the caller's own, read only).
+        """
+        self._pending.append(frames)
 
     def _run(self) -> None:
         while not self._stop.wait(self.WRITE_EVERY_S):

@@ -440,19 +440,19 @@ class CanMaster:
     def _operational(self, frames: list[Frame]) -> list[int]:
         """The nodes whose heartbeat among ``frames`` reports OPERATIONAL."""
         return [
-            frame.cob_id - HEARTBEAT_BASE
-            for frame in frames
-            if frame.cob_id - HEARTBEAT_BASE in self._by_node and parse_heartbeat(frame.data) is NmtState.OPERATIONAL
+            cob_id - HEARTBEAT_BASE
+            for cob_id, data, _ in frames
+            if cob_id - HEARTBEAT_BASE in self._by_node and parse_heartbeat(data) is NmtState.OPERATIONAL
         ]
 
     def _boot_ups(self, frames: list[Frame]) -> list[int]:
         found = []
-        for frame in frames:
-            node_id = frame.cob_id - HEARTBEAT_BASE
-            if node_id in self._by_node and parse_heartbeat(frame.data) is NmtState.BOOT_UP:
+        for cob_id, data, _ in frames:
+            node_id = cob_id - HEARTBEAT_BASE
+            if node_id in self._by_node and parse_heartbeat(data) is NmtState.BOOT_UP:
                 found.append(node_id)
-            elif frame.cob_id - SDO_RESPONSE_BASE in self._by_node:
-                self.sdo.on_response(frame.cob_id - SDO_RESPONSE_BASE, frame.data)
+            elif cob_id - SDO_RESPONSE_BASE in self._by_node:
+                self.sdo.on_response(cob_id - SDO_RESPONSE_BASE, data)
         return found
 
     def _collect(
@@ -579,10 +579,10 @@ class CanMaster:
                 self._pump()
             frames = self.source.drain()
             self._log_received(frames)
-            for frame in frames:
-                node_id = frame.cob_id - SDO_RESPONSE_BASE
+            for cob_id, data, _ in frames:
+                node_id = cob_id - SDO_RESPONSE_BASE
                 if node_id in self._by_node:
-                    self.sdo.on_response(node_id, frame.data)
+                    self.sdo.on_response(node_id, data)
             if self.sdo.busy:
                 self._wait(0.0005)
                 waited += 0.0005
@@ -757,22 +757,23 @@ class CanMaster:
             drive.last_sync = min(drive.tpdo_syncs)
 
     def _on_heartbeat(self, drive: _Drive, frame: Frame) -> None:
-        state = parse_heartbeat(frame.data)
+        _, data, t_s = frame
+        state = parse_heartbeat(data)
         if state is None:
-            self._latch(f"drive {drive.node_id}: a heartbeat frame that is not one ({frame.data.hex() or 'empty'})")
+            self._latch(f"drive {drive.node_id}: a heartbeat frame that is not one ({data.hex() or 'empty'})")
             return
-        self.heartbeats.on_heartbeat(drive.node_id, state, frame.t_s)
+        self.heartbeats.on_heartbeat(drive.node_id, state, t_s)
         if state is NmtState.BOOT_UP:
             self.cycle_budget.forget(drive.node_id)  # restarted: its beat's phase is set anew when configured
         else:
-            self.cycle_budget.heard(drive.node_id, frame.t_s)
+            self.cycle_budget.heard(drive.node_id, t_s)
         if drive.recovery is not None:
             if drive.recovery.phase == "reset" and state is NmtState.BOOT_UP:
                 self._configure_lost(drive)
             return
         if drive.lost == "restarted":
             return
-        settled = frame.t_s - self._started_s > self.settings.heartbeat_consumer_ms / 1000.0
+        settled = t_s - self._started_s > self.settings.heartbeat_consumer_ms / 1000.0
         if state is NmtState.BOOT_UP or (settled and state in (NmtState.PRE_OPERATIONAL, NmtState.STOPPED)):
             # Started drives report OPERATIONAL; a boot-up, or later another state, means it restarted
             # or was stopped: its PDO configuration and its power state are gone. (A heartbeat sent just
@@ -956,6 +957,7 @@ class CanMaster:
         ``commanded`` holds each drive's target torque this cycle, per mille (None: not commanded torque).
         """
         sdo = self.sdo
+        sdo_idle = sdo.idle()  # nearly every cycle (a write queued below is for its own drive: not another's)
         for drive, torque in zip(self.drives, commanded, strict=True):
             follower = drive.slope
             if follower is None:
@@ -972,7 +974,7 @@ class CanMaster:
                     self._slope_failed(drive, follower, transfer, value)
                     continue
                 follower.confirmed(value)
-            if sdo.node_busy(drive.node_id) or drive.emcy is not None or drive.power in _STOPPING:
+            if (not sdo_idle and sdo.node_busy(drive.node_id)) or drive.emcy is not None or drive.power in _STOPPING:
                 # A drive stopping by itself (a quick stop, a fault reaction) ramps at the slope it has:
                 # a new one would change the ramp under way (the drive reads it as it goes).
                 continue

@@ -286,15 +286,15 @@ def scan_bus(
         for cob_id, data in sdo.frames_due(now):
             _send(bus, cob_id, data, clock, sleep)
             sent += 1
-        for frame in source.drain():
-            if HEARTBEAT_BASE < frame.cob_id <= HEARTBEAT_BASE + 127:
-                state = parse_heartbeat(frame.data)
+        for cob_id, data, _ in source.drain():
+            if HEARTBEAT_BASE < cob_id <= HEARTBEAT_BASE + 127:
+                state = parse_heartbeat(data)
                 if state is not None:
-                    node = nodes.setdefault(frame.cob_id - HEARTBEAT_BASE, FoundNode(frame.cob_id - HEARTBEAT_BASE))
+                    node = nodes.setdefault(cob_id - HEARTBEAT_BASE, FoundNode(cob_id - HEARTBEAT_BASE))
                     node.nmt_state = _nmt_name(state)
-            elif SDO_RESPONSE_BASE < frame.cob_id <= SDO_RESPONSE_BASE + 127:
-                node_id = frame.cob_id - SDO_RESPONSE_BASE
-                done = sdo.on_response(node_id, frame.data)
+            elif SDO_RESPONSE_BASE < cob_id <= SDO_RESPONSE_BASE + 127:
+                node_id = cob_id - SDO_RESPONSE_BASE
+                done = sdo.on_response(node_id, data)
                 if done is not None and done is probes.get(node_id):
                     node = nodes.setdefault(node_id, FoundNode(node_id))
                     node.answered_sdo = True  # an abort is an answer too: the node is there

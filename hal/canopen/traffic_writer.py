@@ -13,8 +13,10 @@ Its protocol:
   ``TrafficLog``; ``GZIP_LEVEL`` zlib's level of a gzip log (one gzip member whose header names the
   file as ``gzip.open`` does), or ``plain``; ``ENCODING`` the lines' (``ascii`` in a gzip log, the
   locale's in a plain one: what ``gzip.open`` and python-can's writer used before this process).
-* standard input: batches, each a 4-byte little-endian length then a ``marshal`` of a list of
-  ``(cob_id, data, robot_t_s, sent)`` tuples (int, bytes, float in s, bool). Each batch is written
+* standard input: batches, each a 4-byte little-endian length then a ``marshal`` of a list whose
+  items are a frame ``(cob_id, data, robot_t_s, sent)`` (int, bytes, float in s, bool), or a list of
+  received frames ``(cob_id, data, robot_t_s)`` (what the master drained in one tick, shipped as it
+  is: no tuple is rebuilt per frame in the tick). Each batch is written
   with one write and flushed to the OS (a ``.gz`` log: one deflate block per batch). End of input
   (the parent's ``close()``, or the parent gone) ends the log: what came is written, the gzip member
   closed.
@@ -38,7 +40,7 @@ import os
 import signal
 import struct
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 #: A batch's length prefix on standard input: 4 bytes, little-endian, unsigned.
 LENGTH = struct.Struct("<I")
@@ -62,9 +64,12 @@ class LineFormatter:
         self._first_s: float | None = None
         self._stamped_s: float | None = None  # the time of the last line's stamp, and its text
         self._stamp_text = ""
+        #: Lines formatted so far.
+        self.count = 0
 
-    def lines(self, frames: Iterable[tuple[int, bytes, float, bool]]) -> str:
-        """The lines of ``frames`` (``(cob_id, data, robot_t_s, sent)``), each ending in a newline.
+    def lines(self, frames: Iterable[tuple[int, bytes, float, bool] | list[tuple[int, bytes, float]]]) -> str:
+        """The lines of ``frames``, each ending in a newline: a frame ``(cob_id, data, robot_t_s, sent)``, or a
+        list of received frames ``(cob_id, data, robot_t_s)``; :attr:`count` counts the lines.
 
         Raises:
             TypeError: a frame is not (int, bytes, float, bool) (``marshal`` sends a numpy scalar as bytes).
@@ -76,7 +81,7 @@ class LineFormatter:
         direction = (" R\n", " T\n")  # indexed by ``sent``: anything but a bool or an int raises
         out: list[str] = []
         append = out.append
-        for cob_id, data, t_s, sent in frames:
+        for cob_id, data, t_s, sent in _one_by_one(frames):
             timestamp_s = epoch + t_s
             if timestamp_s != stamped_s:
                 if first is None:
@@ -85,7 +90,24 @@ class LineFormatter:
                 stamp_text = f"({max(timestamp_s, first):f}) {channel} "
             append(f"{stamp_text}{cob_id:03X}#{data.hex().upper()}{direction[sent]}")
         self._first_s, self._stamped_s, self._stamp_text = first, stamped_s, stamp_text
+        self.count += len(out)
         return "".join(out)
+
+
+def _one_by_one(
+    items: Iterable[tuple[int, bytes, float, bool] | list[tuple[int, bytes, float]]],
+) -> Iterator[tuple[int, bytes, float, bool]]:
+    """A batch's frames as ``(cob_id, data, robot_t_s, sent)``: a received list flattened here, in this process.
+
+    Raises:
+        ValueError: a received frame is not ``(cob_id, data, robot_t_s)``.
+    """
+    for item in items:
+        if type(item) is list:
+            for cob_id, data, t_s in item:
+                yield cob_id, data, t_s, False
+        else:
+            yield item
 
 
 def _read_batch(source: io.BufferedReader) -> bytes | None:
@@ -132,7 +154,7 @@ def main(argv: list[str]) -> int:
             frames = marshal.loads(batch)
             file.write(formatter.lines(frames).encode(encoding))  # one write a batch
             file.flush()  # whole lines reach the OS (a .gz log: a whole deflate block)
-            written += len(frames)
+            written = formatter.count
     except OSError as exc:  # a full disk, a removed stick
         error = str(exc)
     except (TypeError, AttributeError, IndexError, ValueError, EOFError) as exc:  # UnicodeEncodeError too

@@ -249,6 +249,10 @@ class SdoClient:
         """True while a transfer is queued or in flight."""
         return bool(self._in_flight) or any(self._queues.values())
 
+    def idle(self) -> bool:
+        """True while no transfer is queued or in flight (:attr:`busy`'s opposite, as a call: it runs every cycle)."""
+        return not self._in_flight and not any(self._queues.values())
+
     def startable(self) -> int:
         """How many nodes have a transfer queued and none in flight: the most :meth:`frames_due` would start."""
         if not any(self._queues.values()):  # nearly every cycle: nothing queued (one C call, no generator)
@@ -261,7 +265,7 @@ class SdoClient:
         ``limit``: start at most this many (None: one per idle node). The nodes take turns: the one
         that started last goes to the back, so a limit never starves a node.
         """
-        if not self._in_flight and not any(self._queues.values()):  # nearly every cycle: nothing to do
+        if self.idle():  # nearly every cycle: nothing to do
             return []
         for node_id, transfer in list(self._in_flight.items()):
             if transfer.sent_at_s is not None and now_s - transfer.sent_at_s > self.timeout_s:

@@ -80,9 +80,9 @@ class SlopeFollower:
     _lower_largest: int = field(default=0, init=False)
     # wanted()'s answers by torque (a pure function of it; at most the 2 x peak + 2 torques a drive can be sent)
     _wanted_of: dict[int | None, int] = field(default_factory=dict, init=False, repr=False)
-    # the torques whose slope is within the tolerance of ``_fitting_held`` (due() answers None at once while held is it)
-    _fitting: set[int | None] = field(default_factory=set, init=False, repr=False)
-    _fitting_held: int = field(default=-1, init=False, repr=False)
+    # (held, first, last, None fits): the torque magnitudes first..last (within the peak) and the torque None whose
+    # slope is within the tolerance of that held slope (:meth:`_fitting_band`; due() answers them at once)
+    _band: tuple[int, int, int, bool] = field(default=(-1, 0, -1, False), init=False, repr=False)
 
     def wanted(self, torque_permille: int | None) -> int:
         """The slope for ``torque_permille`` (None: the drive is not commanded torque: the peak's)."""
@@ -103,8 +103,11 @@ class SlopeFollower:
                 commanded torque).
             now_s: the master's time, s.
         """
-        if torque_permille in self._fitting and self._fitting_held == self.held:  # nearly every cycle (issue 25)
-            self._lower_since_s = None
+        band = self._band
+        if band[0] != self.held:
+            band = self._band = self._fitting_band()
+        if band[3] if torque_permille is None else band[1] <= abs(torque_permille) <= band[2]:
+            self._lower_since_s = None  # nearly every cycle (issue 25): the drive's ramp fits, the test below in short
             return None
         wanted = self.wanted(torque_permille)
         if wanted > self.held * (1.0 + TOLERANCE):
@@ -119,11 +122,33 @@ class SlopeFollower:
                 return self._write(self._lower_largest, now_s)
             return None
         self._lower_since_s = None  # within the tolerance: the drive's ramp fits
-        if self._fitting_held != self.held:
-            self._fitting.clear()
-            self._fitting_held = self.held
-        self._fitting.add(torque_permille)
         return None
+
+    def _fitting_band(self) -> tuple[int, int, int, bool]:
+        """:attr:`_band` for the slope held now: once per slope the drive takes, two bisections of ``[0, peak]``.
+
+        :meth:`wanted` does not fall as the torque's magnitude grows, so the magnitudes whose slope
+        is within the tolerance are one interval. Magnitudes above the peak (the master never sends
+        them) are left to the general test.
+        """
+        held = self.held
+        lower, upper = held * (1.0 - TOLERANCE), held * (1.0 + TOLERANCE)
+        lo, hi = 0, self.peak_permille + 1  # the smallest magnitude not below the tolerance (peak + 1: none)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if self.wanted(mid) >= lower:
+                hi = mid
+            else:
+                lo = mid + 1
+        first = lo
+        lo, hi = -1, self.peak_permille  # the largest magnitude not above it (-1: none)
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if self.wanted(mid) <= upper:
+                lo = mid
+            else:
+                hi = mid - 1
+        return held, first, lo, lower <= self.wanted(None) <= upper
 
     def _write(self, slope: int, now_s: float) -> int | None:
         if now_s - self._last_write_s < MIN_INTERVAL_S:

@@ -39,8 +39,6 @@ if TYPE_CHECKING:
 
 __all__ = ["LinkFrames", "LockstepLink"]
 
-_new_tuple = tuple.__new__  # a Frame without the NamedTuple's Python-level __new__ (eight a cycle)
-
 
 class LockstepLink:
     """Frames between the master and the drives in lock-step (see the module docstring).
@@ -149,7 +147,7 @@ class LinkFrames(FrameSource):
                     if error:
                         self._errors.append((cob_id, data))
                     else:
-                        frames.append(_new_tuple(Frame, (cob_id, data, now)))
+                        frames.append((cob_id, data, now))
                 return frames
             take = link.take_for_master
             while (frame := take()) is not None:
@@ -157,7 +155,7 @@ class LinkFrames(FrameSource):
                 if error:
                     self._errors.append((cob_id, data))
                 else:
-                    frames.append(_new_tuple(Frame, (cob_id, data, now)))
+                    frames.append((cob_id, data, now))
         except can.CanError as exc:
             raise HalError(f"reading the CAN bus failed: {exc}") from None
         return frames
