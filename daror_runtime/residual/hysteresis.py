@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.signal
 from numba import njit
 
 from daror_runtime.control.reading_error import PATH_FILTER_HZ, checked_travel
@@ -67,6 +66,8 @@ def estimate_path(q_rad: FloatArray, dt_s: float, cutoff_hz: float = PATH_FILTER
     q = np.ascontiguousarray(q_rad, dtype=float)
     if not (math.isfinite(dt_s) and dt_s > 0.0) or cutoff_hz >= 0.45 / dt_s or len(q) < 4 * _PAD_SAMPLES:
         return q
+    import scipy.signal  # here: importing it costs 0.5 s, and a session that trains a model needs only the readers
+
     sos = scipy.signal.butter(2, cutoff_hz, fs=1.0 / dt_s, output="sos")
     return np.ascontiguousarray(scipy.signal.sosfiltfilt(sos, q, axis=0, padlen=_PAD_SAMPLES))
 

@@ -576,6 +576,11 @@ class SimulatedSeaDrive:
         found = self._steady_rpdo_plan().get(rpdo[0])
         return found is not None and len(rpdo[1]) == found[2]
 
+    def connect(self, send: Callable[[int, bytes], None]) -> None:
+        """Send every frame with ``send(cob_id, data)`` from now on (the bus the drive was plugged into)."""
+        self._send = send
+        self._steady_program = None  # it calls the sender it was made with
+
     def heartbeat_is_quiet(self) -> bool:
         """True if another node's heartbeat would only be recorded (the consumer's time): no loss of the master is
         in force, so it clears nothing and sends nothing. Such a heartbeat and an RPDO then touch disjoint

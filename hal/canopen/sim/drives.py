@@ -117,13 +117,17 @@ class SimulatedDriveSet:
         (:mod:`hal.canopen.sim.link`); None: detached (frames the drives send are lost, as on an unplugged cable)."""
         self.bus = bus
         self._frames: deque[tuple[int, bytes]] | None = None  # the lock-step link's frames to the drives
+        send: Callable[[int, bytes], None] = self._send
         if isinstance(bus, LockstepLink):
             self._frames = bus.to_drives
             self._take: Callable[[], tuple[int, bytes] | None] = _taker(bus.to_drives)
             self._put: Callable[[int, bytes], None] = bus.send_from_drive
+            send = bus.drive_sender()  # straight onto the link (eight frames a cycle), as _send would put them
         elif bus is not None:
             self._take = _python_can_taker(bus)
             self._put = _python_can_sender(bus, lambda: self.t_s)
+        for drive in self.drives:
+            drive.connect(send)
 
     def _send(self, cob_id: int, data: bytes) -> None:
         if self.bus is not None:
