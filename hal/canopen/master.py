@@ -343,6 +343,7 @@ class CanMaster:
         # the sample's arrays: new read-only ones per fresh cycle
         self.q_rad = self.dq_rad_s = self.theta_rad = self.tau_nm = np.zeros(self.n)
         self.q_rad.flags.writeable = False
+        self._q_dq_lists = ([0.0] * self.n, [0.0] * self.n)  # q_rad and dq_rad_s as Python floats (_update_arrays)
         self._last_fresh_sync = -1
         self._alpha = 1.0 - math.exp(-2.0 * math.pi * settings.velocity_filter_hz * settings.period_s)
 
@@ -673,16 +674,17 @@ class CanMaster:
         """
         first = self._last_fresh_sync < 0
         dt_s = 0.0 if first else (sync - self._last_fresh_sync) * self.settings.period_s
-        q_old, dq_old = self.q_rad.tolist(), self.dq_rad_s.tolist()
+        q_old, dq_old = self._q_dq_lists  # the arrays' values, kept as floats: no tolist a cycle
         alpha = self._alpha
         q_new, dq_new, theta_new, tau_new = [], [], [], []
         for j, (drive, scale) in enumerate(zip(self.drives, self._scales, strict=True)):
             rad_per_link, rad_per_motor, nm_per_count, spring_k, link_zero, motor_zero, tare_nm = scale
-            # calibration.angle_rad and spring_torque_nm written out (their formulas; a call each cost more)
-            q = (float(drive.load_counts) - link_zero) * rad_per_link
-            theta = (float(drive.motor_counts) - motor_zero) * rad_per_motor
+            # calibration.angle_rad and spring_torque_nm written out (their formulas; a call each cost more). The
+            # counts are ints of at most 32 bits: Python converts them to float exactly, as float() did.
+            q = (drive.load_counts - link_zero) * rad_per_link
+            theta = (drive.motor_counts - motor_zero) * rad_per_motor
             # the drive's torque object, or the spring torque of the encoders around the spring: k (theta - q)
-            measured_nm = float(drive.torque_counts) * nm_per_count if spring_k is None else spring_k * (theta - q)
+            measured_nm = drive.torque_counts * nm_per_count if spring_k is None else spring_k * (theta - q)
             dq = 0.0
             if not first:
                 raw = (q - q_old[j]) / dt_s
@@ -705,6 +707,7 @@ class CanMaster:
             block[2 * n : 3 * n],
             block[3 * n :],
         )
+        self._q_dq_lists = (q_new, dq_new)
         self._last_fresh_sync = sync
         self.sample_t_s = self._last_sync_s
 
@@ -883,7 +886,8 @@ class CanMaster:
             permille = 0
             if wanted and healthy and torques is not None:
                 peak = peaks[j]
-                permille = max(-peak, min(peak, round(torques[j] / nm_per_permille[j])))
+                permille = round(torques[j] / nm_per_permille[j])  # saturated at the peak (comparisons: no calls)
+                permille = -peak if permille < -peak else peak if permille > peak else permille
             self._send(self._rpdo_cob[j], packs[j](outcome.controlword, permille))
             if following:
                 commanded.append(
