@@ -263,16 +263,16 @@ class SafetyMonitor:
         drives = sample.drives
         if (
             in_bounds
-            and not self._isb_on
             and seq != self._previous_seq
             and not self._present
             and True not in sample.estop
             and (drives is self._fault_free_drives or self._drives_fault_free(drives))
+            and (not self._isb_on or self._isb_inside(sample.q_rad))
         ):
-            # The common case, decided without building anything: every signal in bounds, no ISB
-            # limits to check, a fresh sample, no e-stop, no drive fault, and no condition held at
-            # the previous check (so nothing to latch or to clear). The same outcome as the full
-            # path below: the stale count restarts and no fault appears.
+            # The common case, decided without building anything: every signal in bounds, the ISB
+            # angles inside their limits (if any), a fresh sample, no e-stop, no drive fault, and no
+            # condition held at the previous check (so nothing to latch or to clear). The same outcome
+            # as the full path below: the stale count restarts and no fault appears.
             self._same_seq = 0
             self._previous_seq = seq
             return []  # a fresh list: the loop appends the tick's other faults to it
@@ -413,13 +413,17 @@ class SafetyMonitor:
                         limit=limit,
                     )
 
-    def _check_isb(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
-        angles = self._isb_angles(sample.q_rad)  # type: ignore[misc]
+    def _isb_inside(self, q_rad: FloatArray) -> bool:
+        """True if the ISB angles of ``q_rad`` are inside the limits plus the margin (a NaN is not)."""
         # The box test in Python floats (one call, not four numpy operations a tick; a NaN fails it as in numpy)
-        a0, a1, a2, a3 = angles.tolist()
+        a0, a1, a2, a3 = self._isb_angles(q_rad).tolist()  # type: ignore[misc]
         lo0, hi0, lo1, hi1, lo2, hi2, lo3, hi3 = self._isb_box
-        if lo0 <= a0 <= hi0 and lo1 <= a1 <= hi1 and lo2 <= a2 <= hi2 and lo3 <= a3 <= hi3:
+        return lo0 <= a0 <= hi0 and lo1 <= a1 <= hi1 and lo2 <= a2 <= hi2 and lo3 <= a3 <= hi3
+
+    def _check_isb(self, sample: Sample, found: dict[tuple[FaultKind, int | None], Fault]) -> None:
+        if self._isb_inside(sample.q_rad):
             return
+        angles = self._isb_angles(sample.q_rad)  # type: ignore[misc]  # outside: which angle, by how much
         names = ISB_ANGLE_NAMES
         for j in range(N_JOINTS):
             value = float(angles[j])

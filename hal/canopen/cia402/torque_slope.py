@@ -80,9 +80,11 @@ class SlopeFollower:
     _lower_largest: int = field(default=0, init=False)
     # wanted()'s answers by torque (a pure function of it; at most the 2 x peak + 2 torques a drive can be sent)
     _wanted_of: dict[int | None, int] = field(default_factory=dict, init=False, repr=False)
-    # (held, first, last, None fits): the torque magnitudes first..last (within the peak) and the torque None whose
-    # slope is within the tolerance of that held slope (:meth:`_fitting_band`; due() answers them at once)
-    _band: tuple[int, int, int, bool] = field(default=(-1, 0, -1, False), init=False, repr=False)
+    # (held, first, last, None fits, lower, upper): the torque magnitudes first..last (within the peak) and the
+    # torque None whose slope is within the tolerance lower..upper of that held slope (:meth:`_fitting_band`)
+    _band: tuple[float, int, int, bool, float, float] = field(  # NaN: equal to no slope held (derived at first)
+        default=(math.nan, 0, -1, False, -math.inf, math.inf), init=False, repr=False
+    )
 
     def wanted(self, torque_permille: int | None) -> int:
         """The slope for ``torque_permille`` (None: the drive is not commanded torque: the peak's)."""
@@ -109,22 +111,24 @@ class SlopeFollower:
         if band[3] if torque_permille is None else band[1] <= abs(torque_permille) <= band[2]:
             self._lower_since_s = None  # nearly every cycle (issue 25): the drive's ramp fits, the test below in short
             return None
-        wanted = self.wanted(torque_permille)
-        if wanted > self.held * (1.0 + TOLERANCE):
+        wanted = self._wanted_of.get(torque_permille)
+        if wanted is None:
+            wanted = self.wanted(torque_permille)
+        if wanted > band[5]:  # more than the tolerance above the slope held
             self._lower_since_s = None
             return self._write(wanted, now_s)
-        if wanted < self.held * (1.0 - TOLERANCE):
+        if wanted < band[4]:  # more than the tolerance below it
             if self._lower_since_s is None:
                 self._lower_since_s, self._lower_largest = now_s, wanted
-            else:
-                self._lower_largest = max(self._lower_largest, wanted)
+            elif wanted > self._lower_largest:
+                self._lower_largest = wanted
             if now_s - self._lower_since_s >= LOWER_AFTER_S:
                 return self._write(self._lower_largest, now_s)
             return None
         self._lower_since_s = None  # within the tolerance: the drive's ramp fits
         return None
 
-    def _fitting_band(self) -> tuple[int, int, int, bool]:
+    def _fitting_band(self) -> tuple[float, int, int, bool, float, float]:
         """:attr:`_band` for the slope held now: once per slope the drive takes, two bisections of ``[0, peak]``.
 
         :meth:`wanted` does not fall as the torque's magnitude grows, so the magnitudes whose slope
@@ -148,7 +152,7 @@ class SlopeFollower:
                 lo = mid
             else:
                 hi = mid - 1
-        return held, first, lo, lower <= self.wanted(None) <= upper
+        return held, first, lo, lower <= self.wanted(None) <= upper, lower, upper
 
     def _write(self, slope: int, now_s: float) -> int | None:
         if now_s - self._last_write_s < MIN_INTERVAL_S:
