@@ -36,6 +36,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable
+from operator import attrgetter
 
 import can
 import numpy as np
@@ -57,6 +58,7 @@ __all__ = ["SimulatedDriveSet"]
 _new_tuple = tuple.__new__  # a CheckedCommand without the NamedTuple's Python-level __new__ (every tick)
 #: The power states in which a drive's power stage applies torque: commanded, or ramping by itself (a tuple:
 #: membership by identity, no Python-level Enum.__hash__ per drive and tick).
+_PDO_GENERATION = attrgetter("pdo_generation")
 #: Heartbeat COB-IDs of nodes 1-127 (a drive hears the master's; the steady cycle takes one a cycle).
 _HEARTBEAT_FIRST, _HEARTBEAT_LAST = HEARTBEAT_BASE + 1, HEARTBEAT_BASE + 127
 _STAGE_ON = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
@@ -310,7 +312,7 @@ class SimulatedDriveSet:
 
         Derived again only when a drive's PDO parameters changed since (:attr:`SimulatedSeaDrive.pdo_generation`).
         """
-        generations = tuple(drive.pdo_generation for drive in self.drives)
+        generations = tuple(map(_PDO_GENERATION, self.drives))  # in C: it runs every cycle
         if generations != self._routes_of[0]:
             routes = self._derive_routes()
             index = {id(drive): j for j, drive in enumerate(self.drives)}
