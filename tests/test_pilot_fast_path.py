@@ -184,6 +184,7 @@ def test_the_hal_tick_gives_the_numpy_formulas_torque_to_the_bit(
     hal.set_external_torque(pilot)
     for (dt, state, _, _), stop in zip(ticks, stops, strict=False):
         hal._tick += round(abs(dt) * 1000)  # plant time only moves on in whole ticks
+        hal.time_s = hal._tick * hal._dt  # as SimHal.write moves it
         set_plant_state(hal.plant, q0, state)
         truth = hal.truth()
         expected = reference(hal.time_s, truth.q_rad, truth.dq_rad_s)
@@ -317,6 +318,7 @@ def test_what_reaches_the_pilots_entry_point_fits_its_signature(hal: SimHal) -> 
     pilot.move_to(hal.plant.q_rad + 0.2, hal.time_s + 0.01, 0.05)
     for _ in range(100):
         hal._tick += 1
+        hal.time_s = hal._tick * hal._dt  # as SimHal.write moves it
         hal._external_inputs()
     pilot(hal.time_s, [0, 1, 2, 3], np.arange(8.0)[::2])
     pilot(hal.time_s, np.zeros(4, dtype=np.float32), (0.0, 0.0, 0.0, 0.0))

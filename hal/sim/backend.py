@@ -82,6 +82,11 @@ class SimHal(Hal):
         DescriptionError: the scenario cannot be loaded or simulated dynamically (no drive train,
             a body without inertia), or the plant is not stable under RK4 at ``rate_hz``.
         InputError: ``rate_hz`` is not positive and finite.
+
+    Attributes:
+        time_s: plant time now, s (the ticks written since the session opened times the tick's
+            period). Read it; only the backend moves it. A plain attribute, not a property: the
+            CANopen master over this plant reads it ten times a cycle (issue 25).
     """
 
     kind = "sim"
@@ -100,6 +105,7 @@ class SimHal(Hal):
         super().__init__(description or self.scenario.description())
         self._rate_hz = float(rate_hz)
         self._dt = 1.0 / self._rate_hz
+        self.time_s = 0.0
         self._plant = DynamicPlant(self.scenario, self.description)
         if self._dt > self._plant.max_dt_s:
             raise DescriptionError(
@@ -289,6 +295,7 @@ class SimHal(Hal):
         else:
             self._drives = self._enabled_drives if status == dynamics.TICK_ENABLED else self._disabled_drives
         self._tick += 1
+        self.time_s = self._tick * self._dt
         self._row = row
         if self._stale_left > 0:
             self._stale_left -= 1
@@ -303,11 +310,6 @@ class SimHal(Hal):
         """The simulated plant (tests and tools; the runtime must use read/write only)."""
         self._plant.time_s = self._tick * self._dt  # synced here, not every tick: nothing in the tick reads it
         return self._plant
-
-    @property
-    def time_s(self) -> float:
-        """Plant time now, s."""
-        return self._tick * self._dt
 
     @property
     def applied_motor_torque_nm(self) -> FloatArray:
@@ -457,6 +459,7 @@ class SimHal(Hal):
     def _reset_session(self) -> None:
         self._plant.reset()
         self._tick = 0
+        self.time_s = 0.0
         self._rng = stream(self.scenario.seed, STREAM_SIM_ENCODERS)
         self._drive_vector[dynamics.S_JUMP : dynamics.S_STARTED + 1] = 0.0  # jump offsets, sensor state
         self._drive_vector[dynamics.S_TICK] = 0.0
@@ -709,12 +712,14 @@ class SimLockStepBatches:
         hal = self._hal
         if status >= 0:
             hal._tick += ticks
+            hal.time_s = hal._tick * hal._dt
             hal._row = self._first_row + 4 * ticks
             hal._drives = hal._enabled_drives if status == dynamics.TICK_ENABLED else hal._disabled_drives
             hal._sample = None
             return
         # The last tick failed inside the kernel: everything before it counts, it does not (as in write).
         hal._tick += ticks - 1
+        hal.time_s = hal._tick * hal._dt
         hal._row = self._first_row + 4 * (ticks - 1)
         hal._sample = None
         hal._drives = hal._drive_states(False)
