@@ -287,6 +287,22 @@ def _isb_single_kernel(q: FloatArray, constants: FloatArray) -> FloatArray:
     return out
 
 
+@njit(cache=True)
+def _isb_monitor_kernel(q: FloatArray, constants: FloatArray, free_rad: float, h_lo: float, h_hi: float) -> FloatArray:
+    """:func:`_isb_single_kernel`, the horizontal rotation then projected into ``[h_lo, h_hi]`` below an
+    elevation of ``free_rad`` (:func:`monitor_isb_function`; the comparisons of Python's ``min(max(h, h_lo),
+    h_hi)``, so a NaN stays NaN as it did in Python)."""
+    out = _isb_single_kernel(q, constants)
+    if out[0] < free_rad:
+        h = out[1]
+        if h_lo > h:  # max(h, h_lo)
+            h = h_lo
+        if h_hi < h:  # min(h, h_hi)
+            h = h_hi
+        out[1] = h
+    return out
+
+
 # --- the shoulder ------------------------------------------------------------------------------
 
 
@@ -622,14 +638,14 @@ def monitor_isb_function(shoulder: Shoulder, limits: IsbLimits) -> Callable[[Flo
     ISB angles of one configuration, with the horizontal rotation projected into its limits while
     the elevation is below ``limits.horizontal_free_below_deg`` (see :class:`IsbLimits`).
     """
-    free = limits.horizontal_free_below_rad
-    h_lo, h_hi = limits.horizontal_rotation.lower_rad, limits.horizontal_rotation.upper_rad
-    single = shoulder.isb_single
+    free = float(limits.horizontal_free_below_rad)
+    h_lo, h_hi = float(limits.horizontal_rotation.lower_rad), float(limits.horizontal_rotation.upper_rad)
 
     def angles(q: FloatArray) -> FloatArray:
-        out = single(q)
-        if out[0] < free:
-            out[1] = min(max(out[1], h_lo), h_hi)
-        return out
+        return _isb_monitor_kernel(q, shoulder._constants, free, h_lo, h_hi)  # one compiled call a tick
 
+    for readonly in (False, True):  # compiled (or loaded from the cache) now, not in a tick: both array types
+        q = shoulder.q_neutral.copy()
+        q.flags.writeable = not readonly
+        angles(q)
     return angles

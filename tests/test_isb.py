@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from hal.errors import InputError, ShapeError
@@ -304,6 +305,28 @@ def test_monitor_function_boxes_the_plane_only_near_hanging(shoulder: Shoulder) 
     assert np.degrees(angles(high)) == pytest.approx([60, 90, 0, 40], abs=1e-6)
     boxed = angles(low)
     assert np.all((boxed >= limits.lower_rad) & (boxed <= limits.upper_rad))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    q=st.lists(st.floats(-3.2, 3.2, allow_nan=False), min_size=4, max_size=4),
+    nan_at=st.sampled_from([None, 0, 1, 2, 3]),
+    readonly=st.booleans(),
+)
+def test_monitor_function_is_the_single_angles_projected_bit_for_bit(
+    shoulder: Shoulder, q: list[float], nan_at: int | None, readonly: bool
+) -> None:
+    """The one compiled call gives what isb_single then Python's min(max(h, lo), hi) below the free elevation gave."""
+    limits = IsbLimits()
+    angles = monitor_isb_function(shoulder, limits)
+    q_rad = np.array(q)
+    if nan_at is not None:
+        q_rad[nan_at] = math.nan
+    q_rad.flags.writeable = not readonly  # a HAL sample's arrays are read-only
+    expected = shoulder.isb_single(q_rad)
+    if expected[0] < limits.horizontal_free_below_rad:
+        expected[1] = min(max(expected[1], limits.horizontal_rotation.lower_rad), limits.horizontal_rotation.upper_rad)
+    assert angles(q_rad).tobytes() == expected.tobytes()
 
 
 def test_limits_file_round_trip_and_line_numbered_errors(tmp_path: Path) -> None:
