@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 
 # The project's bytecode, compiled ahead (only what changed since): a shell that sets
 # PYTHONDONTWRITEBYTECODE (this machine's does) would otherwise compile ~150 modules at every start of
-# a command, 0.1-0.17 s of `daror hil` (D180). compileall writes the cache whatever that variable says.
+# a command, 0.1-0.17 s of `daror hil` (D177). compileall writes the cache whatever that variable says.
 BYTECODE = $(BIN)/python -m compileall -q daror_runtime hal
 
 $(BIN)/python:
