@@ -232,6 +232,31 @@ def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensat
     assert runtime._core.modes.compensation.model is runtime._core.a_priori  # what operative_check was approved with
 
 
+def test_a_model_selected_while_compensation_is_delivered_is_refused_and_the_support_does_not_step(
+    session: Session, models: Models
+) -> None:
+    """H14: a model swapped under a supported pilot is a torque step; a validated, conservative model that
+    reaches the tick boundary during compensation is refused, and the model in use keeps the support."""
+    runtime = session.runtime
+    session.select(models.good, models.validation)
+    session.walk_to("training")
+    session.ok(runtime.advance())
+    assert session.state == "compensation"
+    in_use = runtime._core.modes.compensation.model
+    runtime.pass_time(1.0)
+    runtime._core.announcements.drain()
+    before = runtime._core.modes.compensation.last_reference_nm.copy()
+    runtime.select_model(models.good, models.validation)  # validated and conservative: loaded anew, a new object
+    assert runtime.run_until(lambda: not runtime.busy, 5.0)
+    runtime.pass_time(0.05)
+    said = [a.text for a in runtime._core.announcements.drain() if a.kind == AnnouncementKind.MODEL]
+    assert any("compensation delivers compensation: change models from another state" in text for text in said), said
+    assert runtime._core.modes.compensation.model is in_use
+    assert session.state == "compensation"
+    after = runtime._core.modes.compensation.last_reference_nm
+    assert np.abs(after - before).max() < DIP_NM  # the arm held still: the support moved by noise only
+
+
 @pytest.mark.parametrize(
     ("edit", "problem"),
     [
