@@ -124,8 +124,8 @@ def test_a_points_history_reads_the_raw_log_up_to_each_point(tmp_path: Path) -> 
     assert find_raw_log(tmp_path / "train.csv") == tmp_path / "train.raw.npz"
 
 
-@pytest.mark.parametrize("travel", [0.0, -1e-3, float("nan"), float("inf")])
-def test_a_travel_constant_must_be_positive_and_finite(travel: float) -> None:
+@pytest.mark.parametrize("travel", [0.0, -0.0, -1e-3, float("nan"), float("inf"), -float("inf"), 1e-300, 9.99e-5])
+def test_a_travel_constant_must_be_finite_and_at_least_the_encoders_resolution(travel: float) -> None:
     with pytest.raises(UsageError, match="travel constant"):
         play_states(np.zeros((3, 4)), travel)
     with pytest.raises(UsageError, match="travel constant"):

@@ -14,6 +14,7 @@ import pytest
 
 from daror_runtime.clocks import LockStepClock
 from daror_runtime.control.modes import Compensation
+from daror_runtime.control.reading_error import MIN_TRAVEL_RAD
 from daror_runtime.control.sea_torque import SeaTorqueController
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign
 from daror_runtime.loop import ControlLoop, FixedSupervisor
@@ -207,15 +208,18 @@ def test_the_error_is_tracked_exactly_where_the_regulated_torque_carries_it(
     assert added == pytest.approx(expected, abs=1e-9)
 
 
-def test_a_model_file_with_a_travel_that_is_not_positive_is_refused() -> None:
+@pytest.mark.parametrize("joint", range(4))
+@pytest.mark.parametrize("bad", [0.0, -0.0, -5e-3, float("inf"), -float("inf"), float("nan"), 1e-300, 9.99e-5])
+def test_a_model_file_with_a_travel_that_is_not_finite_or_below_the_encoders_resolution_is_refused(
+    joint: int, bad: float
+) -> None:
+    """H20: a travel under the encoders' resolution (or none) makes the play operator a relay: a step at every reversal."""
     from daror_runtime.errors import ModelFileError
 
-    spec = AugmentedModel.from_parameters(
-        load_description(), {"base_kind": "plf+", "theta": [0.0] * 12, "hysteresis_travel_rad": [5e-3] * 4}
-    ).spec
-    assert spec.hysteresis_travel_rad == [5e-3] * 4
-    for travel in ([0.0, 5e-3, 5e-3, 5e-3], [float("nan")] * 4):
-        with pytest.raises(ModelFileError, match="hysteresis_travel_rad"):
-            AugmentedModel.from_parameters(
-                load_description(), {"base_kind": "plf+", "theta": [0.0] * 12, "hysteresis_travel_rad": travel}
-            )
+    parameters = {"base_kind": "plf+", "theta": [0.0] * 12, "hysteresis_travel_rad": [MIN_TRAVEL_RAD, 2e-4, 5e-3, 0.05]}
+    spec = AugmentedModel.from_parameters(load_description(), parameters).spec
+    assert spec.hysteresis_travel_rad == [MIN_TRAVEL_RAD, 2e-4, 5e-3, 0.05]  # the smallest allowed, the fit's grid
+    travel = list(parameters["hysteresis_travel_rad"])  # type: ignore[call-overload]
+    travel[joint] = bad
+    with pytest.raises(ModelFileError, match=rf"hysteresis_travel_rad\.{joint}"):
+        AugmentedModel.from_parameters(load_description(), {**parameters, "hysteresis_travel_rad": travel})

@@ -82,15 +82,25 @@ def _track(
     return 0
 
 
+#: The shortest travel constant a play operator takes, rad: the DAROR-01 encoders' resolution
+#: (hal/daror01.yaml). A shorter one turns the state over within a count of the encoder: a relay, the
+#: hysteresis's full step at every reversal (hazard H20). The analysis fits travels from 2e-4 rad up
+#: (:data:`daror_runtime.residual.travel.TRAVEL_GRID_RAD`).
+MIN_TRAVEL_RAD = 1e-4
+
+
 def checked_travel(travel_rad: FloatArray | float, joints: int) -> FloatArray:
     """Travel constants (rad) broadcast to ``joints``.
 
     Raises:
-        UsageError: one that is not positive and finite.
+        UsageError: one that is not finite or is shorter than :data:`MIN_TRAVEL_RAD`.
     """
     travel = np.broadcast_to(np.asarray(travel_rad, dtype=float), (joints,)).copy()
-    if not np.all(np.isfinite(travel)) or np.any(travel <= 0.0):
-        raise UsageError(f"a hysteresis travel constant must be positive and finite (rad), got {travel.tolist()}")
+    if not np.all(np.isfinite(travel)) or np.any(travel < MIN_TRAVEL_RAD):
+        raise UsageError(
+            f"a hysteresis travel constant must be finite and at least {MIN_TRAVEL_RAD:g} rad (the encoders' "
+            f"resolution; a shorter one is a relay: a torque step at every reversal), got {travel.tolist()}"
+        )
     return travel
 
 

@@ -23,7 +23,7 @@ from typing import Annotated, Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from daror_runtime.control.reading_error import HysteresisTracker
+from daror_runtime.control.reading_error import MIN_TRAVEL_RAD, HysteresisTracker
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import ModelFileError
 from daror_runtime.models.base import CompensationModel, FitReport, FitResult
@@ -50,7 +50,7 @@ class AugmentedParameters(BaseModel):
     torque_gain: PerJoint = Field(default_factory=lambda: [1.0] * N_JOINTS, min_length=4, max_length=4)
     direction_offset_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
     hysteresis_nm: PerJoint = Field(default_factory=lambda: [0.0] * N_JOINTS, min_length=4, max_length=4)
-    hysteresis_travel_rad: list[Annotated[float, Field(gt=0.0, allow_inf_nan=False)]] | None = Field(
+    hysteresis_travel_rad: list[Annotated[float, Field(ge=MIN_TRAVEL_RAD, allow_inf_nan=False)]] | None = Field(
         default=None,
         min_length=4,
         max_length=4,
