@@ -321,21 +321,24 @@ def test_start_up_sdo_traffic_is_cia_301_conform(rig: Rig) -> None:
 
 
 @pytest.mark.parametrize(
-    ("index", "value", "what"),
+    ("index", "sub", "value", "what"),
     [
-        (0x1000, 0x00020191, "device type 0x00020191"),
-        (0x6076, 5000, "0x6076 motor rated torque (mNm) 5000, its robot file says 10000"),
-        (0x2011, 4096, "0x2011 link_position counts per rev 4096, its robot file says 65536"),
+        (0x1000, 0, 0x00020191, "device type 0x00020191"),
+        (0x6076, 0, 5000, "0x6076 motor rated torque (mNm) 5000, its robot file says 10000"),
+        (0x2011, 0, 4096, "0x2011 link_position counts per rev 4096, its robot file says 65536"),
+        # H18: the motor-side encoder (0x6064's resolution, increments per revolutions)
+        (0x608F, 1, 32768, "0x608F:1/0x608F:2 motor_position counts per rev 32768, its robot file says 65536"),
+        (0x608F, 2, 2, "0x608F:1/0x608F:2 motor_position counts per rev 32768, its robot file says 65536"),
     ],
-    ids=["not-cia402", "rated-torque", "load-encoder"],
+    ids=["not-cia402", "rated-torque", "load-encoder", "motor-encoder-increments", "motor-encoder-revolutions"],
 )
 def test_start_up_refuses_a_drive_whose_units_are_not_its_eds(
-    make_rig: Callable[..., Rig], index: int, value: int, what: str
+    make_rig: Callable[..., Rig], index: int, sub: int, value: int, what: str
 ) -> None:
     """A drive that reports another profile or other units than its robot file's (the short form: its EDS's) is
     refused, by node id and joint, naming the object and both values."""
     rig = make_rig()
-    rig.drives.call(lambda: rig.drives.node(42).object_dictionary.write(index, 0, value))
+    rig.drives.call(lambda: rig.drives.node(42).object_dictionary.write(index, sub, value))
     with pytest.raises(HalError, match=re.escape(f"node 42 (joint 3): reports {what}")):
         rig.hal.open()
 
