@@ -10,7 +10,6 @@ the command written is torque-off, and the simulated drives applied zero torque.
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -205,18 +204,26 @@ def test_estop_removes_torque_and_torque_returns_only_after_release_and_clear() 
 
 
 def test_overrun() -> None:
+    """Every tick takes 1.6 ms of a 1 ms period: an overrun fault once five deadlines in a row are missed.
+
+    Time is a fake monotonic clock (``tests/test_clocks.py``): on the real one, a preemption of 1-2 ms
+    turned the missed deadlines into one stall and the message into the other kind (issue 26).
+    """
+    from tests.test_clocks import FakeTime
+
+    fake = FakeTime()
+
     class SlowController(HoldController):
         def update(self, sample: Sample, dt_s: float) -> Command:
-            deadline = time.perf_counter() + 0.0016  # each tick takes 1.6 ms of a 1 ms period
-            while time.perf_counter() < deadline:
-                pass
+            fake.t += 0.0016  # each tick takes 1.6 ms of a 1 ms period
             return super().update(sample, dt_s)
 
-    hal, loop = build(controller=SlowController(), clock=RealTimeClock(DT))
+    hal, loop = build(controller=SlowController(), clock=RealTimeClock(DT, now=fake.now, sleep=fake.sleep))
     result = run_until_fault(hal, loop, 20)
     assert [f.kind for f in result.faults] == [FaultKind.OVERRUN]
-    assert result.timing.consecutive_overruns >= 5  # missed deadlines in a row, skipped ones included
-    assert "consecutive deadlines of 1 ms missed (limit 5)" in result.faults[0].message
+    # 0.6 ms later each tick: the fault at the sixth deadline missed in a row (the limit is five), 1.4 ms late
+    assert result.timing.consecutive_overruns == 6  # missed deadlines in a row, skipped ones included
+    assert "6 consecutive deadlines of 1 ms missed (limit 5); this tick started 1.4 ms" in result.faults[0].message
 
 
 def test_overrun_of_one_long_stall() -> None:
