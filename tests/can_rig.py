@@ -58,6 +58,8 @@ class CanOnSimulatedDrives(CanHal):
         self._period_s = 1.0 / self.rate_hz
         self._last_write_s = 0.0
         self._written = False
+        #: The time the last read waited for the drives' thread (the rig's pacing), s: not the backend's.
+        self.rig_wait_s = 0.0
 
     @property
     def world(self) -> CanSimWorld:  # type: ignore[override]
@@ -90,7 +92,9 @@ class CanOnSimulatedDrives(CanHal):
         master's receive thread has taken their frames: on a loaded test machine the threads may
         need longer than a period, which a bus on the robot never does (up to 0.5 s is waited).
         """
+        self.rig_wait_s = 0.0
         if self._written and self._paced:
+            began = time.perf_counter()
             self._written = False
             wait = self._last_write_s + self._period_s - time.perf_counter()
             if wait > 0:
@@ -106,6 +110,7 @@ class CanOnSimulatedDrives(CanHal):
                     break
                 settled = pending
                 time.sleep(0.0002)
+            self.rig_wait_s = time.perf_counter() - began  # the rig's own pacing: not the backend's time
         return super().read()
 
     def _drive_bus_backlog(self) -> int:

@@ -82,6 +82,7 @@ CAN_RIG = BackendUnderTest(
     latch_fault=lambda hal: _world(hal).inject_fault("emcy", 1),
     fault_drive=_fault_can_drive,
     applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,
+    rig_wait_s=lambda hal: hal.rig_wait_s,  # type: ignore[attr-defined]
 )
 
 #: Every backend the contract runs against: the CAN master both in lock-step over simulated drives
