@@ -331,15 +331,6 @@ class Kinematics:
         """World orientation ``0R_{i,r}`` of every rotor frame; shape (N, 4, 3, 3)."""
         return np.moveaxis(self.rotor_rotations_component_major(q), -1, 0)
 
-    def stator_rotations(self, q: FloatArray) -> FloatArray:
-        """World orientation ``0R_{i,s}`` of every stator frame; shape (N, 4, 3, 3)."""
-        rotors = self.rotor_rotations(q)
-        out = np.empty_like(rotors)
-        out[:, 0] = self.base_rotation
-        for i in range(1, N_JOINTS):
-            out[:, i] = rotors[:, i - 1] @ self.stator_offsets[i]
-        return out
-
     def frame_origins(self, q: FloatArray) -> FloatArray:
         """World position of every rotor frame origin; shape (N, 4, 3).
 

@@ -293,7 +293,7 @@ BUILTIN_KINDS: tuple[ModelKind, ...] = (
     ),
     # The neural kinds: the fitter needs JAX (the extra ``nn``), the model class does not. Not a
     # residual base (the residual analysis augments models linear in their parameters). Not trained
-    # in a session yet: a fit takes seconds of CPU (docs/neural_draft.md), which in real time would
+    # in a session yet: a fit takes seconds of CPU (docs/models.md, "PENN and NNN: Timing"), which in real time would
     # run on the job thread beside the 1 kHz loop on a 2-core machine; that needs its own measurement
     # of the tick's jitter and a job that can be cancelled, before a session may start one.
     ModelKind(

@@ -7,7 +7,7 @@ how many initialisations to try and how to train them. The registry's options
 
 * **Default PENN**: 2 x 32 tanh, sin/cos inputs, the scaled loss with ``lambda = 1e-6``, 100 Adam
   steps then 200 L-BFGS iterations, 2 initialisations, 4 folds (the last held out), final fit. Why this one and not the 2 x 64 softplus of the prototype:
-  docs/neural_draft.md (tanh converges in a few hundred full-batch steps where softplus needs
+  docs/models.md, "PENN and NNN" (tanh converges in a few hundred full-batch steps where softplus needs
   thousands; 2 x 32 reaches PLF+'s validation error at a third of 2 x 64's cost). Two
   initialisations, not more: on dataset B the MVL hardly predicts which initialisation validates
   better, and each costs two networks' training (its fold network and its final fit).

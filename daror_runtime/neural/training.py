@@ -18,14 +18,14 @@ any network size; with the weights a trained 2 x 32 PENN has, ``mean |theta| ~ 0
 * ``lambda = 1``: the penalty dominates and the fit suffers (validation RMSE ~0.5 Nm), yet zero
   torque would cost 1.0 in the data term, so even this penalty cannot erase the model.
 
-(Measured numbers: docs/neural_draft.md.)
+(Measured numbers: docs/models.md, "PENN and NNN".)
 
 The thesis's loss (``settings.loss == "thesis"``, Eq. 3.7) as a batch computes it: the mean
 squared torque error in Nm^2 over the points and joints plus ``lambda * ||theta||_1`` (the sum over
 all parameters), with no standardisation of the inputs and no output scale. On dataset B at the
 thesis's ``lambda = 0.1`` the penalty wins: the torque of a network is a product of its layers'
 weights, so near zero the data term's gradient vanishes while the penalty's stays ``lambda``, and
-every weight is driven to zero (the collapse docs/neural_draft.md reports). How close the two terms
+every weight is driven to zero (the collapse docs/models.md reports, "Why the thesis's networks lost to PLF+"). How close the two terms
 are is an accident of units: with the squared error summed over the four joints instead of
 averaged (four times the data term) the same network does not collapse.
 
@@ -50,7 +50,7 @@ step*: the last step, at or after the MVL's, whose validation loss is within ``s
 where they show overfitting (the validation loss risen 10 % above its minimum). Why not at the
 MVL's step itself: on dataset B the held-out loss is flat within a few per cent after ~200 steps,
 its minimum falls anywhere in that plateau (or on a transient dip), and a network stopped there is
-worse on the validation trajectory (docs/neural_draft.md).
+worse on the validation trajectory (docs/models.md, "What fixed it: the loss and the training").
 
 **Several initialisations** (Sec. 4.2.3): every ``(lambda, seed)`` of :func:`train_group` is
 trained in one compiled program, ``jax.lax.scan`` over the steps; the caller keeps the one with the

@@ -81,15 +81,6 @@ def read_residual_file(
     return data, None
 
 
-def load_residual_file(path: Path | str, reduction: ReductionSettings | None = None) -> StationaryDataset:
-    """Stationary points of ``path`` (a raw log is reduced first), refusing another robot's data.
-
-    Raises:
-        DataError: see :func:`read_residual_file`.
-    """
-    return read_residual_file(path, reduction)[0]
-
-
 def check_pair(train: StationaryDataset, validate: StationaryDataset) -> ResidualInputs:
     """Refuse a training/validation pair that cannot be analysed together.
 
