@@ -31,7 +31,7 @@ from daror_runtime.control import (
 from daror_runtime.control.motor_position import MotorPositionPD
 from daror_runtime.control.sea_torque_design import SeaTorqueDesign
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.identification.trajectory_planning import build_trajectory
+from daror_runtime.identification.trajectory_planning import build_trajectory, prepend_approach
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.models.linear import APModel, fit_plf_plus
 from daror_runtime.residual.diagnosis import diagnose
@@ -148,7 +148,7 @@ def bench_motor_position_update(quick: bool) -> BenchFigure:
     description = load_description()
     bounds = LinkBounds.from_description(description)
     q0 = Q0_RAD  # where samples_near()'s readings are
-    reference = build_trajectory(load_waypoints(), "validation").with_approach(q0, 2.0, 1.0)
+    reference = prepend_approach(build_trajectory(load_waypoints(), "validation"), q0, 2.0, 1.0)
     feedforward = APModel.from_description(description, dummy_arm=True, elbow_stiffness=True)
 
     def build() -> Controller:

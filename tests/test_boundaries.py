@@ -467,3 +467,14 @@ def test_the_runtime_exposes_only_its_facade(tmp_path: Path) -> None:
     public_instance = {n for n in vars(runtime) if not n.startswith("_")}
     assert public_class == FACADE
     assert public_instance == {"ended"}  # how the session ended (None while it runs)
+
+
+def test_the_tick_side_trajectory_never_imports_its_planner() -> None:
+    """Issue 26: trajectory.py (what the tick evaluates) and trajectory_planning.py (design time) were an import
+    circle; the settings and kinds they share live in trajectory_settings.py, and the approach is prepended by
+    the planner's prepend_approach, not by a method that called back into it."""
+    planner = "daror_runtime.identification.trajectory_planning"
+    tick_side = ROOT / "daror_runtime/identification/trajectory.py"
+    assert planner not in imported_modules(tick_side)
+    shared = ROOT / "daror_runtime/identification/trajectory_settings.py"
+    assert not {m for m in imported_modules(shared) if m.startswith("daror_runtime.identification")}

@@ -31,7 +31,7 @@ from daror_runtime.data.schema import RawLog
 from daror_runtime.data.stationary import ReductionSettings, _norm_below, filtered_velocity
 from daror_runtime.data.tick_row import N_RECORD_COLUMNS, RECORD_COLUMNS
 from daror_runtime.errors import ShapeError as RuntimeShapeError
-from daror_runtime.identification.trajectory_planning import build_trajectory
+from daror_runtime.identification.trajectory_planning import build_trajectory, prepend_approach
 from daror_runtime.identification.waypoints import load_waypoints
 from daror_runtime.loop import FILL_SIGNATURE, ControlLoop, FixedSupervisor
 from daror_runtime.models.linear import APModel
@@ -69,7 +69,7 @@ def identification_loop(tmp_path: Path, ticks_before: int = 0) -> tuple[SimHal, 
     hal = SimHal("exo_dummy_arm")
     hal.open()
     first = hal.read()
-    trajectory = build_trajectory(load_waypoints(), "training").with_approach(first.q_rad, 2.0, 0.5)
+    trajectory = prepend_approach(build_trajectory(load_waypoints(), "training"), first.q_rad, 2.0, 0.5)
     feedforward = APModel.from_description(hal.description, dummy_arm=True, elbow_stiffness=True)
     controller = MotorPositionPD(
         hal.description, trajectory, LinkBounds.from_description(hal.description), feedforward=feedforward

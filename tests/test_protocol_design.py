@@ -44,6 +44,7 @@ from daror_runtime.identification.trajectory_planning import (
     TrajectoryError,
     approach_limits,
     check_approach,
+    prepend_approach,
 )
 from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.linear import APModel
@@ -179,7 +180,7 @@ def test_a_designed_protocol_never_leaves_the_recorded_isb_limits(
     # arm enters the limits once, before the trajectory starts, and stays in; on its way in it goes no
     # further out than where it started
     home = shoulder.q_from_isb(HOME.isb_rad)
-    run = trajectory.with_approach(home, protocol.prediction.approach_s, protocol.prediction.settle_s)
+    run = prepend_approach(trajectory, home, protocol.prediction.approach_s, protocol.prediction.settle_s)
     assert run.duration_s == pytest.approx(protocol.prediction.robot_time_s, abs=1e-9)
     isb = shoulder.isb_from_q(run.sample(np.arange(0.0, run.duration_s, 0.001))[0])
     inside = np.asarray(limits.contains(isb))
@@ -477,7 +478,7 @@ def test_a_design_from_a_start_outside_the_limits_enters_them_and_stays_in(descr
     protocol = result.protocol
     assert protocol.start == start
     start_q = shoulder.q_from_isb(start.isb_rad)
-    run = result.trajectory.with_approach(start_q, protocol.prediction.approach_s, protocol.prediction.settle_s)
+    run = prepend_approach(result.trajectory, start_q, protocol.prediction.approach_s, protocol.prediction.settle_s)
     assert run.duration_s == pytest.approx(protocol.prediction.robot_time_s, abs=1e-9)
     isb = shoulder.isb_from_q(run.sample(np.arange(0.0, run.duration_s, 0.001))[0])
     inside = np.asarray(limits.contains(isb))

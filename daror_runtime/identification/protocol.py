@@ -46,7 +46,7 @@ from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.errors import DarorError, UsageError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory import ReferenceTrajectory
-from daror_runtime.identification.trajectory_planning import check_approach
+from daror_runtime.identification.trajectory_planning import check_approach, prepend_approach
 from daror_runtime.loop import ControlLoop, FixedSupervisor, TickResult
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.safety.faults import Fault
@@ -151,7 +151,7 @@ def plan_run(
     q_now = np.asarray(q_now_rad, dtype=float)
     distance = float(np.abs(trajectory.start_q_rad - q_now).max())
     approach_s = settings.approach_duration_s(distance)
-    reference = trajectory.with_approach(q_now, approach_s, settings.settle_s)
+    reference = prepend_approach(trajectory, q_now, approach_s, settings.settle_s)
     controller = MotorPositionPD(
         description,
         reference,

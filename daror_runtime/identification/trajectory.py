@@ -15,20 +15,16 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 from numba import njit
 
 from daror_runtime.errors import DarorError
+from daror_runtime.identification.trajectory_settings import TrajectoryKind, TrajectorySettings
 from hal.robot import N_JOINTS, FloatArray
 
-if TYPE_CHECKING:
-    from daror_runtime.identification.trajectory_planning import TrajectorySettings
-
 __all__ = ["ReferenceTimeError", "ReferenceTrajectory", "Stop", "TrajectoryKind", "evaluate_piece"]
-
-TrajectoryKind = Literal["training", "validation"]
 
 
 class ReferenceTimeError(DarorError, ValueError):
@@ -122,19 +118,6 @@ class ReferenceTrajectory:
         basis = np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
         out = np.einsum("nrc,nc->nr", self._coefficients[k], basis)
         return out[:, :N_JOINTS], out[:, N_JOINTS:]
-
-    def with_approach(self, q_from_rad: FloatArray, approach_s: float, settle_s: float) -> ReferenceTrajectory:
-        """This trajectory preceded by a minimum-jerk move from ``q_from_rad`` (rad) and a hold at the start.
-
-        Planning, not per tick: :func:`~daror_runtime.identification.trajectory_planning.prepend_approach`
-        does the work (imported here, when called: the planning module imports this one).
-
-        Raises:
-            TrajectoryError: a non-positive approach duration (s) or a negative settle time (s).
-        """
-        from daror_runtime.identification.trajectory_planning import prepend_approach
-
-        return prepend_approach(self, q_from_rad, approach_s, settle_s)
 
     @property
     def piecewise_table(self) -> tuple[FloatArray, FloatArray]:
