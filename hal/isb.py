@@ -384,7 +384,13 @@ class Shoulder:
             raise DescriptionError(
                 f"the neutral pose q = {np.round(np.degrees(self.q_neutral), 1)} deg is near a shoulder singularity"
             )
-        _isb_single_kernel(self.q_neutral, self._constants)  # compile (or load from the cache) now, not in a tick
+        # Compiled (or loaded from the cache) now, not in a tick: the angles, and the monitor's projection of
+        # them (monitor_isb_function is called by FSM guards inside a tick) for both array types it is given
+        _isb_single_kernel(self.q_neutral, self._constants)
+        for readonly in (False, True):
+            q = self.q_neutral.copy()
+            q.flags.writeable = not readonly
+            _isb_monitor_kernel(q, self._constants, 0.0, -1.0, 1.0)
 
     @classmethod
     def from_description(cls, description: RobotDescription) -> Shoulder:
@@ -644,8 +650,4 @@ def monitor_isb_function(shoulder: Shoulder, limits: IsbLimits) -> Callable[[Flo
     def angles(q: FloatArray) -> FloatArray:
         return _isb_monitor_kernel(q, shoulder._constants, free, h_lo, h_hi)  # one compiled call a tick
 
-    for readonly in (False, True):  # compiled (or loaded from the cache) now, not in a tick: both array types
-        q = shoulder.q_neutral.copy()
-        q.flags.writeable = not readonly
-        angles(q)
-    return angles
+    return angles  # its kernel was loaded with the shoulder (Shoulder.__init__), not in a tick
