@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from daror_runtime.safety.lowering import DEFAULT_LOWERING_SPEED_RAD_S, LoweringError, plan_lowering
@@ -33,6 +33,7 @@ def _dense(path: object, step_s: float = 0.002) -> tuple[np.ndarray, np.ndarray]
 
 @settings(max_examples=40, deadline=None)
 @given(isb=poses)
+@example(isb=(76.0, 48.0, -11.0, 6.0))  # q2 at 119.8 deg: the shoulder rotation passed 120 (a clean-clone run found it)
 def test_every_lowering_from_the_pilot_s_range_is_slow_inside_the_limits_and_ends_at_rest(
     isb: tuple[float, ...],
 ) -> None:

@@ -177,6 +177,12 @@ def plan_lowering(
         if float(np.max(np.abs(q[-1] - q_end))) > 1e-3:  # the rotation reached the rest on the other IK branch
             q, dq, duration = _joint_space(q_start, q_end, speed_rad_s, rate)
             method = "joint space (the rest pose is on the other branch of the shoulder)"
+        elif _leaves_joint_limits(q, shoulder):
+            # From an arm held near a joint limit the rotation's path may pass it (q2 at 119.8 of 120 deg went
+            # to 120.0): a straight line in joint space between two poses inside the limits stays inside them.
+            # It is checked below like the rotation (singularity, the pilot's ISB limits); refused if it fails.
+            q, dq, duration = _joint_space(q_start, q_end, speed_rad_s, rate)
+            method = "joint space (the shoulder rotation would pass a joint limit)"
     _check(q, dq, shoulder, off, isb_limits, isb_margin_rad, speed_rad_s)
     every = round(rate / KNOT_RATE_HZ)
     qk, dqk = q[::every], dq[::every]
@@ -188,6 +194,11 @@ def plan_lowering(
     hold = np.zeros((1, 2 * N_JOINTS, 4))
     hold[0, :N_JOINTS, 0] = q[-1]  # after the end: the rest pose, still
     return LoweringPath(np.concatenate([times[:-1], [duration]]), np.concatenate([pieces, hold]), duration, method)
+
+
+def _leaves_joint_limits(q: FloatArray, shoulder: Shoulder) -> bool:
+    """True if a sample of ``q`` (N, 4) rad is outside the joint limits (the tolerance :func:`_check` allows)."""
+    return bool(np.any((q < shoulder.lower_rad - 1e-9) | (q > shoulder.upper_rad + 1e-9)))
 
 
 def _check(
