@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -138,20 +138,25 @@ def session(tmp_path: Path) -> Iterator[Session]:
     s.close()
 
 
-def watch(session: Session, seconds: float) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Run ``seconds``; the true poses (N, 4), spring torques (N, 4) and joint speeds (N, 4) of every tick."""
+def watch(
+    session: Session, seconds: float, also: Callable[[], FloatArray] | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Run ``seconds``; the true poses (N, 4), spring torques (N, 4) and joint speeds (N, 4) of every tick.
+
+    ``also``: read after every tick too; its values (N, ...) replace the speeds in the result.
+    """
     hal = session.hal
-    poses, springs, speeds = [], [], []
+    poses, springs, third = [], [], []
 
     def record(_result: object) -> bool:
         truth = hal.truth()
         poses.append(truth.q_rad)
         springs.append(truth.tau_spring_nm)
-        speeds.append(truth.dq_rad_s)
+        third.append(truth.dq_rad_s if also is None else also())
         return False
 
     session.runtime.run_ticks(round(seconds * hal.rate_hz), stop=record)
-    return np.array(poses), np.array(springs), np.array(speeds)
+    return np.array(poses), np.array(springs), np.array(third)
 
 
 # --- 1. a model that failed validation never drives the pilot -----------------------------------------
@@ -361,17 +366,7 @@ def test_entering_operative_check_with_the_pilot_carrying_ramps_the_support_in(s
     session.ok(runtime.advance())
     handover = runtime._core.modes.compensation.handover
     hal = session.hal
-    poses, springs, withheld = [], [], []
-
-    def record(_result: object) -> bool:
-        truth = hal.truth()
-        poses.append(truth.q_rad)
-        springs.append(truth.tau_spring_nm)
-        withheld.append(np.abs(handover.remaining_nm))
-        return False
-
-    runtime.run_ticks(round(5.0 * hal.rate_hz), stop=record)
-    poses_a, springs_a, withheld_a = np.array(poses), np.array(springs), np.array(withheld)
+    poses_a, springs_a, withheld_a = watch(session, 5.0, also=lambda: np.abs(handover.remaining_nm))
     assert not runtime._core.monitor.faulted
     # the support withheld at entry (the pilot carried the arm) is handed over and never taken back
     assert withheld_a[0].max() > 0.5  # there was support to bring in (the arm's weight, Nm)
