@@ -383,6 +383,11 @@ def register_backend(kind: str, target: str) -> str | None:
     return previous
 
 
+def backend_kinds() -> tuple[str, ...]:
+    """The names of every registered HAL backend, in registration order (what ``--hal`` offers)."""
+    return tuple(BACKENDS)
+
+
 def hal_class(kind: str) -> type[Hal]:
     """The backend class registered as ``kind`` (its module imported now).
 
