@@ -1,8 +1,14 @@
-"""HAL configuration: one pydantic variant per backend, chosen by ``backend``.
+"""HAL configuration: one pydantic model per backend, chosen by ``backend``.
 
 A configuration says which backend runs the session and everything that backend needs; it is a
 YAML file a person edits (``daror console --hal-config FILE``) or is built from the command-line
-flags (``--hal``, ``--scenario``). :func:`hal.interface.open_hal` turns it into a backend::
+flags (``--hal``, ``--scenario``). :func:`hal.interface.open_hal` turns it into a backend.
+
+Each backend registers its configuration model together with its class (:mod:`hal.registry`):
+a subclass of :class:`AnyHalConfig` whose ``backend`` field is ``Literal[<its name>]``, frozen,
+unknown fields refused. :func:`load_hal_config` and :func:`hal_config` validate against the
+model of the backend the file or the call names, a plug-in's as a built-in's; this module defines
+the built-ins' (``sim``, ``can-sim``, ``can``)::
 
     backend: sim                  # sim | can-sim | can
     scenario: exo_dummy_arm       # a shipped scenario or a .yaml path (relative to this file)
@@ -36,44 +42,41 @@ field: ``hal.yaml: line 3, field rate_hz: Input should be greater than 0; got -5
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, Self, get_args, get_origin
 
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    TypeAdapter,
     ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
-from hal.errors import HalConfigError
+from hal.errors import BackendUnavailableError, HalConfigError
+from hal.registry import backend_entry, backend_kinds, import_target
 from hal.robot import N_JOINTS
 from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
 
 __all__ = [
-    "BACKEND_NAMES",
     "CAN_BITRATES",
     "DEFAULT_SCENARIO",
     "AnyHalConfig",
     "CanHalConfig",
     "CanSimHalConfig",
     "EstopInput",
-    "HalConfig",
     "IdentityCheck",
     "NodeConfig",
     "PositionObject",
     "SdoInitWrite",
     "SimHalConfig",
     "SpringTorque",
+    "config_model",
     "hal_config",
     "load_hal_config",
 ]
 
-#: The backends a configuration may name (the registry's names, hal.interface.BACKENDS).
-BACKEND_NAMES: tuple[str, ...] = ("sim", "can-sim", "can")
 #: The scenario of the simulated plant when none is named.
 DEFAULT_SCENARIO = "exo_dummy_arm"
 #: A CAN bus bit rate, bit/s: one of the CiA 301 recommended rates.
@@ -95,7 +98,39 @@ class _Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
-class SimHalConfig(_Config):
+def _looks_like_path(value: str) -> bool:
+    return Path(value).suffix.lower() in {".yaml", ".yml", ".eds", ".log"} or "/" in value or "\\" in value
+
+
+class AnyHalConfig(_Config):
+    """A HAL configuration: the base of every backend's configuration model (the type of any configuration).
+
+    A backend's model (registered with it, :mod:`hal.registry`) narrows ``backend`` to
+    ``Literal[<its name>]`` and adds its fields; it stays frozen, strict and refuses unknown
+    fields (checked by :func:`config_model`).
+
+    Attributes:
+        backend: the registered backend this configuration is for.
+        path_fields: the fields that may hold a file path: a relative one in a file is taken
+            relative to that file's folder (:meth:`resolved_against`; a value that does not look
+            like a path, such as a shipped scenario's name, stays as it is).
+    """
+
+    path_fields: ClassVar[tuple[str, ...]] = ()
+
+    backend: str
+
+    def resolved_against(self, folder: Path) -> Self:
+        """This configuration with every relative path of :attr:`path_fields` taken relative to ``folder``."""
+        updates: dict[str, Any] = {}
+        for name in self.path_fields:
+            value = getattr(self, name, None)
+            if isinstance(value, str) and _looks_like_path(value) and not Path(value).is_absolute():
+                updates[name] = str(folder / value)
+        return self.model_copy(update=updates) if updates else self
+
+
+class SimHalConfig(AnyHalConfig):
     """The simulated plant (:class:`hal.sim.backend.SimHal`), lock-step: its time is virtual.
 
     Attributes:
@@ -104,6 +139,8 @@ class SimHalConfig(_Config):
         seed: replaces the scenario's random seed (encoder noise); None keeps the scenario's.
         robot: robot description file; None: the one the scenario names.
     """
+
+    path_fields: ClassVar[tuple[str, ...]] = ("scenario", "robot")
 
     backend: Literal["sim"] = "sim"
     scenario: Text = DEFAULT_SCENARIO
@@ -266,7 +303,7 @@ class NodeConfig(_Config):
     calibration: NodeCalibration | None = None
 
 
-class _CanFields(_Config):
+class _CanFields(AnyHalConfig):
     """What a CANopen backend needs (``hal/canopen``, issue 12).
 
     Attributes:
@@ -295,6 +332,8 @@ class _CanFields(_Config):
             With ``nodes``, ``node_ids`` is theirs (joint 1-4 in order) and neither ``node_ids``
             nor ``eds`` may be given.
     """
+
+    path_fields: ClassVar[tuple[str, ...]] = ("eds", "traffic_log")
 
     interface: Text
     channel: Text
@@ -326,6 +365,17 @@ class _CanFields(_Config):
             if sorted(by_joint, key=repr) == list(range(1, N_JOINTS + 1)) and len(by_joint) == len(nodes):
                 data = {**data, "node_ids": [by_joint[j] for j in range(1, N_JOINTS + 1)]}
         return data
+
+    def resolved_against(self, folder: Path) -> Self:
+        """As :meth:`AnyHalConfig.resolved_against`, and each node's EDS too (relative to the robot file, as every path in it)."""
+        resolved = super().resolved_against(folder)
+        if resolved.nodes is None:
+            return resolved
+        nodes = [
+            n if Path(n.eds).is_absolute() else n.model_copy(update={"eds": str(folder / n.eds)})
+            for n in resolved.nodes
+        ]
+        return resolved.model_copy(update={"nodes": nodes})
 
     @field_validator("nodes")
     @classmethod
@@ -376,6 +426,8 @@ class CanSimHalConfig(_CanFields):
         seed: replaces the scenario's random seed; None keeps the scenario's.
     """
 
+    path_fields: ClassVar[tuple[str, ...]] = ("scenario", "eds", "traffic_log")
+
     backend: Literal["can-sim"] = "can-sim"
     interface: Text = "virtual"
     channel: Text = "daror"
@@ -397,42 +449,70 @@ class CanHalConfig(_CanFields):
     velocity_filter_hz: Annotated[Number, Field(gt=0, le=1_000)] = 50.0
 
 
-#: A HAL configuration: one of the variants (the type of a value).
-AnyHalConfig = SimHalConfig | CanSimHalConfig | CanHalConfig
-#: A HAL configuration for pydantic: one of the variants, told apart by ``backend``.
-HalConfig = Annotated[AnyHalConfig, Field(discriminator="backend")]
+def config_model(kind: str) -> type[AnyHalConfig]:
+    """The configuration model registered with backend ``kind`` (:mod:`hal.registry`; its module imported now).
 
-_VARIANTS: dict[str, type[_Config]] = {"sim": SimHalConfig, "can-sim": CanSimHalConfig, "can": CanHalConfig}
-_ADAPTER: TypeAdapter[AnyHalConfig] = TypeAdapter(HalConfig)
-#: Fields that hold a file path; a relative one in a file is relative to that file's folder.
-_PATH_FIELDS = ("scenario", "robot", "eds", "traffic_log")
-
-
-def _looks_like_path(value: str) -> bool:
-    return Path(value).suffix.lower() in {".yaml", ".yml", ".eds", ".log"} or "/" in value or "\\" in value
-
-
-def _variant(backend: object, source: str, where: str = "") -> type[_Config]:
-    if backend is None:
-        raise HalConfigError(f"{source}: {where}field backend: missing; expected one of {', '.join(BACKEND_NAMES)}")
-    if not isinstance(backend, str) or backend not in _VARIANTS:
-        shown = repr(backend) if isinstance(backend, str) else f"{backend!r} ({type(backend).__name__})"
-        raise HalConfigError(
-            f"{source}: {where}field backend: unknown backend {shown}; expected one of {', '.join(BACKEND_NAMES)}"
+    Raises:
+        HalConfigError: ``kind`` is not a registered backend (the registered ones are listed).
+        BackendUnavailableError: a plug-in registered it but cannot be loaded, its model's module is
+            missing or needs a package that is not installed, or the model is not an
+            :class:`AnyHalConfig` subclass with ``backend: Literal[kind]``, frozen, refusing
+            unknown fields (one line naming it).
+        HalError: the model's module failed to import for another reason.
+    """
+    target = backend_entry(kind).config
+    model = import_target(kind, target)
+    if not (isinstance(model, type) and issubclass(model, AnyHalConfig)):
+        raise BackendUnavailableError(
+            f"HAL backend {kind!r}: its configuration {target} is not a hal.config.AnyHalConfig model"
         )
-    return _VARIANTS[backend]
+    field = model.model_fields.get("backend")
+    annotation = None if field is None else field.annotation
+    if get_origin(annotation) is not Literal or get_args(annotation) != (kind,):
+        raise BackendUnavailableError(
+            f"HAL backend {kind!r}: its configuration {target} has backend: {annotation}; expected Literal[{kind!r}]"
+        )
+    if model.model_config.get("extra") != "forbid" or not model.model_config.get("frozen"):
+        raise BackendUnavailableError(
+            f"HAL backend {kind!r}: its configuration {target} must be frozen and refuse unknown fields"
+        )
+    return model
+
+
+def _variant(backend: object, source: str, where: str = "") -> type[AnyHalConfig]:
+    """The configuration model of ``backend`` as a file or the flags name it.
+
+    Raises:
+        HalConfigError: no backend, or one that is not registered (the registered ones listed).
+        BackendUnavailableError: a backend registered but not usable (see :func:`config_model`).
+    """
+    if backend is None:
+        raise HalConfigError(f"{source}: {where}field backend: missing; expected one of {', '.join(backend_kinds())}")
+    if isinstance(backend, str):
+        try:
+            return config_model(backend)
+        except HalConfigError:
+            pass  # not registered: said below, with the registered ones
+        except BackendUnavailableError as exc:
+            raise BackendUnavailableError(f"{source}: {where}field backend: {exc}") from None
+    shown = repr(backend) if isinstance(backend, str) else f"{backend!r} ({type(backend).__name__})"
+    raise HalConfigError(
+        f"{source}: {where}field backend: unknown backend {shown}; expected one of {', '.join(backend_kinds())}"
+    )
 
 
 def load_hal_config(path: Path | str) -> AnyHalConfig:
-    """Read a HAL configuration file (see the module docstring).
+    """Read a HAL configuration file (see the module docstring), validated by its backend's registered model.
 
-    A relative path in ``scenario``, ``robot`` or ``eds`` is taken relative to the file's folder
+    A relative path in a field that holds one (``scenario``, ``robot``, ``eds``, ``traffic_log``,
+    each node's ``eds``: :attr:`AnyHalConfig.path_fields`) is taken relative to the file's folder
     (a shipped scenario's name stays a name).
 
     Raises:
         HalConfigError: the file cannot be read or is not YAML (:func:`hal.yamlfile.read_yaml`), it
             names no or an unknown ``backend``, or a field is missing, unknown or of the wrong
             type or range; one line naming the file, the line and the field.
+        BackendUnavailableError: the backend it names is a plug-in that cannot be loaded (one line).
     """
     path = Path(path)
     data, root = read_yaml(path, HalConfigError, "a YAML mapping with a backend: key")
@@ -442,39 +522,29 @@ def load_hal_config(path: Path | str) -> AnyHalConfig:
         config = model.model_validate(data)
     except ValidationError as exc:
         raise HalConfigError(format_validation_error(str(path), exc, root)) from None
-    updates: dict[str, Any] = {}
-    for name in _PATH_FIELDS:
-        value = getattr(config, name, None)
-        if isinstance(value, str) and _looks_like_path(value) and not Path(value).is_absolute():
-            updates[name] = str(path.parent / value)
-    nodes = getattr(config, "nodes", None)
-    if nodes is not None:  # each node's EDS is relative to the robot file, as every path in it is
-        updates["nodes"] = [
-            n if Path(n.eds).is_absolute() else n.model_copy(update={"eds": str(path.parent / n.eds)}) for n in nodes
-        ]
-    return config.model_copy(update=updates) if updates else config  # type: ignore[return-value]
+    return config.resolved_against(path.parent)
 
 
 def hal_config(backend: str, source: str = "command line", **fields: Any) -> AnyHalConfig:
     """A configuration of ``backend`` from ``fields`` (e.g. the command-line flags); None values are left out.
 
     Args:
-        backend: ``sim``, ``can-sim`` or ``can``.
+        backend: a registered backend (``sim``, ``can-sim``, ``can``, or a plug-in's).
         source: what a message names as the origin (``--hal/--scenario``).
-        fields: the variant's fields; a field that is None takes its default.
+        fields: the backend's configuration fields; a field that is None takes its default.
 
     Raises:
         HalConfigError: an unknown backend, or a field the backend does not take or of the wrong type.
+        BackendUnavailableError: ``backend`` is a plug-in that cannot be loaded (one line).
     """
-    _variant(backend, source)
+    model = _variant(backend, source)
     given = {key: value for key, value in fields.items() if value is not None}
     try:
-        return _ADAPTER.validate_python({**given, "backend": backend})
+        return model.model_validate({**given, "backend": backend})
     except ValidationError as exc:
         problems = []
         for problem in exc.errors():
-            location = [str(p) for p in problem["loc"][1:]]  # without the discriminator's tag
-            field = ".".join(location) or "(top level)"
+            field = ".".join(str(p) for p in problem["loc"]) or "(top level)"
             if problem["type"] == "extra_forbidden":
                 problems.append(f"{source}: {field}: the {backend} backend does not take it")
             else:

@@ -1,8 +1,9 @@
 """The HAL contract: what the runtime reads and writes each tick, and how backends plug in.
 
 Like python-can's ``BusABC``: one small abstract base, backends in their own folders
-(``hal/sim``, ``hal/canopen``), looked up by name in a registry that imports them lazily
-(:func:`open_hal` builds one from a :mod:`hal.config` configuration). The runtime talks to
+(``hal/sim``, ``hal/canopen``) or in other packages, looked up by name in a registry that imports
+them lazily (:mod:`hal.registry`: :func:`register_backend`, :func:`backend_kinds`, entry points;
+:func:`open_hal` builds one from a :mod:`hal.config` configuration). The runtime talks to
 hardware only through :class:`Hal`; what a simulating backend offers besides (the pilot, the
 e-stop buttons, fault injection) is the :class:`hal.capabilities.SimulatedWorld` of
 :attr:`Hal.world`.
@@ -21,7 +22,6 @@ Units: rad, rad/s, Nm, s. Arrays are ``float64`` of shape (4,), joints 1-4 at in
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from enum import IntEnum
 from types import TracebackType
@@ -29,7 +29,13 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from hal.errors import BackendUnavailableError, HalConfigError, HalError, ShapeError
+from hal.errors import BackendUnavailableError, HalError, ShapeError
+from hal.registry import BackendEntry as BackendEntry
+from hal.registry import backend_entry as backend_entry
+from hal.registry import backend_kinds as backend_kinds
+from hal.registry import import_target
+from hal.registry import register_backend as register_backend
+from hal.registry import unregister_backend as unregister_backend
 from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 if TYPE_CHECKING:
@@ -246,7 +252,7 @@ class Hal(ABC):
     are requests that :meth:`write` carries out step by step, never blocking calls.
     """
 
-    #: Registry name: ``sim``, ``can-sim``, ``can``.
+    #: Registry name (:mod:`hal.registry`): ``sim``, ``can-sim``, ``can``, or a plug-in's.
     kind: str = ""
     #: True if the backend owns its time: each :meth:`write` advances it by one tick, however long
     #: the tick took (a simulation). Only such a backend may run lock-step (a virtual clock); a
@@ -355,74 +361,20 @@ class Hal(ABC):
         self.close()
 
 
-#: Backend name -> ``"module:Class"``; the module is imported only when the backend is asked for.
-BACKENDS: dict[str, str] = {
-    "sim": "hal.sim.backend:SimHal",
-    "can-sim": "hal.canopen.backend:SimulatedCanHal",
-    "can": "hal.canopen.backend:CanHal",
-}
-#: Import name -> the package that provides it (what a message tells a person to install).
-PACKAGES: dict[str, str] = {"can": "python-can", "canopen": "canopen"}
-#: Import name -> the optional extra of daror-runtime that installs it (pyproject.toml).
-EXTRAS: dict[str, str] = {"can": "can", "canopen": "can"}
-
-
-def register_backend(kind: str, target: str) -> str | None:
-    """Register (or replace) backend ``kind`` as ``"module:Class"``; returns the target it replaced, if any.
-
-    The module is imported only when the backend is asked for (:func:`hal_class`).
-
-    Raises:
-        HalConfigError: ``target`` is not of the form ``module:Class``.
-    """
-    module_name, _, attribute = target.partition(":")
-    if not module_name or not attribute:
-        raise HalConfigError(f"HAL backend {kind!r}: target {target!r}; expected 'module:Class'")
-    previous = BACKENDS.get(kind)
-    BACKENDS[kind] = target
-    return previous
-
-
-def backend_kinds() -> tuple[str, ...]:
-    """The names of every registered HAL backend, in registration order (what ``--hal`` offers)."""
-    return tuple(BACKENDS)
-
-
 def hal_class(kind: str) -> type[Hal]:
-    """The backend class registered as ``kind`` (its module imported now).
+    """The backend class registered as ``kind`` (:mod:`hal.registry`; its module imported now).
 
     Raises:
         HalConfigError: unknown kind.
         BackendUnavailableError: the backend is not built yet (its module or class does not
-            exist), or it needs a Python package that is not installed; the message names it.
+            exist), it needs a Python package that is not installed (the message names it), or a
+            plug-in registered it but cannot be loaded.
         HalError: the backend's module failed to import for another reason (a bug).
     """
-    try:
-        target = BACKENDS[kind]
-    except KeyError:
-        raise HalConfigError(f"unknown HAL backend {kind!r}; expected one of {', '.join(BACKENDS)}") from None
-    module_name, _, attribute = target.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        missing = exc.name or ""
-        if missing and (module_name == missing or module_name.startswith(missing + ".")):
-            raise BackendUnavailableError(
-                f"HAL backend {kind!r} is not built yet: this installation has no module {module_name}"
-            ) from None
-        if missing:
-            top = missing.split(".")[0]
-            package = PACKAGES.get(top, top)
-            extra = EXTRAS.get(top)
-            how = f"pip install 'daror-runtime[{extra}]'" if extra is not None else f"pip install {package}"
-            raise BackendUnavailableError(
-                f"HAL backend {kind!r} needs the Python package {package!r}, which is not installed ({how})"
-            ) from None
-        raise HalError(f"HAL backend {kind!r} cannot be loaded: {exc}") from None
-    except ImportError as exc:
-        raise HalError(f"HAL backend {kind!r} cannot be loaded: {exc}") from None
-    cls = getattr(module, attribute, None)
+    target = backend_entry(kind).target
+    cls = import_target(kind, target)
     if not (isinstance(cls, type) and issubclass(cls, Hal)):
+        module_name, _, attribute = target.partition(":")
         raise BackendUnavailableError(
             f"HAL backend {kind!r} is not built yet: module {module_name} has no Hal class {attribute}"
         )

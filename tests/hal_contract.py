@@ -1,12 +1,12 @@
 """The HAL contract suite: what every backend must do, written against :class:`hal.interface.Hal` only.
 
 Like python-can's back-to-back tests, one set of behaviour checks runs against every backend
-(``tests/test_hal_contract.py`` lists them: ``sim`` now, the CANopen backends when they exist).
-A backend joins with a :class:`BackendUnderTest`: a factory of unopened instances plus the few
-test hooks that only a test bench has (latch a bus fault, fault a drive, read back the torque the
-drives apply). A check that needs a hook the backend does not offer is skipped for it. The checks
-are the ``test_*`` methods of :class:`HalContract`; a test module subclasses it as ``Test...``
-and provides a ``backend`` fixture.
+(``tests/test_hal_contract.py`` takes them from the registry, :mod:`hal.registry`, plus its test
+rigs). A backend joins with its :class:`hal.testing.BackendUnderTest` records, named by its
+registry entry: a factory of unopened instances plus the few test hooks that only a test bench
+has (latch a bus fault, fault a drive, read back the torque the drives apply). A check that needs
+a hook the backend does not offer is skipped for it. The checks are the ``test_*`` methods of
+:class:`HalContract`; a test module subclasses it as ``Test...`` and provides a ``backend`` fixture.
 
 What is checked (the docstring of :class:`hal.interface.Hal` states the same contract):
 
@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -67,31 +66,10 @@ from hal.interface import (
     Sample,
 )
 from hal.robot import N_JOINTS, FloatArray
+from hal.testing import BackendUnderTest
 
 OFF = Command.torque_off()
 ZERO_ON = Command(np.zeros(N_JOINTS), True)
-
-
-@dataclass(frozen=True)
-class BackendUnderTest:
-    """A backend as the contract suite sees it.
-
-    Attributes:
-        name: the test id.
-        make: a new, unopened instance.
-        latch_fault: latch a fault outside the tick (a bus error, a lost heartbeat) on an open backend.
-        fault_drive: put the drive of joint 1-4 in fault on an open backend.
-        applied_torque_nm: the torque the drives apply now (4,) Nm, as a test bench measures it.
-        rig_wait_s: the time the last ``read`` spent waiting for the test rig itself (a rig that
-            paces wall-clock drives to the bus's period), s: not the backend's time.
-    """
-
-    name: str
-    make: Callable[[], Hal]
-    latch_fault: Callable[[Hal], None] | None = None
-    fault_drive: Callable[[Hal, int], None] | None = None
-    applied_torque_nm: Callable[[Hal], FloatArray] | None = None
-    rig_wait_s: Callable[[Hal], float] | None = None
 
 
 # --- helpers ---------------------------------------------------------------------------------------

@@ -8,8 +8,12 @@ immediate, torque is saturated at the drive's peak, a drive in fault applies no 
 a bus thread latched (a lost heartbeat) is raised by the next read. The arm does not move: the
 sample shows it at rest in a pose well inside every limit.
 
-The tests register it in the backend registry themselves (``register_backend``); it is never
-part of the package.
+It is never part of the package: it registers the way a third-party backend does, through the
+entry point of a tiny distribution of its own (``tests/data/outside_backend``: ``daror_standin.py``
+names :class:`StandInDrives`, its configuration model :class:`StandInHalConfig` and its contract
+benches :func:`contract_benches`), which a test puts on ``sys.path``
+(:func:`tests.outside.installed`). Some tests register it in code instead, in another backend's
+place (``register_backend``).
 """
 
 from __future__ import annotations
@@ -17,19 +21,36 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
-from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig
+from hal.config import AnyHalConfig, CanHalConfig, CanSimHalConfig, hal_config
 from hal.errors import HalConfigError, HalError, HalNotOpenError, ShapeError
-from hal.interface import Command, DriveState, Hal, HalFaultError, Sample
+from hal.interface import Command, DriveState, Hal, HalFaultError, Sample, open_hal
 from hal.isb import Shoulder
 from hal.robot import N_JOINTS, FloatArray, RobotDescription, load_description
+from hal.testing import BackendUnderTest
+from hal.yamlfile import Number
 
 #: Enabled commands a disabled drive needs before it reports ENABLED (CiA 402: three transitions).
 ENABLE_STEPS = 3
 #: The registry target of the stand-in.
 TARGET = "tests.standin_drives:StandInDrives"
+#: Its name in the registry (what ``--hal`` and a configuration's ``backend:`` say).
+KIND = "stand-in"
+
+
+class StandInHalConfig(AnyHalConfig):
+    """The stand-in drives' configuration (``backend: stand-in``).
+
+    Attributes:
+        rate_hz: the SYNC rate, Hz.
+    """
+
+    backend: Literal["stand-in"] = "stand-in"
+    rate_hz: Annotated[Number, Field(gt=0, le=10_000)] = 1000.0
 
 
 class StandInDrives(Hal):
@@ -75,8 +96,13 @@ class StandInDrives(Hal):
 
     @classmethod
     def from_config(cls, config: AnyHalConfig) -> StandInDrives:
-        if not isinstance(config, CanHalConfig | CanSimHalConfig):
-            raise HalConfigError(f"the stand-in drives take a can configuration, not {config.backend!r}")
+        """The drives of a ``stand-in`` configuration, or of a ``can`` one (registered in that backend's place).
+
+        Raises:
+            HalConfigError: another backend's configuration.
+        """
+        if not isinstance(config, StandInHalConfig | CanHalConfig | CanSimHalConfig):
+            raise HalConfigError(f"the stand-in drives take a stand-in or can configuration, not {config.backend!r}")
         return cls(rate_hz=config.rate_hz or 1000.0)
 
     @property
@@ -185,3 +211,17 @@ class StandInDrives(Hal):
         self._steps = [0] * N_JOINTS
         self._applied = np.zeros(N_JOINTS)
         self._sample = None
+
+
+def contract_benches() -> tuple[BackendUnderTest, ...]:
+    """The stand-in on the contract suite's bench: built through the registry, as the runtime gets it."""
+    return (
+        BackendUnderTest(
+            KIND,
+            KIND,
+            make=lambda: open_hal(hal_config(KIND)),
+            latch_fault=lambda hal: hal.lose_heartbeat(2),  # type: ignore[attr-defined]
+            fault_drive=lambda hal, joint: hal.fault_drive(joint),  # type: ignore[attr-defined]
+            applied_torque_nm=lambda hal: hal.applied_motor_torque_nm,  # type: ignore[attr-defined]
+        ),
+    )

@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+import importlib.metadata
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+import structlog
 
 from daror_runtime.cli import main
 from daror_runtime.logs import configure_logging
@@ -17,13 +20,18 @@ from hal.config import (
     CanHalConfig,
     CanSimHalConfig,
     SimHalConfig,
+    config_model,
     hal_config,
     load_hal_config,
 )
 from hal.errors import BackendUnavailableError, HalConfigError, InputError
-from hal.interface import BACKENDS, Command, Hal, hal_class, open_hal, register_backend
+from hal.interface import Command, Hal, backend_entry, backend_kinds, hal_class, open_hal, register_backend
+from hal.registry import BackendRegistry, broken_backends, registry_restored
 from hal.sim.backend import SimHal
-from tests.standin_drives import StandInDrives
+from tests.outside import installed
+from tests.standin_drives import StandInDrives, StandInHalConfig
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
@@ -34,12 +42,10 @@ def default_logging() -> Iterator[None]:
 
 
 @pytest.fixture
-def registry() -> Iterator[dict[str, str]]:
+def registry() -> Iterator[None]:
     """The backend registry, restored after the test."""
-    saved = dict(BACKENDS)
-    yield BACKENDS
-    BACKENDS.clear()
-    BACKENDS.update(saved)
+    with registry_restored():
+        yield
 
 
 def write(path: Path, text: str) -> Path:
@@ -212,9 +218,11 @@ def test_a_scenario_that_cannot_be_loaded_is_an_input_error() -> None:
         open_hal(hal_config("sim", scenario="nowhere"))
 
 
-def test_the_registry_imports_a_backend_only_when_asked(registry: dict[str, str]) -> None:
-    register_backend("later", "tests.never_imported_backend:Never")  # no such module: nothing happens yet
-    assert "tests.never_imported_backend" not in sys.modules
+def test_the_registry_imports_a_backend_only_when_asked(registry: None) -> None:
+    register_backend("later", "tests.never_imported_backend:Never", "tests.never_imported_config:NeverConfig")
+    assert "later" in backend_kinds()
+    assert "tests.never_imported_backend" not in sys.modules  # no such modules: nothing happens yet
+    assert "tests.never_imported_config" not in sys.modules
     with pytest.raises(BackendUnavailableError) as caught:
         hal_class("later")
     message = str(caught.value)
@@ -225,11 +233,11 @@ def test_the_registry_imports_a_backend_only_when_asked(registry: dict[str, str]
 
 
 def test_a_backend_whose_package_is_missing_names_the_package(
-    registry: dict[str, str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    registry: None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     write(tmp_path / "needs_a_package.py", "import daror_no_such_package.bus\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    register_backend("needy", "needs_a_package:Backend")
+    register_backend("needy", "needs_a_package:Backend", "needs_a_package:Config")
     with pytest.raises(BackendUnavailableError) as caught:
         hal_class("needy")
     assert str(caught.value) == (
@@ -238,12 +246,19 @@ def test_a_backend_whose_package_is_missing_names_the_package(
     )
 
 
-def test_a_registry_entry_that_is_not_a_hal_is_refused(registry: dict[str, str]) -> None:
-    register_backend("odd", "hal.robot:RobotDescription")
+def test_a_registry_entry_that_is_not_a_hal_is_refused(registry: None) -> None:
+    register_backend("odd", "hal.robot:RobotDescription", "hal.config:SimHalConfig")
     with pytest.raises(BackendUnavailableError, match=r"module hal\.robot has no Hal class RobotDescription"):
         hal_class("odd")
     with pytest.raises(HalConfigError, match="expected 'module:Class'"):
-        register_backend("bad", "hal.robot")
+        register_backend("bad", "hal.robot", "hal.config:SimHalConfig")
+    with pytest.raises(HalConfigError, match="expected 'module:Model'"):
+        register_backend("bad", "hal.sim.backend:SimHal", "hal.config")
+    with pytest.raises(HalConfigError, match=r"^HAL backend 'bad': config missing; expected"):
+        register_backend("bad", "hal.sim.backend:SimHal")
+    with pytest.raises(HalConfigError, match="expected a name of lower-case letters, digits and hyphens"):
+        register_backend("Bad Name", "hal.sim.backend:SimHal", "hal.config:SimHalConfig")
+    assert "bad" not in backend_kinds()
     with pytest.raises(HalConfigError, match="unknown HAL backend 'none'"):
         hal_class("none")
 
@@ -351,8 +366,8 @@ def test_console_hal_options_that_make_no_sense_exit_2_with_one_line(
     assert not out.exists()
 
 
-def test_a_backend_without_from_config_is_refused_in_one_line(registry: dict[str, str]) -> None:
-    register_backend("can", "tests.test_hal_config:NoConfiguration")
+def test_a_backend_without_from_config_is_refused_in_one_line(registry: None) -> None:
+    register_backend("can", "tests.test_hal_config:NoConfiguration", "hal.config:CanHalConfig")
     with pytest.raises(BackendUnavailableError, match=r"^HAL backend 'bare' cannot be built from a configuration$"):
         open_hal(hal_config("can"))
 
@@ -362,3 +377,164 @@ class NoConfiguration(StandInDrives):
 
     kind = "bare"
     from_config = classmethod(Hal.from_config.__func__)  # type: ignore[assignment]  # the ABC's own
+
+
+# --- backends from other packages (entry points) ----------------------------------------------------
+
+
+def test_a_backend_from_outside_is_listed_configured_and_opened(tmp_path: Path) -> None:
+    """The stand-in drives' package (tests/data/outside_backend) registers ``stand-in`` through its entry point."""
+    assert "stand-in" not in backend_kinds()
+    with installed():
+        assert backend_kinds() == ("sim", "can-sim", "can", "stand-in")  # built-ins first, plug-ins after
+        config = load_hal_config(write(tmp_path / "hal.yaml", "backend: stand-in\nrate_hz: 500\n"))
+        assert config == StandInHalConfig(rate_hz=500.0)
+        assert config_model("stand-in") is StandInHalConfig
+        hal = open_hal(config)
+        assert isinstance(hal, StandInDrives)
+        assert hal.rate_hz == 500.0
+        with pytest.raises(HalConfigError) as caught:
+            load_hal_config(write(tmp_path / "bad.yaml", "backend: stand-in\nrate: 500\n"))
+        assert str(caught.value) == f"{tmp_path / 'bad.yaml'}: line 2, field rate: Extra inputs are not permitted"
+        with pytest.raises(HalConfigError, match=r"flags: scenario: the stand-in backend does not take it$"):
+            hal_config("stand-in", source="flags", scenario="exo")
+        with pytest.raises(HalConfigError, match=r"expected one of sim, can-sim, can, stand-in$"):
+            hal_config("canbus")
+    assert "stand-in" not in backend_kinds()
+
+
+def test_the_entry_points_are_read_once_and_only_when_needed() -> None:
+    reads: list[int] = []
+
+    def entry_points() -> list[importlib.metadata.EntryPoint]:
+        reads.append(1)
+        return []
+
+    registry = BackendRegistry(entry_points=entry_points)
+    assert registry.entry("sim").target == "hal.sim.backend:SimHal"
+    assert registry.entry("can").config == "hal.config:CanHalConfig"
+    assert reads == []  # a built-in asked for: nothing read
+    assert registry.kinds() == ("sim", "can-sim", "can")
+    assert registry.kinds() == ("sim", "can-sim", "can")
+    with pytest.raises(HalConfigError, match=r"^unknown HAL backend 'nope'; expected one of sim, can-sim, can$"):
+        registry.entry("nope")
+    assert reads == [1]
+
+
+def test_importing_the_hal_and_building_a_builtin_reads_no_entry_point() -> None:
+    """Start-up (``daror hil``, a session on ``sim``) never reads the installed packages' entry points."""
+    code = (
+        "import importlib.metadata as m\n"
+        "everyones = m.entry_points\n"
+        "def watched(**selection):\n"
+        "    if selection.get('group') == 'daror_runtime.hal_backends':\n"
+        "        raise SystemExit('entry points read')\n"
+        "    return everyones(**selection)\n"  # others' (numba reads its extensions')
+        "m.entry_points = watched\n"
+        "from hal.config import hal_config, load_hal_config\n"
+        "from hal.interface import hal_class, open_hal\n"
+        "open_hal(hal_config('sim'))\n"
+        "hal_class('can-sim')\n"
+        "hal_config('can')\n"
+        "print('ok')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (0, "ok\n", "")
+
+
+#: A package with broken backend plug-ins (its module and its dist-info written into a test's folder).
+BROKEN_MODULE = """
+from hal.registry import BackendEntry
+
+ELSEWHERE = BackendEntry("other", "hal.sim.backend:SimHal", "hal.config:SimHalConfig")
+NOT_A_MODEL = BackendEntry("not-a-model", "hal.sim.backend:SimHal", "hal.robot:RobotDescription")
+WRONG_LITERAL = BackendEntry("wrong-literal", "hal.sim.backend:SimHal", "hal.config:SimHalConfig")
+REPLACES_SIM = BackendEntry("sim", "broken_plugins:Nothing", "broken_plugins:Nothing")
+
+
+def fails():
+    raise RuntimeError("no drives\\nfound")
+"""
+BROKEN_ENTRY_POINTS = """[daror_runtime.hal_backends]
+gone = no_such_module_of_a_plugin:BACKEND
+number = hal.robot:N_JOINTS
+misnamed = broken_plugins:ELSEWHERE
+fails = broken_plugins:fails
+not-a-model = broken_plugins:NOT_A_MODEL
+wrong-literal = broken_plugins:WRONG_LITERAL
+sim = broken_plugins:REPLACES_SIM
+"""
+
+
+@pytest.fixture
+def broken_plugins(tmp_path: Path) -> Iterator[Path]:
+    """A package ``broken-plugins 0.1`` installed, whose backend entry points are broken in every way."""
+    folder = tmp_path / "site"
+    (folder / "broken_plugins-0.1.dist-info").mkdir(parents=True)
+    write(folder / "broken_plugins.py", BROKEN_MODULE)
+    write(
+        folder / "broken_plugins-0.1.dist-info" / "METADATA",
+        "Metadata-Version: 2.1\nName: broken-plugins\nVersion: 0.1\n",
+    )
+    write(folder / "broken_plugins-0.1.dist-info" / "entry_points.txt", BROKEN_ENTRY_POINTS)
+    with installed(folder):
+        yield folder
+
+
+def test_a_broken_plugin_is_one_line_and_the_builtins_work_on(broken_plugins: Path, tmp_path: Path) -> None:
+    with structlog.testing.capture_logs() as logs:
+        kinds = backend_kinds()
+    assert kinds == ("sim", "can-sim", "can", "not-a-model", "wrong-literal")  # their entries load; their models not
+    assert backend_entry("sim").target == "hal.sim.backend:SimHal"  # a plug-in never replaces a built-in
+    origin = "of package broken-plugins 0.1"
+    expected = {
+        "fails": f"entry point fails = broken_plugins:fails {origin} cannot be loaded: RuntimeError: no drives found",
+        "gone": (
+            f"entry point gone = no_such_module_of_a_plugin:BACKEND {origin} cannot be loaded: "
+            "ModuleNotFoundError: No module named 'no_such_module_of_a_plugin'"
+        ),
+        "misnamed": f"entry point misnamed = broken_plugins:ELSEWHERE {origin} gives backend 'other'; expected 'misnamed', its entry point's name",
+        "number": f"entry point number = hal.robot:N_JOINTS {origin} gives a int; expected a hal.registry.BackendEntry (or a function returning one)",
+    }
+    assert broken_backends() == expected
+    warned = {entry["backend"]: entry for entry in logs if entry["log_level"] == "warning"}
+    assert {name: entry["problem"] for name, entry in warned.items() if "problem" in entry} == expected
+    assert "broken_plugins:REPLACES_SIM" in warned["sim"]["plugin"]
+    for name, problem in expected.items():
+        with pytest.raises(BackendUnavailableError) as caught:
+            hal_class(name)
+        assert str(caught.value) == f"HAL backend {name!r} cannot be used: {problem}"
+        path = write(tmp_path / f"{name}.yaml", f"backend: {name}\n")
+        with pytest.raises(BackendUnavailableError) as caught:
+            load_hal_config(path)
+        assert str(caught.value) == f"{path}: line 1, field backend: HAL backend {name!r} cannot be used: {problem}"
+    with pytest.raises(BackendUnavailableError) as caught:
+        hal_config("not-a-model", source="flags")
+    assert str(caught.value) == (
+        "flags: field backend: HAL backend 'not-a-model': its configuration hal.robot:RobotDescription "
+        "is not a hal.config.AnyHalConfig model"
+    )
+    with pytest.raises(BackendUnavailableError) as caught:
+        hal_config("wrong-literal", source="flags")
+    assert str(caught.value) == (
+        "flags: field backend: HAL backend 'wrong-literal': its configuration hal.config:SimHalConfig "
+        "has backend: typing.Literal['sim']; expected Literal['wrong-literal']"
+    )
+    hal = open_hal(hal_config("sim"))  # the built-ins, untouched
+    assert isinstance(hal, SimHal)
+
+
+def test_console_names_a_broken_plugin_in_one_line(
+    broken_plugins: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = write(tmp_path / "hal.yaml", "backend: gone\n")
+    script = write(tmp_path / "s.txt", SCRIPT)
+    out = tmp_path / "session"
+    code, _, err = console(capsys, "--hal-config", config, "--script", script, "--out", out)
+    assert code == 2
+    assert one_line(err) == (
+        f"daror console: error: {config}: line 1, field backend: HAL backend 'gone' cannot be used: entry point "
+        "gone = no_such_module_of_a_plugin:BACKEND of package broken-plugins 0.1 cannot be loaded: "
+        "ModuleNotFoundError: No module named 'no_such_module_of_a_plugin'"
+    )
+    assert not out.exists()

@@ -8,6 +8,7 @@ asks the backend for its simulated world and, on hardware, has none: ``sim`` lin
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -22,7 +23,8 @@ from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import Runtime
 from hal.config import hal_config
 from hal.errors import HalNotOpenError
-from hal.interface import BACKENDS, open_hal, register_backend
+from hal.interface import backend_entry, open_hal, register_backend
+from hal.registry import registry_restored
 from hal.sim.backend import SimHal
 from tests.standin_drives import TARGET, StandInDrives
 
@@ -41,13 +43,10 @@ def default_logging() -> Iterator[None]:
 
 @pytest.fixture
 def drives_as_can() -> Iterator[None]:
-    """The stand-in registered as the ``can`` backend, as the CANopen backend will be (restored afterwards)."""
-    previous = register_backend("can", TARGET)
-    yield
-    if previous is None:
-        del BACKENDS["can"]
-    else:
-        BACKENDS["can"] = previous
+    """The stand-in registered as the ``can`` backend (its configuration model kept), restored afterwards."""
+    with registry_restored():
+        register_backend(replace(backend_entry("can"), target=TARGET))
+        yield
 
 
 class WallClockSimulation(StandInDrives):
@@ -108,10 +107,10 @@ def test_the_runtime_refuses_lock_step_on_hardware_before_anything_is_written(tm
 
 def test_the_runtime_runs_a_backend_on_its_own_time_by_default(tmp_path: Path) -> None:
     on_hardware = Runtime(StandInDrives(), tmp_path / "a")
-    assert isinstance(on_hardware._core.clock, RealTimeClock)
+    assert isinstance(on_hardware.runner.clock, RealTimeClock)
     assert not on_hardware.lock_step
     simulated = Runtime(SimHal("exo"), tmp_path / "b")
-    assert isinstance(simulated._core.clock, LockStepClock)
+    assert isinstance(simulated.runner.clock, LockStepClock)
     assert simulated.lock_step
     realtime = Runtime(SimHal("exo"), tmp_path / "c", clock=RealTimeClock(1e-3))
     assert not realtime.lock_step
