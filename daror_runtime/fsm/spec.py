@@ -33,7 +33,7 @@ from pydantic_core import PydanticCustomError
 
 from daror_runtime.errors import InputError
 from daror_runtime.fsm.guards import ARM_RELEASED_GUARD, FAIL_RESET_GUARDS, GUARDS
-from daror_runtime.fsm.modes import MODES
+from daror_runtime.fsm.modes import MODES, ModeInfo
 from daror_runtime.safety.faults import FaultKind
 from hal.robot import MAX_RELAY_DELAY_S, RobotDescription, load_description
 from hal.yamlfile import Flag, Integer, Number, format_validation_error, line_of, read_yaml
@@ -399,7 +399,30 @@ def _packaged_description() -> RobotDescription:
 
 
 def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
-    """Everything wrong with the structure of ``spec`` and its invariants: (location of the field, message)."""
+    """Everything wrong with the structure of ``spec`` and its invariants: (location of the field, message).
+
+    One function per family of check, in this order (the order of the messages a user reads).
+    """
+    yield from _naming_problems(spec)
+    yield from _numbering_problems(spec)
+    yield from _hierarchy_problems(spec)
+    yield from _states_problems(spec)
+    yield from _isb_entry_problems(spec)
+    yield from _model_approval_problems(spec)
+    yield from _reaction_problems(spec)
+    yield from _fail_problems(spec)
+
+
+def _first_index_of_number(spec: FsmSpec) -> dict[int, int]:
+    """Per state number, the index of the first state listed with it."""
+    numbers: dict[int, int] = {}
+    for i, state in enumerate(spec.states):
+        numbers.setdefault(state.number, i)
+    return numbers
+
+
+def _naming_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Names and numbers used once: superstates, states, and no state named like a superstate or FAIL."""
     superstates = [s.name for s in spec.superstates]
     for k, name in enumerate(superstates):
         if name in superstates[:k]:
@@ -420,11 +443,15 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
             yield ("states", i, "name"), f"state name {state.name!r} is also a superstate's name"
         if state.name == spec.fail.name:
             yield ("states", i, "name"), f"state name {state.name!r} is the FAIL state's name"
-    # Advance order: 1..N in the order listed; a gap leaves every state after it unreachable.
+
+
+def _numbering_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Advance order: 1..N in the order listed; a gap leaves every state after it unreachable."""
+    numbers = _first_index_of_number(spec)
     for i, state in enumerate(spec.states):
         expected = i + 1
         if state.number == expected or numbers.get(state.number) != i:
-            continue  # in place, or a duplicate number (reported above)
+            continue  # in place, or a duplicate number (reported by _naming_problems)
         if expected not in numbers:
             yield (
                 ("states", i, "number"),
@@ -435,7 +462,11 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
                 ("states", i, "number"),
                 f"state {state.label} is listed as state {expected}; list the states in advance order 1..N",
             )
-    # Hierarchy: every superstate declared, used, and its states consecutive.
+
+
+def _hierarchy_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Hierarchy: every superstate declared, used, and its states consecutive."""
+    superstates = [s.name for s in spec.superstates]
     seen: list[str] = []
     for i, state in enumerate(spec.states):
         if state.superstate not in superstates:
@@ -453,131 +484,169 @@ def _problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
     for k, name in enumerate(superstates):
         if name not in seen:
             yield ("superstates", k, "name"), f"superstate {name!r} has no state"
-    # Modes, guards, limits.
-    isb_recorded_before = False
+
+
+def _states_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """Each state's mode, guards and limits, state by state (all of one state's problems together)."""
+    isb_recorded_before = False  # whether an earlier state's advance requires isb_limits_recorded
     last = len(spec.states) - 1
     for i, state in enumerate(spec.states):
-        mode = MODES.get(state.mode)
-        if mode is None:
-            yield ("states", i, "mode"), f"unknown mode {state.mode!r}; expected one of {', '.join(MODES)}"
-        for kind in ("advance", "revert", "reset"):
-            listed: list[str] = getattr(state.guards, kind)
-            for j, name in enumerate(listed):
-                if name not in GUARDS:
-                    yield (
-                        ("states", i, "guards", kind, j),
-                        f"unknown guard {name!r}; expected one of {', '.join(GUARDS)}",
-                    )
-                elif name in listed[:j]:
-                    yield ("states", i, "guards", kind, j), f"guard {name!r} is listed twice"
-        if i == 0 and state.guards.revert:
-            yield (
-                ("states", i, "guards", "revert"),
-                f"state {state.label} is the first state: it has no revert, so revert guards would never be used",
-            )
-        if i == last and state.guards.advance:
-            yield (
-                ("states", i, "guards", "advance"),
-                f"state {state.label} is the last state: it has no advance, so advance guards would never be used",
-            )
-        estop_guards = [g for g in state.guards.advance if g in GUARDS and GUARDS[g].estop_test]
-        if mode is not None:
-            if mode.applies_torque and state.limits.torque_nm == 0.0:
-                yield (
-                    ("states", i, "limits", "torque_nm"),
-                    _violates(
-                        "torque limit fits the mode",
-                        f"state {state.label}: mode {mode.name!r} applies torque but the torque limit is 0",
-                    ),
-                )
-            if not mode.applies_torque and state.limits.torque_nm != 0.0:
-                yield (
-                    ("states", i, "limits", "torque_nm"),
-                    _violates(
-                        "torque limit fits the mode",
-                        f"state {state.label}: mode {mode.name!r} applies no torque; its torque limit must be 0, not "
-                        f"{state.limits.torque_nm:g}",
-                    ),
-                )
-            if not state.fail_on_fault and not (mode.applies_torque and mode.pilot_driven):
-                yield (
-                    ("states", i, "fail_on_fault"),
-                    _violates(
-                        "test states are pilot-driven",
-                        f"state {state.label} does not enter FAIL on a fault (an e-stop test state) but its mode "
-                        f"{mode.name!r} "
-                        + (
-                            "applies no torque for the e-stop to remove"
-                            if not mode.applies_torque
-                            else "moves the robot on its own"
-                        )
-                        + "; a test state needs a pilot-driven mode that applies torque",
-                    ),
-                )
-            if mode.applies_torque and not mode.pilot_driven and not state.enforce_isb:
-                what = (
-                    "the identification protocol must run"
-                    if state.mode == "identification"
-                    else f"mode {mode.name!r} moves the robot on its own (position control) and must stay"
-                )
-                yield (
-                    ("states", i, "enforce_isb"),
-                    _violates(
-                        "position control inside the ISB limits",
-                        f"state {state.label}: {what} inside the pilot's ISB limits (enforce_isb: true)",
-                    ),
-                )
-            elif mode.applies_torque and isb_recorded_before and not state.enforce_isb:
-                yield (
-                    ("states", i, "enforce_isb"),
-                    _violates(
-                        "ISB limits stay enforced",
-                        f"state {state.label} applies torque after the pilot's ISB limits were recorded but does not "
-                        "enforce them (enforce_isb: true)",
-                    ),
-                )
-        if not state.fail_on_fault and not estop_guards:
-            yield (
-                ("states", i, "guards", "advance"),
-                _violates(
-                    "test states test an e-stop",
-                    f"state {state.label} does not enter FAIL on a fault, so it must be an e-stop test: its advance "
-                    "guards need one of " + ", ".join(g.name for g in GUARDS.values() if g.estop_test),
-                ),
-            )
-        if not state.fail_on_fault and i != last and "estop_released" not in state.guards.advance:
-            yield (
-                ("states", i, "guards", "advance"),
-                _violates(
-                    "test states end released",
-                    f"state {state.label} is an e-stop test state: its advance guards need estop_released, so the "
-                    "next state does not start with a button pressed",
-                ),
-            )
-        if state.fail_on_fault and estop_guards:
-            yield (
-                ("states", i, "fail_on_fault"),
-                _violates(
-                    "test states test an e-stop",
-                    f"state {state.label} enters FAIL on a fault, so an e-stop press fails instead of being recorded: "
-                    f"its advance guard {estop_guards[0]!r} could never hold (set fail_on_fault: false to make it a "
-                    "test state)",
-                ),
-            )
-        if state.enforce_isb and not isb_recorded_before:
-            yield (
-                ("states", i, "enforce_isb"),
-                _violates(
-                    "ISB limits recorded before enforced",
-                    f"state {state.label} enforces the ISB limits but no earlier state's advance requires "
-                    "isb_limits_recorded",
-                ),
-            )
+        yield from _state_problems(i, state, last, isb_recorded_before)
         if "isb_limits_recorded" in state.guards.advance:
             isb_recorded_before = True
-    yield from _isb_entry_problems(spec)
-    yield from _model_approval_problems(spec)
-    yield from _reaction_problems(spec)
+
+
+def _state_problems(i: int, state: StateSpec, last: int, isb_recorded_before: bool) -> Iterator[tuple[Location, str]]:
+    """State ``i``'s mode, guards and limits; ``last`` the last state's index, ``isb_recorded_before``
+    whether an earlier state's advance requires isb_limits_recorded."""
+    mode = MODES.get(state.mode)
+    if mode is None:
+        yield ("states", i, "mode"), f"unknown mode {state.mode!r}; expected one of {', '.join(MODES)}"
+    yield from _guard_list_problems(i, state, last)
+    if mode is not None:
+        yield from _torque_limit_problems(i, state, mode)
+        yield from _test_state_mode_problems(i, state, mode)
+        yield from _isb_enforced_problems(i, state, mode, isb_recorded_before)
+    yield from _estop_test_problems(i, state, last)
+    if state.enforce_isb and not isb_recorded_before:
+        yield (
+            ("states", i, "enforce_isb"),
+            _violates(
+                "ISB limits recorded before enforced",
+                f"state {state.label} enforces the ISB limits but no earlier state's advance requires "
+                "isb_limits_recorded",
+            ),
+        )
+
+
+def _guard_list_problems(i: int, state: StateSpec, last: int) -> Iterator[tuple[Location, str]]:
+    """State ``i``'s guards: registered, listed once, and none on a transition the state does not have."""
+    for kind in ("advance", "revert", "reset"):
+        listed: list[str] = getattr(state.guards, kind)
+        for j, name in enumerate(listed):
+            if name not in GUARDS:
+                yield (
+                    ("states", i, "guards", kind, j),
+                    f"unknown guard {name!r}; expected one of {', '.join(GUARDS)}",
+                )
+            elif name in listed[:j]:
+                yield ("states", i, "guards", kind, j), f"guard {name!r} is listed twice"
+    if i == 0 and state.guards.revert:
+        yield (
+            ("states", i, "guards", "revert"),
+            f"state {state.label} is the first state: it has no revert, so revert guards would never be used",
+        )
+    if i == last and state.guards.advance:
+        yield (
+            ("states", i, "guards", "advance"),
+            f"state {state.label} is the last state: it has no advance, so advance guards would never be used",
+        )
+
+
+def _torque_limit_problems(i: int, state: StateSpec, mode: ModeInfo) -> Iterator[tuple[Location, str]]:
+    """State ``i``'s torque limit fits its mode: 0 exactly when the mode applies no torque."""
+    if mode.applies_torque and state.limits.torque_nm == 0.0:
+        yield (
+            ("states", i, "limits", "torque_nm"),
+            _violates(
+                "torque limit fits the mode",
+                f"state {state.label}: mode {mode.name!r} applies torque but the torque limit is 0",
+            ),
+        )
+    if not mode.applies_torque and state.limits.torque_nm != 0.0:
+        yield (
+            ("states", i, "limits", "torque_nm"),
+            _violates(
+                "torque limit fits the mode",
+                f"state {state.label}: mode {mode.name!r} applies no torque; its torque limit must be 0, not "
+                f"{state.limits.torque_nm:g}",
+            ),
+        )
+
+
+def _test_state_mode_problems(i: int, state: StateSpec, mode: ModeInfo) -> Iterator[tuple[Location, str]]:
+    """State ``i``, when an e-stop test state (no FAIL on a fault), has a pilot-driven mode that applies torque."""
+    if not state.fail_on_fault and not (mode.applies_torque and mode.pilot_driven):
+        yield (
+            ("states", i, "fail_on_fault"),
+            _violates(
+                "test states are pilot-driven",
+                f"state {state.label} does not enter FAIL on a fault (an e-stop test state) but its mode "
+                f"{mode.name!r} "
+                + (
+                    "applies no torque for the e-stop to remove"
+                    if not mode.applies_torque
+                    else "moves the robot on its own"
+                )
+                + "; a test state needs a pilot-driven mode that applies torque",
+            ),
+        )
+
+
+def _isb_enforced_problems(
+    i: int, state: StateSpec, mode: ModeInfo, isb_recorded_before: bool
+) -> Iterator[tuple[Location, str]]:
+    """State ``i`` enforces the ISB limits where its mode needs it: position control always, any torque
+    once the limits were recorded (``isb_recorded_before``)."""
+    if mode.applies_torque and not mode.pilot_driven and not state.enforce_isb:
+        what = (
+            "the identification protocol must run"
+            if state.mode == "identification"
+            else f"mode {mode.name!r} moves the robot on its own (position control) and must stay"
+        )
+        yield (
+            ("states", i, "enforce_isb"),
+            _violates(
+                "position control inside the ISB limits",
+                f"state {state.label}: {what} inside the pilot's ISB limits (enforce_isb: true)",
+            ),
+        )
+    elif mode.applies_torque and isb_recorded_before and not state.enforce_isb:
+        yield (
+            ("states", i, "enforce_isb"),
+            _violates(
+                "ISB limits stay enforced",
+                f"state {state.label} applies torque after the pilot's ISB limits were recorded but does not "
+                "enforce them (enforce_isb: true)",
+            ),
+        )
+
+
+def _estop_test_problems(i: int, state: StateSpec, last: int) -> Iterator[tuple[Location, str]]:
+    """State ``i`` is an e-stop test state (tests an e-stop, ends released) exactly when it does not fail on a fault."""
+    estop_guards = [g for g in state.guards.advance if g in GUARDS and GUARDS[g].estop_test]
+    if not state.fail_on_fault and not estop_guards:
+        yield (
+            ("states", i, "guards", "advance"),
+            _violates(
+                "test states test an e-stop",
+                f"state {state.label} does not enter FAIL on a fault, so it must be an e-stop test: its advance "
+                "guards need one of " + ", ".join(g.name for g in GUARDS.values() if g.estop_test),
+            ),
+        )
+    if not state.fail_on_fault and i != last and "estop_released" not in state.guards.advance:
+        yield (
+            ("states", i, "guards", "advance"),
+            _violates(
+                "test states end released",
+                f"state {state.label} is an e-stop test state: its advance guards need estop_released, so the "
+                "next state does not start with a button pressed",
+            ),
+        )
+    if state.fail_on_fault and estop_guards:
+        yield (
+            ("states", i, "fail_on_fault"),
+            _violates(
+                "test states test an e-stop",
+                f"state {state.label} enters FAIL on a fault, so an e-stop press fails instead of being recorded: "
+                f"its advance guard {estop_guards[0]!r} could never hold (set fail_on_fault: false to make it a "
+                "test state)",
+            ),
+        )
+
+
+def _fail_problems(spec: FsmSpec) -> Iterator[tuple[Location, str]]:
+    """The FAIL state: it removes torque, and its reset is guarded (cleared, acknowledged, arm released)."""
     fail_mode = MODES.get(spec.fail.mode)
     if fail_mode is None:
         yield ("fail", "mode"), f"unknown mode {spec.fail.mode!r}; expected one of {', '.join(MODES)}"
