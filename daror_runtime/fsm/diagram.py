@@ -9,9 +9,10 @@ the first state; a note says so instead of ten unlabelled arrows).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
-from daror_runtime.fsm.machine import Event, transition_table
+from daror_runtime.fsm.machine import Event, Transition, transition_table
 from daror_runtime.fsm.spec import FsmSpec, StateSpec
 
 
@@ -148,6 +149,47 @@ def _notes(spec: FsmSpec) -> list[str]:
     ]
 
 
+@dataclass(frozen=True)
+class _Frame:
+    """Where one layout's edges run: the columns, the boxes and the lanes, units (see the sketch above)."""
+
+    table: dict[tuple[str, Event], Transition]
+    #: Left border of the state boxes; the revert lane; the label column right of it, and its width.
+    box_x: float
+    revert_x: float
+    right_x: float
+    right_w: float
+    #: The canvas width.
+    width: float
+    #: How many left lanes (reset routes) there are.
+    n_lanes: int
+    #: Every node's box (``_box``) by name, FAIL's included.
+    boxes: dict[str, dict[str, float]]
+
+    def lane_x(self, k: int) -> float:
+        """The x of left lane ``k`` (0 the innermost)."""
+        return self.box_x - 10.0 - LANE_STEP * k
+
+    def centre_y(self, name: str) -> float:
+        """The y of the centre of node ``name``'s box."""
+        return self.boxes[name]["y"] + self.boxes[name]["h"] / 2
+
+    def entry_y(self, k: int, first: str) -> float:
+        """Where left lane ``k`` enters the first state (``first``), the outermost highest."""
+        first_box = self.boxes[first]
+        step = min(5.0, (first_box["h"] - 6.0) / (self.n_lanes - 1)) if self.n_lanes > 1 else 0.0
+        return self.centre_y(first) + step * ((self.n_lanes - 1) / 2 - k)
+
+    def right_label(self, name: str, event: Event) -> dict[str, float]:
+        """The right label column beside a source box: shared by its revert label (top) and reset label (bottom)."""
+        box = self.boxes[name]
+        both = (name, Event.REVERT) in self.table and bool(self.table[(name, Event.RESET)].guards)
+        if not both:
+            return _label(self.right_x, box["y"], self.right_w, box["h"])
+        half = box["h"] / 2
+        return _label(self.right_x, box["y"] + (half if event == Event.RESET else 0.0), self.right_w, half)
+
+
 def layout(spec: FsmSpec) -> dict[str, Any]:
     """The diagram of ``spec`` laid out for drawing (JSON-ready: dicts, lists, str, float, int, bool, None).
 
@@ -166,33 +208,55 @@ def layout(spec: FsmSpec) -> dict[str, Any]:
       ``{text, x, y}`` with ``y`` the baseline, at a :data:`NOTE_FONT` unit font.
     """
     table = transition_table(spec)
-    states = spec.states
-    first = spec.first
-    fail = spec.fail
-    index = {s.name: i for i, s in enumerate(states)}
-
-    # Left lanes, innermost first: the guarded resets of states 2..N (top to bottom), FAIL's reset,
-    # then the first state's own guarded reset (a loop over its top). Outer lanes enter the first
-    # state higher up, so no two reset routes cross.
-    guarded_resets = [s for s in states[1:] if table[(s.name, Event.RESET)].guards]
-    first_resets_itself = bool(table[(first.name, Event.RESET)].guards)
-    n_lanes = len(guarded_resets) + 1 + int(first_resets_itself)
+    guarded_resets = _guarded_resets(spec, table)
+    n_lanes = len(guarded_resets) + 1 + int(bool(table[(spec.first.name, Event.RESET)].guards))
     box_x = MARGIN + 8.0 + LANE_STEP * n_lanes + 2.0
-
-    def lane_x(k: int) -> float:
-        return box_x - 10.0 - LANE_STEP * k
-
     revert_x = box_x + BOX_W + REVERT_LANE
     right_x = revert_x + LABEL_PAD
     width = max(MIN_WIDTH, right_x + MIN_LABEL_W + 4.0 + MARGIN)
-    right_w = width - MARGIN - 4.0 - right_x
+    band_boxes, boxes, bands_bottom = _bands(spec, box_x, width)
+    fail_y = bands_bottom + FAIL_GAP
+    boxes[spec.fail.name] = _box(box_x, fail_y, FAIL_W, BOX_H)
+    frame = _Frame(table, box_x, revert_x, right_x, width - MARGIN - 4.0 - right_x, width, n_lanes, boxes)
+    edges = _state_edges(spec, frame, guarded_resets, band_boxes)
+    edges.append(_fail_reset_edge(spec, frame, len(guarded_resets), bands_bottom))
+    note_lines, notes_bottom = _note_lines(spec, box_x + FAIL_W + 12.0, fail_y + NOTE_FONT, width)
+    height = max(fail_y + BOX_H, notes_bottom) + MARGIN
+    return {
+        "width": round(width, 2),
+        "height": round(height, 2),
+        "superstates": band_boxes,
+        "states": _nodes(spec, boxes),
+        "edges": edges,
+        "notes": _notes(spec),
+        "note_lines": note_lines,
+    }
 
-    # Bands and boxes, top to bottom.
+
+def _guarded_resets(spec: FsmSpec, table: dict[tuple[str, Event], Transition]) -> list[StateSpec]:
+    """The states 2..N whose reset has guards, top to bottom: the innermost left lanes, in this order.
+
+    The left lanes, innermost first: these states' resets, FAIL's reset, then the first state's own
+    guarded reset (a loop over its top). Outer lanes enter the first state higher up, so no two
+    reset routes cross.
+    """
+    return [s for s in spec.states[1:] if table[(s.name, Event.RESET)].guards]
+
+
+def _bands(
+    spec: FsmSpec, box_x: float, width: float
+) -> tuple[list[dict[str, Any]], dict[str, dict[str, float]], float]:
+    """The superstates' bands and their states' boxes, top to bottom from the top margin.
+
+    Returns:
+        The bands (``{name, description, x, y, w, h}``), the state boxes by name, and the y of the
+        last band's bottom, units.
+    """
     band_boxes: list[dict[str, Any]] = []
     boxes: dict[str, dict[str, float]] = {}
     y = MARGIN
     for superstate in spec.superstates:
-        members = [s for s in states if s.superstate == superstate.name]
+        members = [s for s in spec.states if s.superstate == superstate.name]
         top = y
         y += BAND_TOP
         for k, state in enumerate(members):
@@ -209,13 +273,12 @@ def layout(spec: FsmSpec) -> dict[str, Any]:
             }
         )
         y += BAND_SPACING
-    bands_bottom = y - BAND_SPACING
-    fail_y = bands_bottom + FAIL_GAP
-    boxes[fail.name] = _box(box_x, fail_y, FAIL_W, BOX_H)
+    return band_boxes, boxes, y - BAND_SPACING
 
-    def centre_y(name: str) -> float:
-        return boxes[name]["y"] + boxes[name]["h"] / 2
 
+def _nodes(spec: FsmSpec, boxes: dict[str, dict[str, float]]) -> list[dict[str, Any]]:
+    """The layout's ``states``: every state in advance order, then FAIL, each with its box."""
+    fail = spec.fail
     node_list: list[dict[str, Any]] = [
         {
             "name": s.name,
@@ -227,7 +290,7 @@ def layout(spec: FsmSpec) -> dict[str, Any]:
             "test": not s.fail_on_fault,
             "fail": False,
         }
-        for s in states
+        for s in spec.states
     ]
     node_list.append(
         {
@@ -241,101 +304,109 @@ def layout(spec: FsmSpec) -> dict[str, Any]:
             "fail": True,
         }
     )
+    return node_list
 
-    # The right label column beside a source box: shared by its revert label (top) and reset label (bottom).
-    def right_label(name: str, event: Event) -> dict[str, float]:
-        box = boxes[name]
-        both = (name, Event.REVERT) in table and bool(table[(name, Event.RESET)].guards)
-        if not both:
-            return _label(right_x, box["y"], right_w, box["h"])
-        half = box["h"] / 2
-        return _label(right_x, box["y"] + (half if event == Event.RESET else 0.0), right_w, half)
 
-    # Where the left lanes enter the first state, the outermost highest.
-    first_box = boxes[first.name]
-    step = min(5.0, (first_box["h"] - 6.0) / (n_lanes - 1)) if n_lanes > 1 else 0.0
-    entry_mid = centre_y(first.name)
+def _edge(transition: Transition, event: Event, points: list[list[float]], label: dict[str, float]) -> dict[str, Any]:
+    """One edge of the layout: its ends, event, guards, route and label area."""
+    return {
+        "source": transition.source,
+        "dest": transition.dest,
+        "event": event.value,
+        "guards": list(transition.guards),
+        "points": points,
+        **label,
+    }
 
-    def entry_y(k: int) -> float:
-        return entry_mid + step * ((n_lanes - 1) / 2 - k)
 
+def _state_edges(
+    spec: FsmSpec, frame: _Frame, guarded_resets: list[StateSpec], band_boxes: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The edges leaving the states, in the transition table's order: advance, revert, and reset where guarded."""
     edges: list[dict[str, Any]] = []
     lane_of = {s.name: k for k, s in enumerate(guarded_resets)}
-    for (source, event), t in table.items():
-        if source == fail.name:
-            continue
-        src = boxes[source]
+    for (source, event), t in frame.table.items():
+        if source == spec.fail.name:
+            continue  # FAIL's reset is routed by _fail_reset_edge
         if event == Event.ADVANCE:
-            x = box_x + ADVANCE_X
-            points = _points((x, src["y"] + src["h"]), (x, boxes[t.dest]["y"]))
-            gap_top = src["y"] + src["h"]
-            gap_bottom = boxes[t.dest]["y"]
-            if states[index[t.dest]].superstate != states[index[source]].superstate:
-                gap_top = next(b["y"] for b in band_boxes if b["name"] == states[index[t.dest]].superstate)
-            label = _label(
-                x + LABEL_PAD, gap_top + 1.0, revert_x - LABEL_PAD - (x + LABEL_PAD), gap_bottom - gap_top - 2.0
-            )
+            edges.append(_advance_edge(spec, frame, t, band_boxes))
         elif event == Event.REVERT:
-            y0 = centre_y(source) - REVERT_DY
-            y1 = centre_y(t.dest) + REVERT_DY
-            right = src["x"] + src["w"]
-            points = _points((right, y0), (revert_x, y0), (revert_x, y1), (right, y1))
-            label = right_label(source, event)
+            edges.append(_revert_edge(frame, t))
         elif event == Event.RESET and t.guards:
-            if source == first.name:
-                k = n_lanes - 1
-                x0 = box_x + 6.0
-                above = src["y"] - 5.0
-                points = _points(
-                    (x0, src["y"]), (x0, above), (lane_x(k), above), (lane_x(k), entry_y(k)), (box_x, entry_y(k))
-                )
-            else:
-                k = lane_of[source]
-                y0 = centre_y(source)
-                points = _points((box_x, y0), (lane_x(k), y0), (lane_x(k), entry_y(k)), (box_x, entry_y(k)))
-            label = right_label(source, event)
-        else:
-            continue
-        edges.append(
-            {
-                "source": source,
-                "dest": t.dest,
-                "event": event.value,
-                "guards": list(t.guards),
-                "points": points,
-                **label,
-            }
-        )
-    reset = table[(fail.name, Event.RESET)]
-    k = len(guarded_resets)
-    y0 = centre_y(fail.name)
-    edges.append(
-        {
-            "source": fail.name,
-            "dest": reset.dest,
-            "event": Event.RESET.value,
-            "guards": list(reset.guards),
-            "points": _points((box_x, y0), (lane_x(k), y0), (lane_x(k), entry_y(k)), (box_x, entry_y(k))),
-            **_label(box_x, bands_bottom + 1.0, width - MARGIN - 4.0 - box_x, FAIL_GAP - 2.0),
-        }
-    )
+            edges.append(_reset_edge(spec, frame, t, lane_of))
+    return edges
 
-    # The notes, wrapped to the right of FAIL.
-    notes_x = box_x + FAIL_W + 12.0
+
+def _advance_edge(spec: FsmSpec, frame: _Frame, t: Transition, band_boxes: list[dict[str, Any]]) -> dict[str, Any]:
+    """An advance: a vertical arrow between consecutive boxes, its label in the gap right of it (the
+    gap reaching up to the band's top when the advance enters another superstate)."""
+    states = spec.states
+    index = {s.name: i for i, s in enumerate(states)}
+    src = frame.boxes[t.source]
+    x = frame.box_x + ADVANCE_X
+    points = _points((x, src["y"] + src["h"]), (x, frame.boxes[t.dest]["y"]))
+    gap_top = src["y"] + src["h"]
+    gap_bottom = frame.boxes[t.dest]["y"]
+    if states[index[t.dest]].superstate != states[index[t.source]].superstate:
+        gap_top = next(b["y"] for b in band_boxes if b["name"] == states[index[t.dest]].superstate)
+    label = _label(
+        x + LABEL_PAD, gap_top + 1.0, frame.revert_x - LABEL_PAD - (x + LABEL_PAD), gap_bottom - gap_top - 2.0
+    )
+    return _edge(t, Event.ADVANCE, points, label)
+
+
+def _revert_edge(frame: _Frame, t: Transition) -> dict[str, Any]:
+    """A revert: out of the right border above the centre, up the revert lane, into the previous box below its centre."""
+    src = frame.boxes[t.source]
+    y0 = frame.centre_y(t.source) - REVERT_DY
+    y1 = frame.centre_y(t.dest) + REVERT_DY
+    right = src["x"] + src["w"]
+    points = _points((right, y0), (frame.revert_x, y0), (frame.revert_x, y1), (right, y1))
+    return _edge(t, Event.REVERT, points, frame.right_label(t.source, Event.REVERT))
+
+
+def _reset_edge(spec: FsmSpec, frame: _Frame, t: Transition, lane_of: dict[str, int]) -> dict[str, Any]:
+    """A guarded reset: out of the left border, up its own left lane, into the first state's left border
+    (the first state's own: out of its top, into the outermost lane)."""
+    first = spec.first.name
+    src = frame.boxes[t.source]
+    box_x = frame.box_x
+    if t.source == first:
+        k = frame.n_lanes - 1
+        x0 = box_x + 6.0
+        above = src["y"] - 5.0
+        lane, entry = frame.lane_x(k), frame.entry_y(k, first)
+        points = _points((x0, src["y"]), (x0, above), (lane, above), (lane, entry), (box_x, entry))
+    else:
+        k = lane_of[t.source]
+        y0 = frame.centre_y(t.source)
+        lane, entry = frame.lane_x(k), frame.entry_y(k, first)
+        points = _points((box_x, y0), (lane, y0), (lane, entry), (box_x, entry))
+    return _edge(t, Event.RESET, points, frame.right_label(t.source, Event.RESET))
+
+
+def _fail_reset_edge(spec: FsmSpec, frame: _Frame, k: int, bands_bottom: float) -> dict[str, Any]:
+    """FAIL's reset: out of FAIL's left border, up left lane ``k``, into the first state; its label in
+    the gap above FAIL."""
+    reset = frame.table[(spec.fail.name, Event.RESET)]
+    box_x = frame.box_x
+    y0 = frame.centre_y(spec.fail.name)
+    lane, entry = frame.lane_x(k), frame.entry_y(k, spec.first.name)
+    points = _points((box_x, y0), (lane, y0), (lane, entry), (box_x, entry))
+    label = _label(box_x, bands_bottom + 1.0, frame.width - MARGIN - 4.0 - box_x, FAIL_GAP - 2.0)
+    return _edge(reset, Event.RESET, points, label)
+
+
+def _note_lines(spec: FsmSpec, notes_x: float, baseline: float, width: float) -> tuple[list[dict[str, Any]], float]:
+    """The notes wrapped into the column from ``notes_x`` to the canvas's right margin, the first
+    baseline at ``baseline``.
+
+    Returns:
+        The lines (``{text, x, y}``, ``y`` the baseline), and the y of the last line's bottom, units.
+    """
     note_lines: list[dict[str, Any]] = []
-    baseline = fail_y + NOTE_FONT
     for note in _notes(spec):
         for line in _wrap(note, width - MARGIN - 4.0 - notes_x, NOTE_CHAR_W):
             note_lines.append({"text": line, "x": round(notes_x, 2), "y": round(baseline, 2)})
             baseline += NOTE_LINE
-    notes_bottom = baseline - NOTE_LINE + 2.0
-    height = max(fail_y + BOX_H, notes_bottom) + MARGIN
-    return {
-        "width": round(width, 2),
-        "height": round(height, 2),
-        "superstates": band_boxes,
-        "states": node_list,
-        "edges": edges,
-        "notes": _notes(spec),
-        "note_lines": note_lines,
-    }
+    return note_lines, baseline - NOTE_LINE + 2.0
