@@ -1,6 +1,7 @@
 """Commissioning a CAN bus of CiA 402 drives: ``daror can scan|check|zero|tare`` (docs/canopen.md, Commissioning).
 
-* :mod:`~daror_runtime.commissioning.commands`: the ``daror can`` commands (their parser, their output);
+The commands themselves (their flags, their output) are :mod:`daror_runtime.cli.can`; here:
+
 * :mod:`~daror_runtime.commissioning.bus_session`: the backend, its clock, its ticks, torque off at the end;
 * :mod:`~daror_runtime.commissioning.check`: the check's procedure and its table;
 * :mod:`~daror_runtime.commissioning.calibration`: reading the drives still for a zero or a tare;

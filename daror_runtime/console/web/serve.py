@@ -1,6 +1,6 @@
 """Serving the web console beside a session: the server in its own process, a thin bridge in the runtime's.
 
-``daror console --web`` (``daror_runtime/cli.py``) opens the runtime, then :func:`start_web`, then
+``daror console --web`` (``daror_runtime/cli/console.py``) opens the runtime, then :func:`start_web`, then
 starts the loop; the text console may run at the terminal meanwhile, on the same runtime and the
 same log (:attr:`WebServer.hub`). The HTTP and websocket work (uvicorn, FastAPI, JSON) runs in a
 process of its own (:mod:`daror_runtime.console.web.server`), so it never holds the interpreter

@@ -1,46 +1,31 @@
-"""The ``daror can`` commands: scan, check, zero, tare (docs/canopen.md, Commissioning).
+"""``daror can scan|check|zero|tare``: commissioning a CAN bus (docs/canopen.md, Commissioning).
 
-Registered by :func:`add_can_parser` on the ``daror`` parser; each handler prints through rich and
-returns the exit code: 0 done (check: every item passed), 1 a failure (a FAIL row, a robot that
-moved: nothing stored), 2 bad input (one line, nothing sent on the bus, nothing written), 130
-Ctrl-C (every drive disabled first). Modules are imported when a command runs (``daror --help``
+Each handler prints through rich and returns the exit code: 0 done (check: every item passed), 1 a
+failure (a FAIL row, a robot that moved: nothing stored), 2 bad input (one line, nothing sent on
+the bus, nothing written), 130 Ctrl-C (every drive disabled first). The procedures are
+:mod:`daror_runtime.commissioning`'s; modules are imported when a command runs (``daror --help``
 stays fast).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
-from daror_runtime.errors import UsageError
-
-__all__ = ["add_can_parser"]
+from daror_runtime.cli.common import Commands, UsageError, bind, output_file, write_json
 
 #: The drives' peak torque during a check, N m (0x6072): far below what could hurt (40 N m is the robot's).
 DEFAULT_CHECK_TORQUE_LIMIT_NM = 2.0
 
 
 def _config(args: argparse.Namespace) -> Any:
+    """The robot file ``--hal-config`` as a HAL configuration (HalConfigError: one line)."""
     from hal.config import load_hal_config
 
     return load_hal_config(args.hal_config)
-
-
-def _write_json(path: Path, document: dict[str, Any]) -> None:
-    from daror_runtime.util.atomic import write_text_atomic
-
-    write_text_atomic(path, json.dumps(document, indent=2, allow_nan=False) + "\n")
-
-
-def _check_json_out(path: Path | None) -> None:
-    if path is not None:
-        from daror_runtime.util.outputs import check_output_file
-
-        check_output_file(path)
 
 
 # --- scan ---------------------------------------------------------------------------------------
@@ -54,7 +39,8 @@ def cmd_can_scan(args: argparse.Namespace, console: Console) -> int:
 
     if not (0 < args.listen_s <= 60):
         raise UsageError(f"--listen-s {args.listen_s:g}: expected a time above 0 s and at most 60 s")
-    _check_json_out(args.json)
+    if args.json is not None:
+        output_file(args.json)
     config = None
     if args.hal_config is not None:
         given = [f for f, v in (("--interface", args.interface), ("--channel", args.channel)) if v is not None]
@@ -94,12 +80,13 @@ def cmd_can_scan(args: argparse.Namespace, console: Console) -> int:
         f"{len(result.nodes)} node(s) in {result.duration_s:.2f} s; {result.frames_sent} SDO read requests sent"
     )
     if args.json is not None:
-        _write_json(args.json, result.as_dict())
+        write_json(args.json, result.as_dict())
         console.print(f"{args.json}: written")
     return 0
 
 
 def _relative(path: Path) -> str:
+    """``path`` relative to the working folder when it is inside it (shorter in a table)."""
     try:
         return str(path.resolve().relative_to(Path.cwd()))
     except ValueError:
@@ -124,7 +111,8 @@ def cmd_can_check(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.commissioning.check import CheckLimits, run_check
     from daror_runtime.commissioning.expect import calibration_rows, expected_identity
 
-    _check_json_out(args.json)
+    if args.json is not None:
+        output_file(args.json)
     config = _config(args)
     session = _session(config, args.clock, args.torque_limit_nm)
     if session.hal.drives_hardware and not args.yes_no_pilot:
@@ -153,7 +141,7 @@ def cmd_can_check(args: argparse.Namespace, console: Console) -> int:
         "every item passed; every drive disabled" if report.passed else f"{failed} item(s) FAILED", soft_wrap=True
     )
     if args.json is not None:
-        _write_json(args.json, report.as_dict())
+        write_json(args.json, report.as_dict())
         console.print(f"{args.json}: written")
     if report.interrupted:
         return 130
@@ -226,8 +214,8 @@ def cmd_can_calibrate(args: argparse.Namespace, console: Console) -> int:
 # --- the parser -------------------------------------------------------------------------------------
 
 
-def add_can_parser(commands: Any) -> None:
-    """``daror can scan|check|zero|tare`` on ``commands`` (the ``daror`` parser's subparsers)."""
+def register(commands: Commands) -> None:
+    """``daror can scan``, ``daror can check``, ``daror can zero`` and ``daror can tare`` on ``commands``."""
     can = commands.add_parser("can", help="commission a CAN bus: scan it, check the drives, zero and tare them")
     can_cmds = can.add_subparsers(dest="can_command", required=True, metavar="WHAT")
 
@@ -244,7 +232,7 @@ def add_can_parser(commands: Any) -> None:
     )  # fmt: skip
     scan.add_argument("--listen-s", type=float, default=1.0, help="how long to listen for heartbeats, s (default 1)")
     scan.add_argument("--json", type=Path, metavar="FILE", help="write what was found as JSON here")
-    scan.set_defaults(handler=cmd_can_scan)
+    bind(scan, cmd_can_scan)
 
     def bus_command(name: str, help: str) -> argparse.ArgumentParser:
         parser = can_cmds.add_parser(name, help=help)
@@ -265,13 +253,13 @@ def add_can_parser(commands: Any) -> None:
         help=f"the drives' peak torque during the check, N m (0x6072; default {DEFAULT_CHECK_TORQUE_LIMIT_NM:g})",
     )  # fmt: skip
     check.add_argument("--json", type=Path, metavar="FILE", help="write the table as JSON here")
-    check.set_defaults(handler=cmd_can_check)
+    bind(check, cmd_can_check)
 
     zero = bus_command("zero", "store each drive's encoder counts at the robot's zero pose in the robot file")
     zero.add_argument(
         "--at-zero-pose", action="store_true", help="confirm the robot is in its zero pose, the arm supported"
     )
-    zero.set_defaults(handler=cmd_can_calibrate)
+    bind(zero, cmd_can_calibrate)
     tare = bus_command("tare", "store each drive's spring torque with the arm unloaded in the robot file")
     tare.add_argument("--arm-unloaded", action="store_true", help="confirm the arm is unloaded (supported or out)")
-    tare.set_defaults(handler=cmd_can_calibrate)
+    bind(tare, cmd_can_calibrate)
