@@ -33,7 +33,7 @@ from daror_runtime.data.tick_row import RECORD_COLUMNS
 from daror_runtime.loop import ControlLoop, FixedSupervisor
 from daror_runtime.models.linear import APModel
 from daror_runtime.realtime import release_realtime, request_realtime
-from daror_runtime.runtime import REALTIME_SWITCH_INTERVAL_S
+from daror_runtime.runner import REALTIME_SWITCH_INTERVAL_S
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
 from hal.canopen.busload import LOAD_BUDGET, bus_load

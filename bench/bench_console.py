@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-import daror_runtime.runtime as runtime_module
+import daror_runtime.runner as runner_module
 from daror_runtime.bench import BenchFigure, time_calls
 from daror_runtime.clocks import RealTimeClock
 from daror_runtime.console.guide import next_steps
@@ -45,7 +45,7 @@ def bench_console_status_view(quick: bool) -> BenchFigure:
     with tempfile.TemporaryDirectory() as directory:
         runtime = Runtime(SimHal("exo_dummy_arm"), Path(directory))
         runtime.open()
-        runtime.run_ticks(10)
+        runtime.runner.run_ticks(10)
         repeats = 20 if quick else 200
         median, p90 = time_calls(
             lambda: render_status(runtime.snapshot(), next_steps(runtime.snapshot(), True)),
@@ -62,15 +62,15 @@ def _real_time_with_console(seconds: float, switch_interval_s: float, busy: bool
     """(ticks, overruns, missed deadlines, worst lateness ms) of ``seconds`` at 1 kHz beside a console thread
     that builds the status view every 100 ms (``busy``) or only wakes up (the VM's own stalls)."""
     configure_logging("critical")
-    saved = runtime_module.REALTIME_SWITCH_INTERVAL_S
-    runtime_module.REALTIME_SWITCH_INTERVAL_S = switch_interval_s
+    saved = runner_module.REALTIME_SWITCH_INTERVAL_S
+    runner_module.REALTIME_SWITCH_INTERVAL_S = switch_interval_s
     try:
         with tempfile.TemporaryDirectory() as directory:
             runtime = Runtime(SimHal("exo_dummy_arm"), Path(directory), clock=RealTimeClock(1e-3))
             runtime.open()
             buffer = io.StringIO()
             session = make_session(runtime, Console(file=buffer, width=160))
-            runtime.start_background()
+            runtime.runner.start()
             stop = threading.Event()
 
             def console() -> None:  # what an operator's terminal asks of the runtime, and more
@@ -85,11 +85,11 @@ def _real_time_with_console(seconds: float, switch_interval_s: float, busy: bool
             time.sleep(seconds)
             stop.set()
             thread.join()
-            stats = runtime._core.loop.stats
+            stats = runtime.runner.stats
             runtime.shutdown("bench")
             runtime.close()
     finally:
-        runtime_module.REALTIME_SWITCH_INTERVAL_S = saved
+        runner_module.REALTIME_SWITCH_INTERVAL_S = saved
     return stats.ticks, stats.overruns, stats.missed_deadlines, stats.worst_lateness_s * 1e3
 
 

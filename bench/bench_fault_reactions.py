@@ -30,6 +30,7 @@ from daror_runtime.models.linear import APModel
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.lowering import plan_lowering
+from daror_runtime.testing import session_core
 from hal.isb import IsbLimits, default_shoulder
 from hal.robot import load_description
 from hal.sim.backend import SimHal
@@ -102,7 +103,7 @@ def bench_session_tick_in_compensation(quick: bool) -> BenchFigure:
     configure_logging("critical")
     with tempfile.TemporaryDirectory() as directory:
         runtime, _ = _session_in_compensation(Path(directory))
-        tick = runtime._core.loop.tick
+        tick = session_core(runtime).loop.tick
         repeats = 10 if quick else 60
         median, p90 = time_calls(tick, repeats=repeats, per_call=500, scale=1e6)
         runtime.close()
@@ -114,7 +115,7 @@ def bench_session_tick_in_compensation(quick: bool) -> BenchFigure:
 
 def _provoke(runtime: Runtime, hal: SimHal, kind: FaultKind) -> None:
     """As tests/test_fault_reactions.py provokes each kind (a narrowed limit where the monitor must see a reading)."""
-    core = runtime._core
+    core = session_core(runtime)
     monitor = core.monitor
     limits = monitor.limits
     sample = runtime.last_sample
@@ -135,7 +136,7 @@ def _provoke(runtime: Runtime, hal: SimHal, kind: FaultKind) -> None:
             raise ZeroDivisionError("division by zero (bench)")
 
         controller.update = update
-        runtime.run_ticks(1)
+        runtime.runner.run_ticks(1)
         del controller.update
 
 
@@ -152,8 +153,8 @@ def _drop(kind: FaultKind) -> BenchFigure:
             dq.append(truth.dq_rad_s)
             return False
 
-        runtime.run_ticks(3000, stop=row)
-        plan = runtime._core.supervisor.reaction
+        runtime.runner.run_ticks(3000, stop=row)
+        plan = session_core(runtime).supervisor.reaction
         runtime.close()
     moved = np.degrees(np.abs(np.array(q) - q0).max(axis=0))
     speed = np.abs(np.array(dq)).max(axis=0)

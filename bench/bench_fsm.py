@@ -22,6 +22,7 @@ from daror_runtime.fsm.machine import Event
 from daror_runtime.logs import configure_logging, flush_logs
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.settings import SessionSettings
+from daror_runtime.testing import session_core
 from hal.isb import IsbLimits
 from hal.sim.backend import SimHal
 from hal.sim.pilot import SimulatedPilot
@@ -39,8 +40,8 @@ def _session(directory: Path) -> tuple[Runtime, SimHal]:
     ) -> None:  # the pilot rests on the robot when it carries the arm
         pilot.carried = 0.0 if getattr(state, "mode", "") in ("compensation", "hold", "identification") else 1.0
 
-    runtime._core.supervisor.listeners.append(relax_when_supported)
-    runtime.run_ticks(10)
+    session_core(runtime).supervisor.listeners.append(relax_when_supported)
+    runtime.runner.run_ticks(10)
     return runtime, hal
 
 
@@ -48,9 +49,9 @@ def bench_fsm_tick(quick: bool) -> BenchFigure:
     """``FsmSupervisor.on_tick`` with no request and no fault, in compensation (the common tick)."""
     with tempfile.TemporaryDirectory() as directory:
         runtime, _ = _session(Path(directory))
-        supervisor, monitor = runtime._core.supervisor, runtime._core.monitor
+        supervisor, monitor = session_core(runtime).supervisor, session_core(runtime).monitor
         _force_to(runtime, "compensation")
-        sample = runtime._core.signals.sample
+        sample = runtime.last_sample
         no_faults: list = []
         repeats = 20 if quick else 200
         median, p90 = time_calls(
@@ -65,7 +66,7 @@ def bench_fsm_transition(quick: bool) -> BenchFigure:
     with tempfile.TemporaryDirectory() as directory:
         configure_logging("critical", json_path=Path(directory) / "audit.jsonl", json_level="info")
         runtime, hal = _session(Path(directory) / "session")
-        supervisor = runtime._core.supervisor
+        supervisor = session_core(runtime).supervisor
         rounds = 5 if quick else 40
         samples: list[float] = []
         worst = ("", 0.0)
@@ -83,18 +84,18 @@ def bench_fsm_transition(quick: bool) -> BenchFigure:
                 samples.append(elapsed)
                 if elapsed > worst[1]:
                     worst = (f"{event.value} {source}", elapsed)
-                runtime.run_ticks(2)
+                runtime.runner.run_ticks(2)
             hal.press_estop(0, True)
             start = time.perf_counter()
-            runtime.run_ticks(1)  # the tick that fails (read, check, fail transition, filter, write)
+            runtime.runner.run_ticks(1)  # the tick that fails (read, check, fail transition, filter, write)
             samples.append((time.perf_counter() - start) * 1e3)
             hal.press_estop(0, False)
-            runtime.run_ticks(2)
+            runtime.runner.run_ticks(2)
             for event in (Event.ACKNOWLEDGE, Event.RESET):
                 start = time.perf_counter()
                 supervisor.fire(event)
                 samples.append((time.perf_counter() - start) * 1e3)
-            runtime.run_ticks(2)
+            runtime.runner.run_ticks(2)
         runtime.close()
         flush_logs()
         configure_logging("warning")
@@ -114,28 +115,30 @@ def _force_guards(runtime: Runtime) -> None:
     """Every advance guard true (the session's evidence, set directly: the benchmark times transitions)."""
     from daror_runtime.fsm.signals import Checklist, EstopButton, SelectedModel
 
-    signals = runtime._core.signals
+    signals = session_core(runtime).signals
     signals.estop_tested.update(EstopButton)
     signals.confirmed.update(Checklist)
     signals.isb_limits = signals.isb_limits or IsbLimits()
     signals.model = SelectedModel("AP", "ap", None, 0.5, 1.5)
-    runtime._core.modes.compensation.model = runtime._core.a_priori  # what the runtime installs with an approved model
+    session_core(runtime).modes.compensation.model = session_core(
+        runtime
+    ).a_priori  # what the runtime installs with an approved model
 
 
 def _settle(runtime: Runtime) -> None:
     """Let the arm come to rest (the robot_at_rest guard) before a transition that needs it."""
-    runtime.run_until(lambda: runtime.at_rest, 5.0)
+    runtime.runner.run_until(lambda: runtime.at_rest, 5.0)
 
 
 def _force_to(runtime: Runtime, name: str) -> None:
-    supervisor = runtime._core.supervisor
+    supervisor = session_core(runtime).supervisor
     while supervisor.state_name != name:
         _force_guards(runtime)
         _settle(runtime)
         response = supervisor.fire(Event.ADVANCE)
         if not response.accepted:
             raise RuntimeError(f"cannot reach {name}: {response.reason}")
-        runtime.run_ticks(2)
+        runtime.runner.run_ticks(2)
 
 
 def bench_fsm_request_flood(quick: bool) -> list[BenchFigure]:
@@ -153,7 +156,7 @@ def bench_fsm_request_flood(quick: bool) -> list[BenchFigure]:
     with tempfile.TemporaryDirectory() as directory:
         configure_logging("critical", json_path=Path(directory) / "audit.jsonl", json_level="info")
         runtime, _ = _session(Path(directory) / "session")
-        supervisor, tick = runtime._core.supervisor, runtime._core.loop.tick
+        supervisor, tick = session_core(runtime).supervisor, session_core(runtime).loop.tick
         supervisor.post_event(Event.ADVANCE)
         for _ in range(200):
             tick()

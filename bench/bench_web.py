@@ -92,7 +92,7 @@ def measure(seconds: float, web: bool, clients: int = 2, press: bool = True) -> 
                     [sys.executable, "-c", _CLIENTS, str(clients), str(seconds), "press" if press else "nopress"],
                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                 )  # fmt: skip
-        runtime.start_background()
+        runtime.runner.start()
         time.sleep(1.0)  # the first second (the grid's start) is not measured
         skip = clock.n
         if browsers is not None and server is not None:

@@ -34,6 +34,7 @@ def _child() -> None:
     import numpy as np
 
     from daror_runtime.logs import configure_logging
+    from daror_runtime.testing import session_core
 
     sys.path.insert(0, str(BENCH))
     from session_walk import session_in_compensation
@@ -41,7 +42,7 @@ def _child() -> None:
     configure_logging("critical")
     with tempfile.TemporaryDirectory() as directory:
         runtime, _ = session_in_compensation(Path(directory))
-        tick = runtime._core.loop.tick
+        tick = session_core(runtime).loop.tick
         per_tick_us = []
         for _ in range(40):
             start = time.perf_counter_ns()

@@ -51,15 +51,15 @@ def session_in_compensation(directory: Path) -> tuple[Runtime, SimHal]:
     runtime = Runtime(hal, directory / "session", settings=SessionSettings(dummy_arm=True))
     runtime.open()
     world = SimWorld(hal.world)
-    runtime.run_ticks(1)
+    runtime.runner.run_ticks(1)
     runtime.select_model(model, validation)
-    runtime.run_until(lambda: not runtime.busy, 2.0)
+    runtime.runner.run_until(lambda: not runtime.busy, 2.0)
 
     def press(button: str) -> None:
         world.estop(button, True)
-        runtime.pass_time(0.05)
+        runtime.runner.pass_time(0.05)
         world.estop(button, False)
-        runtime.pass_time(0.2)
+        runtime.runner.pass_time(0.2)
 
     steps = {
         "safety_check": lambda: (press("operator"), press("pilot")),
@@ -70,13 +70,13 @@ def session_in_compensation(directory: Path) -> tuple[Runtime, SimHal]:
         "operative_check": lambda: press("operator"),
     }
     while runtime.state_name != "compensation":
-        steps.get(runtime.state_name, lambda: runtime.run_until(lambda: runtime.at_rest, 5.0))()
+        steps.get(runtime.state_name, lambda: runtime.runner.run_until(lambda: runtime.at_rest, 5.0))()
         runtime.wait(runtime.advance())
-        runtime.pass_time(0.3)
+        runtime.runner.pass_time(0.3)
     shoulder = default_shoulder()
     end = world.pilot_move(shoulder.q_from_isb(np.deg2rad(POSE_ISB_DEG), seed=hal.truth().q_rad))
-    runtime.pass_time(end - hal.time_s + 1.0)
+    runtime.runner.pass_time(end - hal.time_s + 1.0)
     world.pilot_carries(0.0)
     world.pilot_stiffness(0.0)
-    runtime.pass_time(2.0)
+    runtime.runner.pass_time(2.0)
     return runtime, hal

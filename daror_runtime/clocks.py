@@ -159,7 +159,7 @@ class Clock(ABC):
     def until_quiet_s(self) -> float:
         """Seconds until the loop is between ticks and not about to wake (0: now, or no such time).
 
-        Other threads of the loop's process do their short work then (:meth:`Runtime.add_publisher`):
+        Other threads of the loop's process do their short work then (:meth:`LoopRunner.add_publisher`):
         the loop does not need the interpreter, so they never make it wait for it. Virtual time: 0.
         """
         return 0.0

@@ -281,7 +281,7 @@ def let_the_reaction_play_out(
     )
     steps = max(round(limit_s / 0.1), 1)
     for _ in range(steps):
-        runtime.pass_time(0.1)
+        runtime.runner.pass_time(0.1)
         show()
         reaction = runtime.snapshot().reaction
         if reaction is None or not reaction.arm_held or reaction.phase in ("held", "rested"):

@@ -11,17 +11,11 @@ next tick boundary, where the FSM decides. Work that may take long (building a t
 controller, closing a recording, reducing data, fitting a model) runs outside the tick: in the
 caller's thread before the request is queued, or as a job (:mod:`daror_runtime.session.jobs`).
 
-Two ways to drive the loop, chosen by the backend (:attr:`hal.interface.Hal.virtual_time`):
-
-* **lock-step** (a backend that owns its time: the simulated plant; tests, the demo): the caller
-  runs ticks with :meth:`Runtime.run_ticks` / :meth:`Runtime.run_until`, and jobs run between two
-  ticks, so a session is deterministic whatever the machine's speed. Refused on hardware;
-* **real time** (hardware, or a simulated plant at wall-clock rate): :meth:`Runtime.start_background`
-  runs the loop on its own thread (with real-time scheduling when the OS grants it) and a service
-  thread collects finished runs; :meth:`Runtime.wait` waits for a ticket with a timeout. A
-  simulated plant a person watches runs the same way on a paced clock
-  (:class:`~daror_runtime.clocks.PacedClock`): its virtual time follows the wall clock, and a
-  stall of the process delays the simulated world instead of faulting it.
+Driving the loop is the :class:`~daror_runtime.runner.LoopRunner`'s job (:attr:`Runtime.runner`):
+lock-step ticks in the caller's thread (a backend that owns its time: the simulated plant; tests,
+the demo; refused on hardware), or the loop on its own thread with the interpreter's settings that
+keep other threads from stalling it (hardware, or a simulated plant at wall-clock rate on a
+:class:`~daror_runtime.clocks.PacedClock`). The runtime itself owns no thread.
 
 Raises on construction: :class:`~daror_runtime.fsm.spec.FsmSpecError` for a bad spec (the
 runtime refuses to start), :class:`~daror_runtime.errors.ConfigurationError` for a spec whose
@@ -31,13 +25,8 @@ hardware.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import gc
 import json
-import sys
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,7 +42,7 @@ from daror_runtime.fsm.signals import Checklist, SelectedModel
 from daror_runtime.fsm.spec import FsmSpec, StateSpec
 from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.logs import flush_logs, set_session_id
-from daror_runtime.loop import TickResult
+from daror_runtime.runner import LoopRunner
 from daror_runtime.session import requests
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import Announcement, AnnouncementKind
@@ -70,17 +59,6 @@ from hal.robot import FloatArray, RobotDescription
 log = structlog.get_logger(__name__)
 
 __all__ = ["RequestRefusedError", "Runtime", "TorqueOff"]
-
-
-#: The interpreter's thread switch interval while the loop runs in real time (s): how long another
-#: thread may keep the GIL once the loop thread asks for it.
-REALTIME_SWITCH_INTERVAL_S = 1e-4
-#: How often the service thread collects finished work and announces faults while the loop runs (s).
-SERVICE_PERIOD_S = 0.02
-#: Sleeps the service thread takes at most to reach the quiet part of a period (Clock.until_quiet_s).
-QUIET_TRIES = 3
-#: Service periods between two collections of the garbage collector's young generations (1 s).
-YOUNG_COLLECTION_EVERY = 50
 
 
 @dataclass(frozen=True)
@@ -130,13 +108,7 @@ class Runtime:
         self._core = SessionCore(hal, session_dir, spec, settings, clock, session_id)
         self.ended: TorqueOff | None = None
         self._opened = False
-        self._thread: threading.Thread | None = None
-        self._service_thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._thread_error: BaseException | None = None
-        self._publishers: list[Callable[[], None]] = []
-        self._switch_interval_s = sys.getswitchinterval()
-        self._gc_was_enabled = True
+        self._runner = LoopRunner(self._core.loop, self._core.clock, self._service, self._display_failed)
 
     # --- what the session is (read-only) ------------------------------------------------------
 
@@ -205,31 +177,6 @@ class Runtime:
             return None
         return core.modes.compensation.last_reference_nm
 
-    def add_publisher(self, publish: Callable[[], None]) -> None:
-        """Call ``publish()`` from the service thread every service period (20 ms) while the loop runs in the background.
-
-        For displays (the web console): it runs outside the tick, in a thread that already wakes
-        (no other thread to schedule beside the loop), and must return in microseconds without
-        blocking. If it raises, it is removed, the error is logged and announced (never swallowed).
-        """
-        self._publishers.append(publish)
-
-    def remove_publisher(self, publish: Callable[[], None]) -> None:
-        """Stop calling ``publish`` (no error if it is not registered)."""
-        with contextlib.suppress(ValueError):
-            self._publishers.remove(publish)
-
-    def _publish(self) -> None:
-        for publish in tuple(self._publishers):
-            try:
-                publish()
-            except Exception as exc:  # a display's error: stop that display, say why, the loop goes on
-                self.remove_publisher(publish)
-                log.exception("publisher removed", publisher=repr(publish))
-                self._core.announcements.announce(
-                    AnnouncementKind.SESSION, f"a display stopped receiving data: {exc}", self._core.t_s()
-                )
-
     def drain_announcements(self) -> list[Announcement]:
         """What happened since the last call (transitions, faults, finished work), oldest first."""
         return self._core.announcements.drain()
@@ -271,7 +218,7 @@ class Runtime:
         state = core.supervisor.state_name
         error: BaseException | None = None
         try:
-            self.stop_background()
+            self._runner.stop()
         except DarorError as exc:  # the loop thread had failed: still take the torque off below
             error = exc
         drives: tuple[str, ...] = ()
@@ -305,7 +252,7 @@ class Runtime:
     def close(self) -> None:
         """Stop the loop (torque off), finish background work, close the HAL, write ``session.json``."""
         core = self._core
-        self.stop_background()
+        self._runner.stop()
         core.abandon_run("the session was closed")
         core.jobs.close()
         if self._opened:
@@ -325,53 +272,12 @@ class Runtime:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- driving the loop -----------------------------------------------------------------
-
-    def run_ticks(self, ticks: int, stop: Callable[[TickResult], bool] | None = None) -> TickResult | None:
-        """Run ``ticks`` ticks in this thread (lock-step, or real time without a background thread)."""
-        if self._thread is not None:
-            raise RequestRefusedError("the loop runs in its background thread; use wait() instead")
-        result = None
-        tick = self._core.loop.tick
-        service = self._service
-        for n in range(ticks):
-            result = tick()
-            service(n)
-            if stop is not None and stop(result):
-                break
-        return result
-
-    def run_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
-        """Until ``done()`` (checked after every tick; polled in real time); False if ``timeout_s`` passed first.
-
-        Lock-step: ticks run here, ``timeout_s`` is robot time. Background: wall-clock time.
-        """
-        if self._thread is not None:
-            deadline = time.monotonic() + timeout_s
-            while not done():
-                if time.monotonic() > deadline:
-                    return False
-                time.sleep(0.005)
-            return True
-        tick = self._core.loop.tick
-        for n in range(max(1, round(timeout_s / self._core.dt_s))):
-            tick()
-            self._service(n)
-            if done():
-                return True
-        return done()
-
-    def pass_time(self, seconds: float) -> None:
-        """Let ``seconds`` pass: ticks in lock-step (robot time), a sleep while the loop runs in the background."""
-        if self._thread is not None:
-            time.sleep(seconds)
-        else:
-            self.run_ticks(round(seconds / self._core.dt_s))
+    # --- what the loop is doing ----------------------------------------------------------------
 
     @property
-    def background(self) -> bool:
-        """True while the loop runs on its own thread."""
-        return self._thread is not None
+    def runner(self) -> LoopRunner:
+        """Who runs the ticks: lock-step in the caller's thread, or the loop on its own thread (:mod:`daror_runtime.runner`)."""
+        return self._runner
 
     @property
     def busy(self) -> bool:
@@ -406,103 +312,10 @@ class Runtime:
         Raises:
             DarorError: it was not resolved in time (the loop is not running).
         """
-        if self._thread is None:
-            self.run_until(lambda: ticket.done, timeout_s)
-            response = ticket.response
-        else:
-            response = ticket.wait(timeout_s)
+        response = self._runner.wait_for(ticket, timeout_s)
         if response is None:
             raise DarorError(f"request {ticket.request!r} was not applied within {timeout_s} s: is the loop running?")
         return response
-
-    def start_background(self, realtime: bool | None = None) -> None:
-        """Run the loop on its own thread (and a service thread) until :meth:`stop_background`.
-
-        Args:
-            realtime: ask the OS for real-time scheduling for the loop's thread (``SCHED_FIFO``,
-                ``mlockall``: :mod:`daror_runtime.realtime`); None: only on a clock whose stalls
-                are faults (the real-time clock), not on a paced one, whose stalls only delay the
-                simulated world (D142).
-        """
-        if self._thread is not None:
-            return
-        loop_ = self._core.loop
-        self._stop.clear()
-        if realtime is None:
-            realtime = not self._core.clock.needs_virtual_time
-        if loop_.stats.ticks > 0:  # a restart: a new grid, so the pause is not counted as a stall
-            self._core.clock.start()
-
-        def loop() -> None:
-            from daror_runtime.realtime import release_realtime, request_realtime
-
-            if realtime:
-                request_realtime()
-            stop = self._stop.is_set
-            try:
-                while not stop():
-                    loop_.run(100, stop=lambda _result: stop(), disable_gc=False)  # off for the whole run
-            except BaseException as exc:
-                self._thread_error = exc
-                log.exception("control loop thread stopped")
-            finally:
-                if realtime:
-                    release_realtime()
-
-        def service() -> None:
-            n = 0
-            until_quiet = self._core.clock.until_quiet_s
-            while not self._stop.wait(SERVICE_PERIOD_S):
-                # between two ticks, in the part of the period where the loop sleeps: this thread's
-                # work then never makes the loop wait for the interpreter (a sleep re-checked: it may
-                # overshoot the window)
-                for _ in range(QUIET_TRIES):
-                    delay = until_quiet()
-                    if delay <= 0.0:
-                        break
-                    time.sleep(delay)
-                self._service(0)
-                if self._publishers:
-                    self._publish()
-                n += 1
-                if n % YOUNG_COLLECTION_EVERY == 0:
-                    gc.collect(1)  # the young generations only: well under a millisecond
-
-        # The cyclic garbage collector runs in whichever thread allocates and holds the GIL while it
-        # scans: a full collection in the console's thread is a stall of the loop. So it is off while
-        # the loop runs; what exists now is frozen out of every scan; the service thread collects
-        # the young generations once a second (what a session allocates is mostly freed by
-        # reference counting; cycles older than that wait for the end of the session).
-        gc.freeze()
-        self._gc_was_enabled = gc.isenabled()
-        gc.disable()
-        # Another Python thread (the console, a job) holds the GIL for up to the switch interval
-        # (5 ms by default) before the loop thread gets it: a stall the watchdog faults. 0.1 ms
-        # bounds that wait; the cost is more frequent switches in the other threads.
-        self._switch_interval_s = sys.getswitchinterval()
-        sys.setswitchinterval(REALTIME_SWITCH_INTERVAL_S)
-
-        self._thread = threading.Thread(target=loop, name="daror-loop", daemon=True)
-        self._service_thread = threading.Thread(target=service, name="daror-service", daemon=True)
-        self._thread.start()
-        self._service_thread.start()
-
-    def stop_background(self) -> None:
-        """Stop the loop thread (the last tick wrote torque off through the HAL's close)."""
-        if self._thread is None:
-            return
-        self._stop.set()
-        self._thread.join()
-        if self._service_thread is not None:
-            self._service_thread.join()
-        self._thread = self._service_thread = None
-        sys.setswitchinterval(self._switch_interval_s)
-        if self._gc_was_enabled:
-            gc.enable()
-        gc.unfreeze()
-        if self._thread_error is not None:
-            error, self._thread_error = self._thread_error, None
-            raise DarorError(f"the control loop thread failed: {error!r}") from error
 
     # --- operator requests (docs/session.md; applied at the next tick boundary) ----------------
 
@@ -558,19 +371,23 @@ class Runtime:
         """Stop a run: the robot holds where it is; the recording is kept, no dataset is written."""
         return requests.stop_identification(self._core)
 
-    def train(self, kind: str | None = None) -> None:
-        """Train ``kind`` (default: the session's) on this session's data, as a job (:func:`daror_runtime.session.requests.train`)."""
-        requests.train(self._core, kind)
+    def train(self, kind: str | None = None) -> Ticket:
+        """Train ``kind`` (default: the session's) on this session's data, as a job (:func:`daror_runtime.session.requests.train`).
+
+        The ticket is resolved when the model is handed over or refused at a tick boundary, or
+        refused when the job fails.
+        """
+        return requests.train(self._core, kind)
 
     def select_model(
         self, path: Path | str, validation: Path | str | None = None, accept_nonconservative: bool = False
-    ) -> None:
+    ) -> Ticket:
         """Use a model file once validated on held-out data of this pilot (:func:`daror_runtime.session.requests.select_model`).
 
         ``accept_nonconservative``: the operator confirms a model the closed-path test finds not
         conservative, after he saw its energy figure.
         """
-        requests.select_model(self._core, path, validation, accept_nonconservative)
+        return requests.select_model(self._core, path, validation, accept_nonconservative)
 
     # --- what the operator sees -----------------------------------------------------------
 
@@ -597,6 +414,12 @@ class Runtime:
             requests.keep_up_with_the_recorder(core, n)
             if core.jobs.pending:
                 core.jobs.run_pending()
+
+    def _display_failed(self, exc: Exception) -> None:
+        """A display's publisher raised (the runner dropped it): the operator is told."""
+        self._core.announcements.announce(
+            AnnouncementKind.SESSION, f"a display stopped receiving data: {exc}", self._core.t_s()
+        )
 
     def _write_summary(self) -> None:
         core = self._core

@@ -380,7 +380,7 @@ def test_the_console_never_imports_the_simulator() -> None:
 
 
 def test_backends_are_imported_only_through_the_registry() -> None:
-    """Outside its own package a backend's module is named only in the registry (hal/interface.py), lazily."""
+    """Outside its own package a backend's module is named only in the registry (hal/registry.py), lazily."""
     offenders = []
     for p in sources("daror_runtime"):
         for m in imported_modules(p):
@@ -438,15 +438,13 @@ def test_the_session_never_imports_the_console_or_the_runtime() -> None:
     assert offenders == []
 
 
-#: The facade: the operator's requests, the typed status, the loop's lifecycle, read-only facts.
+#: The facade: the operator's requests, the typed status, the session's lifecycle, read-only facts.
 FACADE = {
     # what the session is
     "session_id", "session_dir", "settings", "spec", "description", "shoulder", "rate_hz", "lock_step", "world",
     "state_name", "last_sample", "torque_reference_nm", "model_in_use", "drain_announcements", "on_transition",
-    "add_publisher", "remove_publisher",  # displays fed from the service thread (the web console)
-    # lifecycle and driving the loop
-    "open", "shutdown", "close", "run_ticks", "run_until", "pass_time", "background", "busy",
-    "jobs_pending", "at_rest", "arm_held", "wait", "start_background", "stop_background",
+    # lifecycle; who drives the loop (lock-step ticks or its own thread: daror_runtime/runner.py)
+    "open", "shutdown", "close", "runner", "busy", "jobs_pending", "at_rest", "arm_held", "wait",
     # the operator's requests
     "request", "advance", "revert", "reset", "acknowledge", "confirm", "set_support", "rom_start",
     "rom_stop", "set_isb_limits", "identify", "stop_identification", "train", "select_model",
@@ -478,3 +476,142 @@ def test_the_tick_side_trajectory_never_imports_its_planner() -> None:
     assert planner not in imported_modules(tick_side)
     shared = ROOT / "daror_runtime/identification/trajectory_settings.py"
     assert not {m for m in imported_modules(shared) if m.startswith("daror_runtime.identification")}
+
+
+#: What decides whether another thread can stall a tick (docs/safety.md H7); only the loop runner touches it.
+_INTERPRETER_SETTINGS = re.compile(
+    r"\b(threading\.Thread|sys\.setswitchinterval|gc\.(disable|enable|freeze|unfreeze))\b"
+)
+
+
+def test_the_runtime_owns_no_thread(tmp_path: Path) -> None:
+    """Threads, the garbage collector's policy and the switch interval belong to the loop runner, not to the facade."""
+    import threading
+
+    from daror_runtime.clocks import PacedClock
+    from daror_runtime.runner import LoopRunner
+    from daror_runtime.runtime import Runtime
+    from hal.config import SimHalConfig
+    from hal.interface import open_hal
+
+    source = (ROOT / "daror_runtime" / "runtime.py").read_text()
+    assert "threading" not in imported_modules(ROOT / "daror_runtime" / "runtime.py")
+    assert _INTERPRETER_SETTINGS.findall(source) == []
+    hal = open_hal(SimHalConfig())
+    runtime = Runtime(hal, tmp_path / "session", clock=PacedClock(1.0 / hal.rate_hz))
+    runtime.open()
+    try:
+        runtime.runner.start()
+        loop_threads = [t for t in threading.enumerate() if t.name in {"daror-loop", "daror-service"}]
+        assert len(loop_threads) == 2
+        owned = [name for name, value in vars(runtime).items() if isinstance(value, threading.Thread)]
+        assert owned == []  # the runtime holds none of them
+        assert isinstance(runtime.runner, LoopRunner)
+        assert runtime.runner.running
+    finally:
+        runtime.shutdown("test")
+        runtime.close()
+    assert not any(t.is_alive() for t in loop_threads)
+
+
+#: Who else may set the collector or the switch interval, and why (none of them runs a session's loop).
+_MAY_SET_THE_INTERPRETER = {
+    "daror_runtime/runner.py": "the loop runner: a session's loop on its own thread",
+    "daror_runtime/loop.py": "a batch of ticks in the caller's thread pauses the collector for its own length",
+    "daror_runtime/rt_check.py": "the design-time rate check runs a bare loop with the runner's settings",
+    "daror_runtime/cli": "a command about to exit freezes what exists (spares the collections at exit)",
+}
+
+
+def test_only_the_loop_runner_sets_what_can_stall_a_tick() -> None:
+    """Outside the declared places, no module sets the collector's policy or the switch interval."""
+    offenders = [
+        f"{p.relative_to(ROOT)}: {match.group(0)}"
+        for package in ("daror_runtime", "hal")
+        for p in sources(package)
+        if not p.relative_to(ROOT).as_posix().startswith(tuple(_MAY_SET_THE_INTERPRETER))
+        for match in re.finditer(r"\bsys\.setswitchinterval\b|\bgc\.(disable|freeze)\b", p.read_text())
+    ]
+    assert offenders == []
+
+
+def test_nothing_but_tests_and_benches_reach_past_the_runtimes_door() -> None:
+    """``Runtime._core`` is read only by the declared test hook (daror_runtime/testing.py), which library code never imports."""
+    reaching = [
+        str(p.relative_to(ROOT))
+        for root in ("daror_runtime", "hal", "tests", "bench")
+        for p in sorted((ROOT / root).rglob("*.py"))
+        if re.search(r"\._core\b", p.read_text())
+        and p.relative_to(ROOT).as_posix()
+        not in {"daror_runtime/runtime.py", "daror_runtime/testing.py", "tests/test_boundaries.py"}
+    ]
+    assert reaching == []
+    importing_the_hook = [
+        str(p.relative_to(ROOT))
+        for package in ("daror_runtime", "hal")
+        for p in sources(package)
+        if "daror_runtime.testing" in imported_modules(p)
+    ]
+    assert importing_the_hook == []
+
+
+# --- HAL backends plug in (issue 26, point 4) ------------------------------------------------------
+
+#: The tests' stand-in drives as a third-party package: a module and its dist-info, whose entry point
+#: (group daror_runtime.hal_backends) registers the HAL backend ``stand-in`` (tests/outside.py).
+OUTSIDE_BACKEND = ROOT / "tests" / "data" / "outside_backend"
+
+
+def _names_the_stand_in(path: Path) -> list[str]:
+    """Where ``path``'s code (not its prose) names the stand-in backend: an import of it, or its name or target as a value."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = [m for m in imported_modules(path) if m.startswith(("tests.standin_drives", "daror_standin"))]
+    found += [
+        f"line {node.lineno}: {node.value!r}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant)
+        and isinstance(node.value, str)
+        and (node.value == "stand-in" or node.value.startswith(("tests.standin_drives", "daror_standin")))
+    ]
+    return found
+
+
+@pytest.mark.slow
+def test_a_new_backend_registered_from_outside_appears_in_hal_and_in_the_contract_suite() -> None:
+    """A new backend registered from outside the packages appears in --hal and in the contract suite without edits elsewhere.
+
+    The stand-in drives' package is put on the path of fresh processes, as pip would install it;
+    no module of the packages, the command line or the contract suite names it.
+    """
+    import os
+    import subprocess
+    import sys
+
+    nowhere = [
+        *sources("hal"),
+        *sources("daror_runtime"),
+        ROOT / "tests/hal_contract.py",
+        ROOT / "tests/test_hal_contract.py",
+    ]
+    assert {str(p.relative_to(ROOT)): found for p in nowhere if (found := _names_the_stand_in(p))} == {}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(OUTSIDE_BACKEND), str(ROOT)])}
+
+    def run(*argv: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+
+    listed = run(sys.executable, "-c", "from hal.interface import backend_kinds; print(*backend_kinds())")
+    assert (listed.returncode, listed.stdout.split(), listed.stderr) == (0, ["sim", "can-sim", "can", "stand-in"], "")
+    helped = run(str(Path(sys.executable).with_name("daror")), "console", "--help")
+    assert helped.returncode == 0, helped.stderr
+    assert "--hal {sim,can-sim,can,stand-in}" in helped.stdout
+    contract = run(
+        sys.executable, "-m", "pytest", "tests/test_hal_contract.py", "-k", "stand-in",
+        "-p", "no:cacheprovider", "-o", "addopts=", "-q", "-rs",
+    )  # fmt: skip
+    assert contract.returncode == 0, contract.stdout[-3000:]
+    summary = contract.stdout.strip().splitlines()[-1]
+    passed = re.search(r"(\d+) passed", summary)
+    assert passed is not None, summary
+    assert int(passed.group(1)) >= 20, summary  # the contract's checks, run on the stand-in
+    assert "failed" not in summary
+    assert "error" not in summary

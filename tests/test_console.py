@@ -1,7 +1,7 @@
 """The operator console: ``daror console --script``, :class:`ConsoleSession` lines, and typed sessions.
 
 Scripts run lock-step on the simulated plant (``exo_dummy_arm``), so every test here is a few
-hundred milliseconds of robot time. Exit codes (daror_runtime/cli.py): 0 done, 1 a check of the
+hundred milliseconds of robot time. Exit codes (daror_runtime/cli/): 0 done, 1 a check of the
 script failed, 2 bad input (an unknown command, a bad spec or settings file), with one stderr line
 naming the file and the line or field.
 """
@@ -29,6 +29,7 @@ from daror_runtime.demo.rehearsal import rehearse
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH
 from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import RequestRefusedError, Runtime
+from daror_runtime.testing import session_core
 from hal.sim.backend import SimHal
 
 #: startup -> safety_check (both e-stops tested) -> settings, with checks on the way.
@@ -299,7 +300,7 @@ def test_a_refused_request_is_answered_with_its_reason(lines: Lines) -> None:
     lines.run("expect refused")
     with pytest.raises(ScriptCheckError, match="expected 'advance' to be accepted; it was refused"):
         lines.run("expect accepted")
-    assert lines.runtime._core.supervisor.state_name == "settings"
+    assert lines.runtime.state_name == "settings"
     printed = lines.run("confirm settings", "expect accepted", "advance", "expect state pilot_installation")
     assert "advance: accepted, state pilot_installation" in printed
 
@@ -310,7 +311,7 @@ def test_a_checklist_of_another_state_is_refused(lines: Lines) -> None:
     assert not lines.last.accepted
     assert lines.last.reason == "state settings has no installation checklist"
     assert "confirm installation: refused (state settings has no installation checklist)" in printed
-    assert lines.runtime._core.signals.confirmed == set()
+    assert session_core(lines.runtime).signals.confirmed == set()
     with pytest.raises(CommandError, match="'straps' is not one of settings, installation"):
         lines.run("confirm straps")
     with pytest.raises(CommandError, match="usage: confirm CHECKLIST"):
@@ -333,24 +334,24 @@ def test_lines_that_are_not_commands(lines: Lines) -> None:
     with pytest.raises(CommandError, match="'nan' is not a finite number"):
         lines.run("support nan")
     assert lines.run("   ", "# only a comment") == ""
-    assert lines.runtime._core.supervisor.state_name == "startup"
-    assert lines.runtime._core.supervisor.transitions == 0
+    assert lines.runtime.state_name == "startup"
+    assert session_core(lines.runtime).supervisor.transitions == 0
 
 
 def test_wait_until_a_state_that_does_not_come_fails_the_check(lines: Lines) -> None:
     with pytest.raises(ScriptCheckError, match=r"'wait until state settings' did not happen within 0\.05 s"):
         lines.run("wait until state settings timeout 0.05")
-    assert lines.runtime._core.signals.sample.t_s == pytest.approx(0.05, abs=2e-3)  # the time passed, lock-step
+    assert lines.runtime.last_sample.t_s == pytest.approx(0.05, abs=2e-3)  # the time passed, lock-step
 
 
 def test_the_simulated_world_acts_on_the_plant(lines: Lines) -> None:
     lines.run("wait 0.2", "advance", "sim estop pilot on", "wait 0.05")
-    sample = lines.runtime._core.signals.sample
+    sample = lines.runtime.last_sample
     assert sample.estop == (False, True)
-    assert lines.runtime._core.monitor.faulted  # an e-stop test: torque off while pressed
+    assert session_core(lines.runtime).monitor.faulted  # an e-stop test: torque off while pressed
     assert lines.hal.applied_motor_torque_nm.tolist() == [0.0] * 4
     lines.run("sim estop pilot off", "wait 0.05", "sim pilot carry 0.25")
-    assert not lines.runtime._core.monitor.faulted
+    assert not session_core(lines.runtime).monitor.faulted
     assert lines.session.world is not None
     assert lines.session.world.pilot_carried == 0.25
     with pytest.raises(CommandError, match="sim estop: 'maybe' is not one of on, off"):
@@ -386,8 +387,8 @@ def test_piped_lines_are_echoed_answered_and_the_session_goes_on(lines: Lines) -
     code = run_piped(lines.session, piped)
     printed = lines.buffer.getvalue()
     assert code == 2  # a line was not a command
-    assert lines.runtime._core.supervisor.state_name == "safety_check"
-    assert lines.runtime._core.supervisor.transitions == 1
+    assert lines.runtime.state_name == "safety_check"
+    assert session_core(lines.runtime).supervisor.transitions == 1
     assert piped.read() == "advance\n"  # the line after quit was not consumed
     for line in ("status", "wait 0.2", "advanse", "identify training", "advance", "quit"):
         assert f"> {line}\n" in printed  # every command echoed
@@ -430,7 +431,7 @@ def test_run_script_counts_the_lines_it_ran(tmp_path: Path, lines: Lines) -> Non
     checked = check_lines(read_script(script), str(script), lines.session.context)
     result = run_script(lines.session, script, checked)
     assert (result.lines_run, result.state) == (17, "settings")
-    assert lines.runtime._core.supervisor.state_name == "settings"
+    assert lines.runtime.state_name == "settings"
 
 
 def test_every_guard_a_spec_may_name_has_a_next_step() -> None:

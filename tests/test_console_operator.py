@@ -60,7 +60,7 @@ def follow_the_status(directory: Path, limit: int = 100) -> list[str]:
             buffer.truncate()
             session.execute("status")
             typed.append("status")
-            if runtime._core.supervisor.state_name == "compensation":
+            if runtime.state_name == "compensation":
                 return typed
             suggested = suggested_commands(buffer.getvalue())
             assert suggested, f"the status suggests nothing to do:\n{buffer.getvalue()}"
@@ -218,10 +218,10 @@ def test_quitting_in_any_state_takes_the_torque_off_first_and_records_it(
     if state == "FAIL":
         session.walk_to("rom_limits")
         session.hal.inject_fault("drive_fault", 2)
-        runtime.pass_time(0.01)
+        runtime.runner.pass_time(0.01)
     else:
         session.walk_to(state)
-    assert runtime._core.supervisor.state_name == state
+    assert runtime.state_name == state
     ended = runtime.shutdown("quit")
     assert ended.confirmed
     assert ended.state == state

@@ -39,6 +39,7 @@ from daror_runtime.fsm.spec import load_fsm_spec
 from daror_runtime.runtime import Runtime
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.session.settings import SessionSettings
+from daror_runtime.testing import session_core
 from hal.isb import IsbLimits, default_shoulder
 from hal.robot import FloatArray
 from hal.sim.backend import SimHal
@@ -67,11 +68,11 @@ class Rig(Session):
         )
         self.runtime.open()
         self.world = SimWorld(self.hal.world)
-        self.runtime.run_ticks(1)
+        self.runtime.runner.run_ticks(1)
 
     @property
     def core(self) -> Any:
-        return self.runtime._core
+        return session_core(self.runtime)
 
     def lap_clear(self) -> bool:
         """True when the pilot's lap (under the rest pose) does not touch the arm where it is now."""
@@ -91,11 +92,11 @@ class Rig(Session):
         """The pilot moves his arm to ``pose_isb_deg`` (above his lap) and goes completely limp there."""
         target = SHOULDER.q_from_isb(np.deg2rad(pose_isb_deg), seed=self.hal.truth().q_rad)
         end = self.world.pilot_move(target)
-        self.runtime.pass_time(end - self.hal.time_s + 1.0)
+        self.runtime.runner.pass_time(end - self.hal.time_s + 1.0)
         if lap:
             self.lap_at_rest()
         self.relax_completely()
-        self.runtime.pass_time(limp_s)
+        self.runtime.runner.pass_time(limp_s)
 
 
 @dataclasses.dataclass
@@ -125,7 +126,7 @@ def record(rig: Rig, seconds: float, until_released: bool = False, until_fault: 
             return monitor.faulted
         return until_released and not runtime.arm_held and len(t) > 10
 
-    runtime.run_ticks(round(seconds * 1000), stop=row)
+    runtime.runner.run_ticks(round(seconds * 1000), stop=row)
     return Trace(np.array(q), np.array(dq), np.array(t), np.array(enable), np.array(applied))
 
 
@@ -180,8 +181,10 @@ def walk_and_limp(rig: Rig, state: str, models: Models) -> None:
     if state == "identification":
         rig.relax_completely()
         rig.ok(runtime.identify("training"))
-        runtime.pass_time(20.0)  # the protocol moves the arm away from its rest: the fault at a stop clear of the lap
-        assert runtime.run_until(lambda: runtime.at_rest and rig.lap_clear(), 60.0)
+        runtime.runner.pass_time(
+            20.0
+        )  # the protocol moves the arm away from its rest: the fault at a stop clear of the lap
+        assert runtime.runner.run_until(lambda: runtime.at_rest and rig.lap_clear(), 60.0)
         rig.lap_at_rest()  # (not before: the protocol's poses would run into it)
         return
     # Limp long enough for an arm under the A Priori model (operative_check) to have come to its walls.
@@ -313,7 +316,7 @@ def test_a_hold_reaction_holds_the_limp_arm_until_the_operator_lowers_it(tmp_pat
         assert np.abs(lowered.dq).max() < MAX_SPEED_RAD_S
         np.testing.assert_allclose(np.degrees(lowered.q[-1]), np.degrees(rig.core.rest_q_rad), atol=2.5)
         rig.ok(rig.runtime.acknowledge())
-        rig.runtime.pass_time(0.1)
+        rig.runtime.runner.pass_time(0.1)
         rig.ok(rig.runtime.reset())  # the arm rests on the lap, torque off: the reset drops nothing
     finally:
         rig.close()
@@ -377,7 +380,7 @@ def _relax_gradually(rig: Rig, seconds: float = 0.3) -> None:
     steps = round(seconds / 0.01)
     for n in range(1, steps + 1):
         rig.world.pilot_stiffness(1.0 - n / steps)
-        rig.runtime.pass_time(0.01)
+        rig.runtime.runner.pass_time(0.01)
 
 
 def _isb(q: FloatArray) -> FloatArray:
@@ -390,7 +393,7 @@ def test_a_limp_arm_under_the_a_priori_model_stops_at_its_walls_without_a_fault(
     before the pilot's limits: no fault, never 0.2 rad/s. Without walls and damping it faulted (issue 23)."""
     rig.walk_to("operative_check")
     rig.press("operator")
-    rig.runtime.pass_time(4.0)
+    rig.runtime.runner.pass_time(4.0)
     _relax_gradually(rig)
     trace = record(rig, 20.0)
     assert not rig.core.monitor.faulted, rig.core.monitor.latched
@@ -463,7 +466,7 @@ def _ss1_rig(tmp_path: Path, relay_delay_s: float, within_s: float) -> Rig:
     rig.runtime = Runtime(hal, tmp_path / "ss1", spec=spec, settings=SessionSettings(dummy_arm=True), clock=rig.clock)
     rig.runtime.open()
     rig.world = SimWorld(hal.world)
-    rig.runtime.run_ticks(1)
+    rig.runtime.runner.run_ticks(1)
     return rig
 
 
@@ -540,7 +543,7 @@ def test_releasing_an_estop_in_a_test_state_brings_the_support_back_without_a_st
     mrad): docs/safety.md."""
     rig.walk_to("operative_check")
     rig.world.pilot_carries(0.0)
-    rig.runtime.pass_time(4.0)
+    rig.runtime.runner.pass_time(4.0)
     rig.world.estop("operator", True)
     pressed = record(rig, 0.3)
     assert np.all(pressed.enable[1:] == 0.0)

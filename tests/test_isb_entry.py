@@ -22,6 +22,7 @@ from daror_runtime.console.commands import ConsoleSession
 from daror_runtime.console.guide import next_steps
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.session.settings import RestSettings, SessionSettings
+from daror_runtime.testing import session_core
 from hal.isb import AngleRange, IsbLimits
 from tests.test_session_safety import Session
 
@@ -66,8 +67,8 @@ def test_the_advance_waits_until_the_arm_is_inside_the_limits(
         f"elevation {elevation:.1f} deg is {10.0 - elevation:.1f} deg outside the pilot's recorded range "
         "10.0..70.0 deg (the monitor allows 5.0 deg beyond it: isb_margin_deg)"
     ) in response.reason
-    runtime.run_ticks(200)
-    assert not runtime._core.monitor.faulted  # refused: nothing was entered, nothing faulted
+    runtime.runner.run_ticks(200)
+    assert not session_core(runtime).monitor.faulted  # refused: nothing was entered, nothing faulted
     assert session.state == "rom_limits"
     # the next steps say what to do, with the figures
     status = runtime.snapshot()
@@ -77,11 +78,11 @@ def test_the_advance_waits_until_the_arm_is_inside_the_limits(
     # the pilot raises his arm into his range (in the simulated world), then the advance is accepted
     console.execute("sim pilot move 40 30 0 60")
     assert "the pilot moves the arm to that pose until t =" in buffer.getvalue()
-    assert runtime.run_until(lambda: runtime.at_rest and _isb_deg(session)[0] > 35.0, 20.0)
+    assert runtime.runner.run_until(lambda: runtime.at_rest and _isb_deg(session)[0] > 35.0, 20.0)
     session.ok(runtime.advance())
     assert session.state == "operative_check"
-    runtime.pass_time(1.0)
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    runtime.runner.pass_time(1.0)
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
 
 
 def test_an_isb_fault_names_the_recorded_range_and_the_margin(
@@ -92,15 +93,15 @@ def test_an_isb_fault_names_the_recorded_range_and_the_margin(
     runtime = session.runtime
     session.walk_to("rom_limits")
     session.world.pilot_move(runtime.shoulder.q_from_isb(np.radians([40.0, 30.0, 0.0, 60.0])))
-    assert runtime.run_until(lambda: runtime.at_rest and _isb_deg(session)[0] > 35.0, 20.0)
+    assert runtime.runner.run_until(lambda: runtime.at_rest and _isb_deg(session)[0] > 35.0, 20.0)
     session.ok(runtime.set_isb_limits(PILOT_ISB))
     session.ok(runtime.confirm("a_priori_model"))
     session.ok(runtime.advance())
-    monitor = runtime._core.monitor
+    monitor = session_core(runtime).monitor
     elbow = _isb_deg(session)[3]
     narrowed = IsbLimits(elbow=AngleRange(lower_deg=elbow - 40.0, upper_deg=elbow - 8.0))
-    monitor.set_limits(monitor.limits.with_isb(narrowed), runtime._core.signals.isb_angles(narrowed))
-    runtime.run_ticks(2)
+    monitor.set_limits(monitor.limits.with_isb(narrowed), session_core(runtime).signals.isb_angles(narrowed))
+    runtime.runner.run_ticks(2)
     faults = [f for f in monitor.latched if f.kind == FaultKind.ISB_LIMIT]
     assert faults, monitor.latched
     message = faults[0].message

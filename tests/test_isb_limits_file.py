@@ -56,7 +56,7 @@ def test_a_session_keeps_the_limits_it_used_for_the_next_one(session: Session, t
     runtime = session.runtime
     session.walk_to("rom_limits")
     session.ok(runtime.set_isb_limits(load_isb_limits(EXAMPLE)))
-    assert runtime.run_until(lambda: not runtime.busy, 2.0)
+    assert runtime.runner.run_until(lambda: not runtime.busy, 2.0)
     kept = runtime.session_dir / "isb_limits.yaml"
     assert load_isb_limits(kept) == load_isb_limits(EXAMPLE)
     assert "pilot simulated pilot (exo_dummy_arm)" in kept.read_text(encoding="utf-8").splitlines()[0]
@@ -64,9 +64,9 @@ def test_a_session_keeps_the_limits_it_used_for_the_next_one(session: Session, t
     world: SimWorld = session.world
     session.ok(runtime.rom_start())
     end = world.pilot_sweep(runtime.settings.identification)
-    runtime.pass_time(end - runtime.last_sample.t_s + 0.5)  # type: ignore[union-attr]
+    runtime.runner.pass_time(end - runtime.last_sample.t_s + 0.5)  # type: ignore[union-attr]
     session.ok(runtime.rom_stop())
-    assert runtime.run_until(lambda: not runtime.busy, 2.0)
+    assert runtime.runner.run_until(lambda: not runtime.busy, 2.0)
     recorded = runtime.snapshot().isb_limits_deg
     assert recorded is not None
     again = load_isb_limits(kept)

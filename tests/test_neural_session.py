@@ -17,6 +17,7 @@ import pytest
 from daror_runtime.data.load import load_stationary
 from daror_runtime.models.files import load_model, save_model, training_summary
 from daror_runtime.models.registry import NetworkOptions, fit_model
+from daror_runtime.testing import session_core
 from hal.isb import IsbLimits
 from hal.sim.scenario import load_scenario
 from tests.conftest import Models
@@ -44,10 +45,10 @@ def test_a_penn_is_validated_installed_and_holds_a_limp_arm(session: Session, pe
     session.walk_to("rom_limits", a_priori=False)
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.select(penn_file, models.validation)
-    model = runtime._core.signals.model
+    model = runtime.model_in_use
     assert model is not None
     assert model.validated
-    installed = runtime._core.modes.compensation.model
+    installed = session_core(runtime).modes.compensation.model
     assert installed is not None
     assert installed.kind == "penn"
     session.walk_to("training")
@@ -60,7 +61,7 @@ def test_a_penn_is_validated_installed_and_holds_a_limp_arm(session: Session, pe
     # the sensors' direction error (<= 0.2 Nm).
     q = poses[-1]
     penn = load_model(penn_file)[0].torque(q)
-    delivered = runtime._core.modes.compensation.last_reference_nm
-    a_priori = runtime._core.a_priori.torque(q)
+    delivered = session_core(runtime).modes.compensation.last_reference_nm
+    a_priori = session_core(runtime).a_priori.torque(q)
     assert np.abs(delivered - penn).max() < 0.2, (delivered, penn)
     assert np.linalg.norm(delivered - penn) < 0.2 * np.linalg.norm(a_priori - penn), (delivered, penn, a_priori)

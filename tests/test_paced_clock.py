@@ -224,7 +224,7 @@ def _session_with_a_stall(tmp_path: Path, clock_kind: type[RealTimeClock] | type
         return False
 
     runtime.open()
-    runtime.run_ticks(300, stop=stall_once)
+    runtime.runner.run_ticks(300, stop=stall_once)
     return runtime
 
 

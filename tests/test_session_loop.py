@@ -46,6 +46,7 @@ from daror_runtime.safety.faults import Fault, FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.monitor import SafetyMonitor
 from daror_runtime.session.settings import SessionSettings
+from daror_runtime.testing import session_core
 from hal.errors import HalError
 from hal.interface import DriveState
 from hal.isb import AngleRange, IsbLimits
@@ -235,29 +236,29 @@ class Session:
         self.hal = SimHal(SCENARIO)
         self.runtime = Runtime(self.hal, directory, settings=SessionSettings(dummy_arm=True), clock=self.clock)
         self.visited: list[str] = []
-        self.runtime._core.supervisor.listeners.append(lambda state, outcome: self.visited.append(state.name))
+        session_core(self.runtime).supervisor.listeners.append(lambda state, outcome: self.visited.append(state.name))
         self.runtime.open()
         self.world = SimWorld(self.hal.world)  # its pilot carries what the robot does not: relaxes onto support
         self.healthy = True
         runtime = self.runtime
-        runtime.run_ticks(1)
+        runtime.runner.run_ticks(1)
         runtime.select_model(model.model, model.validation)
-        assert runtime.run_until(
-            lambda: runtime._core.signals.model is not None and not runtime._core.jobs.pending, 1.0
+        assert runtime.runner.run_until(
+            lambda: runtime.model_in_use is not None and not session_core(runtime).jobs.pending, 1.0
         )
-        assert runtime._core.signals.model is not None
-        assert runtime._core.signals.model.validated
+        assert runtime.model_in_use is not None
+        assert runtime.model_in_use.validated
 
     @property
     def state(self) -> str:
-        return self.runtime._core.supervisor.state_name
+        return self.runtime.state_name
 
     def tick(self, n: int = 1, keep: Callable[[], None] | None = None) -> TickResult:
         result = None
         for _ in range(n):
             if keep is not None:
                 keep()
-            result = self.runtime.run_ticks(1)
+            result = self.runtime.runner.run_ticks(1)
         assert result is not None
         return result
 
@@ -300,7 +301,7 @@ class Session:
                 continue
             accepted(self.answer(runtime.advance()))
             self.tick(settle_ticks)
-        assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+        assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
 
     def _advance_at_rest(self, settle_ticks: int = 150) -> None:
         """Advance out of ``identification``, which needs the robot at rest in the tick that decides.
@@ -310,7 +311,7 @@ class Session:
         """
         runtime = self.runtime
         for _ in range(50):
-            assert runtime.run_until(lambda: runtime.at_rest, 5.0), "the robot did not come to rest"
+            assert runtime.runner.run_until(lambda: runtime.at_rest, 5.0), "the robot did not come to rest"
             response = self.answer(runtime.advance())
             if response.accepted:
                 self.tick(settle_ticks)
@@ -369,7 +370,7 @@ class NarrowedLimit(Condition):
         self.narrowed: SafetyLimits | None = None
 
     def _narrow(self, limits: SafetyLimits) -> SafetyLimits:
-        sample = self.s.runtime._core.signals.sample
+        sample = self.s.runtime.last_sample
         assert sample is not None
         if self.kind == FaultKind.JOINT_LIMIT:
             upper = np.array(limits.joint_upper_rad, dtype=float)
@@ -387,7 +388,7 @@ class NarrowedLimit(Condition):
         return dataclasses.replace(limits, max_deflection_rad=BELOW_ANY_READING)
 
     def _apply(self) -> None:
-        monitor = self.s.runtime._core.monitor
+        monitor = session_core(self.s.runtime).monitor
         self.base = monitor.limits
         self.narrowed = self._narrow(self.base)
         monitor.set_limits(self.narrowed)
@@ -396,11 +397,11 @@ class NarrowedLimit(Condition):
         self._apply()
 
     def keep(self) -> None:
-        if self.s.runtime._core.monitor.limits is not self.narrowed:  # a state change replaced them
+        if session_core(self.s.runtime).monitor.limits is not self.narrowed:  # a state change replaced them
             self._apply()
 
     def clear(self) -> None:
-        monitor = self.s.runtime._core.monitor
+        monitor = session_core(self.s.runtime).monitor
         if monitor.limits is self.narrowed and self.base is not None:
             monitor.set_limits(self.base)
 
@@ -510,13 +511,13 @@ class SoftwareFault(Condition):
         self.patched: Any = None
 
     def start(self) -> None:
-        controller = self.s.runtime._core.supervisor.controller
+        controller = session_core(self.s.runtime).supervisor.controller
         if controller is None:
 
             def buggy(supervisor: FsmSupervisor) -> Response:
                 raise ZeroDivisionError("division by zero in a request")
 
-            self.s.runtime._core.supervisor.post("buggy request", buggy)
+            session_core(self.s.runtime).supervisor.post("buggy request", buggy)
             return
 
         def update(sample: Any, dt_s: float) -> Any:
@@ -579,7 +580,7 @@ def test_the_fault_classes_left_out_cannot_occur_there(sessions: Callable[[str],
     left_out = [(s.name, k) for s in SPEC.states for k in FaultKind if not_applicable(s, k)]
     assert left_out == [(s.name, FaultKind.ISB_LIMIT) for s in SPEC.states if not s.enforce_isb]
     for name, _ in left_out:
-        assert sessions(name).runtime._core.monitor.limits.isb is None, f"{name} enforces ISB limits after all"
+        assert session_core(sessions(name).runtime).monitor.limits.isb is None, f"{name} enforces ISB limits after all"
 
 
 @pytest.fixture(scope="module")
@@ -613,7 +614,7 @@ def provoke(session: Session, condition: Condition, max_ticks: int = 20) -> tupl
     (:func:`test_a_fault_reported_inside_the_supervisor_is_in_the_tick_result`), so the monitor is asked too.
     """
     condition.start()
-    monitor = session.runtime._core.monitor
+    monitor = session_core(session.runtime).monitor
     for _ in range(max_ticks):
         result = session.tick(1, condition.keep)
         if result.faults or monitor.faulted:
@@ -622,7 +623,7 @@ def provoke(session: Session, condition: Condition, max_ticks: int = 20) -> tupl
 
 
 def settle_until_clearable(session: Session, max_ticks: int = 200) -> None:
-    monitor = session.runtime._core.monitor
+    monitor = session_core(session.runtime).monitor
     for _ in range(max_ticks):
         session.tick()
         if monitor.clearable:
@@ -644,10 +645,10 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
     def record(state: Any, outcome: Outcome) -> None:
         visited.append((outcome.event.value, state.name))
 
-    runtime._core.supervisor.listeners.append(record)
+    session_core(runtime).supervisor.listeners.append(record)
     # Every tick of the session: whenever an e-stop is pressed, no torque is written or applied.
     pressed_ticks: list[tuple[float, bool]] = []
-    tick = runtime._core.loop.tick
+    tick = session_core(runtime).loop.tick
 
     def observed_tick() -> TickResult:
         result = tick()
@@ -655,22 +656,22 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
             pressed_ticks.append((result.sample.t_s, torque_off(result, hal)))
         return result
 
-    monkeypatch.setattr(runtime._core.loop, "tick", observed_tick)
+    monkeypatch.setattr(session_core(runtime).loop, "tick", observed_tick)
 
     def ok(ticket: Ticket) -> Response:
         return accepted(runtime.wait(ticket))
 
     def press(button: str, seconds: float = 0.1) -> None:
         world.estop(button, True)
-        runtime.pass_time(seconds)
+        runtime.runner.pass_time(seconds)
         world.estop(button, False)
-        runtime.pass_time(0.3)
+        runtime.runner.pass_time(0.3)
 
     runtime.open()
     try:
         world = SimWorld(hal.world)
         # 1 startup
-        runtime.pass_time(0.2)
+        runtime.runner.pass_time(0.2)
         ok(runtime.advance())
         # 2 safety_check: advance needs both e-stop tests
         refused = runtime.wait(runtime.advance())
@@ -678,17 +679,17 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         assert refused.unmet == ("estop_operator_tested", "estop_pilot_tested")
         press("operator")
         press("pilot")
-        assert runtime._core.signals.estop_tested == {EstopButton.OPERATOR, EstopButton.PILOT}
+        assert session_core(runtime).signals.estop_tested == {EstopButton.OPERATOR, EstopButton.PILOT}
         ok(runtime.advance())
         # 3 settings, 4 pilot_installation
         ok(runtime.confirm("settings"))
         ok(runtime.advance())
-        runtime.pass_time(0.5)
+        runtime.runner.pass_time(0.5)
         ok(runtime.confirm("installation"))
         ok(runtime.advance())
         # 5 safety_experience: the pilot's e-stop
         press("pilot")
-        assert runtime._core.signals.estop_tested == {EstopButton.PILOT}
+        assert session_core(runtime).signals.estop_tested == {EstopButton.PILOT}
         ok(runtime.confirm("safety_experience"))
         ok(runtime.advance())
         # 6 rom_limits: the default limits contain every shipped waypoint; no validated model yet, so
@@ -700,38 +701,39 @@ def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, mon
         ok(runtime.advance())
         # 7 operative_check: the pilot relaxes onto the a priori compensation, then an e-stop under support
         world.pilot_carries(0.0)
-        runtime.pass_time(2.0)
+        runtime.runner.pass_time(2.0)
         press("operator")
-        assert runtime._core.signals.estop_tested == {EstopButton.OPERATOR}
-        runtime.pass_time(1.0)
+        assert session_core(runtime).signals.estop_tested == {EstopButton.OPERATOR}
+        runtime.runner.pass_time(1.0)
         ok(runtime.advance())
         # 8 identification: the pilot goes limp, the protocol runs inside the limits
         world.pilot_stiffness(0.0)
         points = {}
         for kind in ("training", "validation"):
             ok(runtime.identify(kind))
-            assert runtime.run_until(lambda: not runtime.busy, 600.0), f"the {kind} run did not finish"
-            assert runtime._core.progress.last_error is None, runtime._core.progress.last_error
-            last = runtime._core.progress.last_identification
+            assert runtime.runner.run_until(lambda: not runtime.busy, 600.0), f"the {kind} run did not finish"
+            assert session_core(runtime).progress.last_error is None, session_core(runtime).progress.last_error
+            last = session_core(runtime).progress.last_identification
             assert last is not None
             assert last["kind"] == kind
             points[kind] = last["points"]
         ok(runtime.advance())
         # 9 training: PLF+ on this session's data
-        runtime.train()
-        assert runtime.run_until(
-            lambda: runtime._core.signals.model is not None and not runtime._core.jobs.pending, 60.0
-        )
+        trained = runtime.wait(runtime.train(), 60.0)
+        assert trained.accepted, trained
+        assert trained.request == "train plf+"
+        assert runtime.model_in_use is trained.detail
+        assert runtime.runner.run_until(lambda: not session_core(runtime).jobs.pending, 1.0)
         ok(runtime.advance())
         # 10 compensation: the support ramps to the operator's level
         world.pilot_stiffness(1.0)
         world.pilot_hold_here()
-        compensation = runtime._core.modes.compensation
+        compensation = session_core(runtime).modes.compensation
         for level in (0.6, 1.0):
             ok(runtime.set_support(level))
-            assert runtime.run_until(lambda: compensation.delivered_support_level == level, 3.0), level  # noqa: B023
+            assert runtime.runner.run_until(lambda: compensation.delivered_support_level == level, 3.0), level  # noqa: B023
             assert runtime.status()["delivered_support_level"] == level
-        runtime.pass_time(1.0)
+        runtime.runner.pass_time(1.0)
         holding, residual = support_figures(runtime, world)
         status = runtime.status()
     finally:
@@ -782,7 +784,7 @@ def support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) -> 
         return False
 
     assert world.pilot_carried == 0.0
-    runtime.run_ticks(round(seconds * runtime._core.hal.rate_hz), stop=sample)
+    runtime.runner.run_ticks(round(seconds * runtime.rate_hz), stop=sample)
     return np.mean(holding, axis=0), np.sqrt(np.mean(np.square(pilot), axis=0))
 
 
@@ -812,7 +814,7 @@ def _fault_fails_the_state(
 ) -> None:
     runtime = session.runtime
     kind = condition.kind
-    before = runtime._core.signals.sample
+    before = runtime.last_sample
     assert before is not None
     result, new = provoke(session, condition)
     # the tick the fault appears in: FAIL, and the reaction the spec declares (torque off, or the arm held)
@@ -851,14 +853,14 @@ def _fault_fails_the_state(
         assert not refusal.accepted
         assert refusal.unmet == ("faults_cleared", "fault_acknowledged")
         accepted(session.answer(runtime.acknowledge(), condition.keep))
-        assert kind in runtime._core.monitor.conditions_present()
+        assert kind in session_core(runtime).monitor.conditions_present()
         refusal = session.answer(runtime.reset(), condition.keep)
         assert not refusal.accepted
         assert refusal.unmet == ("faults_cleared",)
         assert session.state == FAIL
         condition.clear()
         settle_until_clearable(session)
-        assert runtime._core.signals.fault_acknowledged, "a new fault appeared while the condition was cleared"
+        assert session_core(runtime).signals.fault_acknowledged, "a new fault appeared while the condition was cleared"
     else:
         # a one-sample fault (cleared above): the condition is gone, the acknowledgement is missing
         settle_until_clearable(session)
@@ -872,12 +874,12 @@ def _fault_fails_the_state(
         assert session.state == FAIL
         accepted(session.answer(runtime.acknowledge()))
     assert session.state == FAIL
-    assert runtime._core.monitor.faulted
+    assert session_core(runtime).monitor.faulted
     # both done: reset leaves FAIL for startup, with nothing latched
     back = accepted(session.answer(runtime.reset()))
     assert back.state == "startup" == session.state
     assert session.visited[-2:] == [FAIL, "startup"]
-    assert not runtime._core.monitor.faulted
+    assert not session_core(runtime).monitor.faulted
     assert torque_off(session.tick(), session.hal)  # startup: drives off
     events = audit.since(mark, runtime.session_id)
     refused = [e["unmet"] for e in named(events, "refused", request="reset")]
@@ -895,7 +897,7 @@ def _fault_in_a_test_state(
 ) -> None:
     runtime = session.runtime
     kind = condition.kind
-    before = runtime._core.signals.sample
+    before = runtime.last_sample
     assert before is not None
     result, new = provoke(session, condition)
     assert kind in {f.kind for f in new}, new
@@ -910,7 +912,7 @@ def _fault_in_a_test_state(
     if kind == FaultKind.ESTOP:
         tests = named(events, "e-stop test", state=state.name)
         assert [e["buttons"] for e in tests] == [["operator"]]
-        assert EstopButton.OPERATOR in runtime._core.signals.estop_tested
+        assert EstopButton.OPERATOR in session_core(runtime).signals.estop_tested
     else:
         warnings = named(events, TEST_STATE_WARNING, state=state.name)
         assert kind.value in [e["fault"]["kind"] for e in warnings], warnings
@@ -924,13 +926,15 @@ def _fault_in_a_test_state(
         # the press was the test: released, the latch clears by itself and torque returns
         condition.clear()
         back = session.tick(2)
-        assert not runtime._core.monitor.faulted
+        assert not session_core(runtime).monitor.faulted
         assert back.command.enable
         assert session.state == state.name
         return
     if condition.persists:
         accepted(session.answer(runtime.acknowledge(), condition.keep))
-        assert kind in {f.kind for f in runtime._core.monitor.latched}, "acknowledged away while the condition persists"
+        assert kind in {f.kind for f in session_core(runtime).monitor.latched}, (
+            "acknowledged away while the condition persists"
+        )
         assert_reaction(session.tick(1, condition.keep), session.hal, reaction, off)
     condition.clear()
     settle_until_clearable(session)
@@ -938,7 +942,7 @@ def _fault_in_a_test_state(
         assert_reaction(session.tick(), session.hal, reaction, off)
     accepted(session.answer(runtime.acknowledge()))
     back = session.tick()
-    assert not runtime._core.monitor.faulted
+    assert not session_core(runtime).monitor.faulted
     assert back.command.enable
     assert session.state == state.name
     assert named(audit.since(mark, runtime.session_id), "test fault acknowledged", state=state.name)
@@ -971,7 +975,7 @@ def test_fail_is_not_left_while_the_condition_persists(session_in_settings: Sess
         if result.faults:
             break
     assert session.state == FAIL
-    assert kind in {f.kind for f in runtime._core.monitor.latched}
+    assert kind in {f.kind for f in session_core(runtime).monitor.latched}
     accepted(session.answer(runtime.acknowledge(), keep))
     response = session.answer(runtime.reset(), keep)
     assert not response.accepted
@@ -987,7 +991,7 @@ def test_acknowledging_an_overrun_in_a_test_state_keeps_its_reaction_while_it_pe
     session = Session(tmp_path / "session", model_files)
     try:
         session.walk_to("safety_check")
-        before = session.runtime._core.signals.sample
+        before = session.runtime.last_sample
         session.clock.overrunning = True
         result, new = provoke(session, Overrun(session))
         assert session.state == "safety_check"
@@ -999,8 +1003,11 @@ def test_acknowledging_an_overrun_in_a_test_state_keeps_its_reaction_while_it_pe
         assert ticket.response.accepted
         for r in written:  # the loop still overruns: still the reaction, not minimal impedance
             assert_reaction(r, session.hal, reaction, off)
-        assert session.runtime._core.supervisor.reaction is not None
-        assert session.runtime._core.supervisor.controller is not session.runtime._core.modes.minimal_impedance
+        assert session_core(session.runtime).supervisor.reaction is not None
+        assert (
+            session_core(session.runtime).supervisor.controller
+            is not session_core(session.runtime).modes.minimal_impedance
+        )
     finally:
         session.clock.overrunning = False
         session.close()
@@ -1015,8 +1022,8 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
     session = Session(tmp_path / "session", model_files)
     runtime = session.runtime
     transitions: list[tuple[str, float]] = []
-    runtime._core.supervisor.listeners.append(
-        lambda state, outcome: transitions.append((state.name, runtime._core.signals.sample.t_s))
+    session_core(runtime).supervisor.listeners.append(
+        lambda state, outcome: transitions.append((state.name, runtime.last_sample.t_s))
     )
     try:
         session.walk_to("settings")
@@ -1024,16 +1031,16 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
         confirm, advance = runtime.confirm("settings"), runtime.advance()
         assert not confirm.done
         assert not advance.done
-        assert runtime._core.supervisor.pending_requests
+        assert session_core(runtime).supervisor.pending_requests
         assert runtime.busy
         assert session.state == "settings"
-        assert runtime._core.signals.confirmed == set()
+        assert session_core(runtime).signals.confirmed == set()
         # one tick: both applied, in order (the confirmation lets the advance through)
         mark = audit.mark()
-        result = runtime._core.loop.tick()
+        result = session_core(runtime).loop.tick()
         assert confirm.done
         assert advance.done
-        assert not runtime._core.supervisor.pending_requests
+        assert not session_core(runtime).supervisor.pending_requests
         assert accepted(confirm.response).state == "settings"  # type: ignore[arg-type]
         assert accepted(advance.response).state == "pilot_installation"  # type: ignore[arg-type]
         assert transitions[-1] == ("pilot_installation", result.sample.t_s)
@@ -1045,7 +1052,7 @@ def test_requests_are_applied_at_the_next_tick_in_the_order_posted(
         accepted(session.answer(runtime.revert()))
         assert session.state == "settings"
         advance, confirm = runtime.advance(), runtime.confirm("settings")
-        runtime._core.loop.tick()
+        session_core(runtime).loop.tick()
         refused = advance.response
         assert refused is not None
         assert not refused.accepted
@@ -1116,10 +1123,12 @@ def test_a_bad_spec_keeps_the_runtime_from_starting(
 def test_a_mode_without_a_controller_is_a_configuration_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     hal = SimHal(SCENARIO)
     runtime = Runtime(hal, tmp_path / "good")
-    controllers = runtime._core.modes.by_mode()
+    controllers = session_core(runtime).modes.by_mode()
     del controllers["hold"]
     with pytest.raises(ConfigurationError, match="hold"):
-        FsmSupervisor(SPEC, SafetyMonitor(runtime._core.monitor.limits), runtime._core.monitor.limits, controllers)
+        FsmSupervisor(
+            SPEC, SafetyMonitor(session_core(runtime).monitor.limits), session_core(runtime).monitor.limits, controllers
+        )
     # a mode the registry knows (so the spec loads) but the runtime builds no controller for
     monkeypatch.setitem(MODES, "assist", ModeInfo("assist", "a new mode", applies_torque=True, pilot_driven=True))
     doc = _spec_document()
@@ -1142,7 +1151,7 @@ def test_a_fault_reported_inside_the_supervisor_is_in_the_tick_result(tmp_path: 
         condition.start()  # startup runs no controller: a request raises
         result = session.tick()
         assert session.state == FAIL
-        assert [f.kind for f in session.runtime._core.monitor.latched] == [FaultKind.SOFTWARE]
+        assert [f.kind for f in session_core(session.runtime).monitor.latched] == [FaultKind.SOFTWARE]
         assert [f.kind for f in result.faults] == [FaultKind.SOFTWARE]
     finally:
         session.close()

@@ -25,6 +25,7 @@ import pytest
 import yaml
 
 from daror_runtime.console.world import SimWorld
+from daror_runtime.errors import DarorError
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH, FsmSpecError, load_fsm_spec
 from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.models.files import load_model
@@ -32,6 +33,7 @@ from daror_runtime.runtime import Runtime
 from daror_runtime.session.events import AnnouncementKind
 from daror_runtime.session.settings import SessionSettings
 from daror_runtime.session.training import NotHeldOutError
+from daror_runtime.testing import session_core
 from hal.isb import IsbLimits
 from hal.robot import FloatArray
 from hal.sim.backend import SimHal
@@ -57,11 +59,11 @@ class Session:
         self.runtime = Runtime(self.hal, directory, settings=settings or SessionSettings(dummy_arm=True))
         self.runtime.open()
         self.world = SimWorld(self.hal.world)
-        self.runtime.run_ticks(1)
+        self.runtime.runner.run_ticks(1)
 
     @property
     def state(self) -> str:
-        return self.runtime._core.supervisor.state_name
+        return self.runtime.state_name
 
     def ok(self, ticket: Ticket) -> Response:
         response = self.runtime.wait(ticket)
@@ -70,9 +72,9 @@ class Session:
 
     def press(self, button: str) -> None:
         self.world.estop(button, True)
-        self.runtime.pass_time(0.05)
+        self.runtime.runner.pass_time(0.05)
         self.world.estop(button, False)
-        self.runtime.pass_time(0.2)
+        self.runtime.runner.pass_time(0.2)
 
     def walk_to(self, name: str, a_priori: bool = True) -> None:
         runtime = self.runtime
@@ -90,7 +92,7 @@ class Session:
                 self.ok(runtime.confirm("safety_experience"))
             elif here == "rom_limits":
                 self.ok(runtime.set_isb_limits(IsbLimits()))
-                if a_priori and not (runtime._core.signals.model is not None and runtime._core.signals.model.validated):
+                if a_priori and not (runtime.model_in_use is not None and runtime.model_in_use.validated):
                     self.ok(runtime.confirm("a_priori_model"))
             elif here == "operative_check":
                 self.press("operator")
@@ -98,8 +100,8 @@ class Session:
                 self._advance_at_rest()
                 continue
             self.ok(runtime.advance())
-            runtime.pass_time(0.3)
-        assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+            runtime.runner.pass_time(0.3)
+        assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
 
     def _advance_at_rest(self) -> None:
         """Advance out of identification, which needs the robot at rest in the tick that decides.
@@ -109,10 +111,10 @@ class Session:
         """
         runtime = self.runtime
         for _ in range(50):
-            assert runtime.run_until(lambda: runtime.at_rest, 5.0), "the robot did not come to rest"
+            assert runtime.runner.run_until(lambda: runtime.at_rest, 5.0), "the robot did not come to rest"
             response = runtime.wait(runtime.advance())
             if response.accepted:
-                runtime.pass_time(0.3)
+                runtime.runner.pass_time(0.3)
                 return
             assert response.unmet == ("robot_at_rest",), response
         raise AssertionError("identification: no advance at rest in 50 tries")
@@ -120,7 +122,7 @@ class Session:
     def select(self, model: Path, validation: Path) -> None:
         runtime = self.runtime
         runtime.select_model(model, validation)
-        assert runtime.run_until(lambda: not runtime.busy, 1.0)
+        assert runtime.runner.run_until(lambda: not runtime.busy, 1.0)
 
     def relax_completely(self) -> None:
         self.world.pilot_carries(0.0)
@@ -155,7 +157,7 @@ def watch(
         third.append(truth.dq_rad_s if also is None else also())
         return False
 
-    session.runtime.run_ticks(round(seconds * hal.rate_hz), stop=record)
+    session.runtime.runner.run_ticks(round(seconds * hal.rate_hz), stop=record)
     return np.array(poses), np.array(springs), np.array(third)
 
 
@@ -169,13 +171,13 @@ def test_a_model_that_fails_validation_is_refused_and_never_drives_the_arm(sessi
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.select(models.tripled, models.validation)
     # refused: not the session's model, not the compensation controller's, announced with the reason
-    assert runtime._core.signals.model is None
-    assert runtime._core.modes.compensation.model is None
-    refused = runtime._core.progress.last_model_refused
+    assert runtime.model_in_use is None
+    assert session_core(runtime).modes.compensation.model is None
+    refused = session_core(runtime).progress.last_model_refused
     assert refused is not None
     assert refused["validated"] is False
     assert refused["validation_rmse_nm"] > SessionSettings().max_validation_rmse_nm
-    said = [a for a in runtime._core.announcements.drain() if a.kind == AnnouncementKind.MODEL]
+    said = [a for a in session_core(runtime).announcements.drain() if a.kind == AnnouncementKind.MODEL]
     assert said
     assert "failed validation" in said[-1].text
     assert "never drives the arm" in said[-1].text
@@ -185,17 +187,17 @@ def test_a_model_that_fails_validation_is_refused_and_never_drives_the_arm(sessi
     assert response.unmet == ("compensation_model_approved",)
     # with the A Priori model confirmed by the operator it is, and the A Priori model drives it
     session.ok(runtime.confirm("a_priori_model"))
-    assert runtime._core.modes.compensation.model is runtime._core.a_priori
+    assert session_core(runtime).modes.compensation.model is session_core(runtime).a_priori
     session.ok(runtime.advance())
     assert session.state == "operative_check"
     session.world.pilot_carries(0.0)  # the pilot relaxes onto the support
     poses, _, _ = watch(session, 5.0)
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
     # what the robot delivers is the A Priori model's torque, not the refused model's (3 x the arm's)
     q = poses[-1]
-    delivered = runtime._core.modes.compensation.last_reference_nm
+    delivered = session_core(runtime).modes.compensation.last_reference_nm
     tripled = load_model(models.tripled)[0].torque(q)
-    a_priori = runtime._core.a_priori.torque(q)
+    a_priori = session_core(runtime).a_priori.torque(q)
     assert np.linalg.norm(delivered - a_priori) < 0.1 * np.linalg.norm(tripled - a_priori)
 
 
@@ -204,10 +206,10 @@ def test_a_validated_model_is_used_and_approves_operative_check(session: Session
     session.walk_to("rom_limits", a_priori=False)
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.select(models.good, models.validation)
-    assert runtime._core.signals.model is not None
-    assert runtime._core.signals.model.validated
-    assert runtime._core.modes.compensation.model is not None
-    assert runtime._core.modes.compensation.model.kind == "plf+"
+    assert runtime.model_in_use is not None
+    assert runtime.model_in_use.validated
+    assert session_core(runtime).modes.compensation.model is not None
+    assert session_core(runtime).modes.compensation.model.kind == "plf+"
     # the A Priori model is not needed (and not installed over the validated one)
     refused = runtime.wait(runtime.confirm("a_priori_model"))
     assert not refused.accepted
@@ -219,7 +221,7 @@ def test_a_validated_model_is_used_and_approves_operative_check(session: Session
 def test_a_model_validated_on_its_own_training_data_is_refused_when_named(session: Session, models: Models) -> None:
     with pytest.raises(NotHeldOutError, match=r"this is the data .* was trained on"):
         session.runtime.select_model(models.good, models.training)
-    assert not session.runtime._core.jobs.pending  # nothing was queued
+    assert not session_core(session.runtime).jobs.pending  # nothing was queued
 
 
 def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensation(
@@ -228,13 +230,15 @@ def test_a_model_failing_validation_in_training_keeps_the_robot_out_of_compensat
     """Entering training with no validated model, a model that fails never unlocks compensation."""
     runtime = session.runtime
     session.walk_to("identification")
-    runtime._core.signals.identification_saved.update(training=models.training, validation=models.validation)
+    session_core(runtime).signals.identification_saved.update(training=models.training, validation=models.validation)
     session.ok(runtime.advance())
     session.select(models.tripled, models.validation)
     response = runtime.wait(runtime.advance())
     assert not response.accepted
     assert response.unmet == ("model_trained_and_validated",)
-    assert runtime._core.modes.compensation.model is runtime._core.a_priori  # what operative_check was approved with
+    assert (
+        session_core(runtime).modes.compensation.model is session_core(runtime).a_priori
+    )  # what operative_check was approved with
 
 
 def test_a_model_selected_while_compensation_is_delivered_is_refused_and_the_support_does_not_step(
@@ -247,19 +251,41 @@ def test_a_model_selected_while_compensation_is_delivered_is_refused_and_the_sup
     session.walk_to("training")
     session.ok(runtime.advance())
     assert session.state == "compensation"
-    in_use = runtime._core.modes.compensation.model
-    runtime.pass_time(1.0)
-    runtime._core.announcements.drain()
-    before = runtime._core.modes.compensation.last_reference_nm.copy()
-    runtime.select_model(models.good, models.validation)  # validated and conservative: loaded anew, a new object
-    assert runtime.run_until(lambda: not runtime.busy, 5.0)
-    runtime.pass_time(0.05)
-    said = [a.text for a in runtime._core.announcements.drain() if a.kind == AnnouncementKind.MODEL]
+    in_use = session_core(runtime).modes.compensation.model
+    runtime.runner.pass_time(1.0)
+    session_core(runtime).announcements.drain()
+    before = session_core(runtime).modes.compensation.last_reference_nm.copy()
+    ticket = runtime.select_model(models.good, models.validation)  # validated and conservative: loaded anew
+    response = runtime.wait(ticket, 5.0)
+    assert not response.accepted
+    assert response.reason == "compensation delivers compensation: change models from another state"
+    assert runtime.runner.run_until(lambda: not runtime.busy, 5.0)
+    runtime.runner.pass_time(0.05)
+    said = [a.text for a in session_core(runtime).announcements.drain() if a.kind == AnnouncementKind.MODEL]
     assert any("compensation delivers compensation: change models from another state" in text for text in said), said
-    assert runtime._core.modes.compensation.model is in_use
+    assert session_core(runtime).modes.compensation.model is in_use
     assert session.state == "compensation"
-    after = runtime._core.modes.compensation.last_reference_nm
+    after = session_core(runtime).modes.compensation.last_reference_nm
     assert np.abs(after - before).max() < DIP_NM  # the arm held still: the support moved by noise only
+
+
+def test_a_model_request_whose_job_fails_is_answered_by_its_ticket(
+    session: Session, models: Models, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """select_model returns a ticket like every request: refused with the job's error when the validation job fails."""
+    from daror_runtime.session import requests
+
+    def broken(*_args: object) -> None:
+        raise DarorError("the validation data vanished")
+
+    monkeypatch.setattr(requests, "validate_candidate", broken)
+    runtime = session.runtime
+    ticket = runtime.select_model(models.good, models.validation)
+    response = runtime.wait(ticket, 1.0)
+    assert not response.accepted
+    assert response.request == "select model"
+    assert response.reason == "select model failed: the validation data vanished"
+    assert runtime.model_in_use is None
 
 
 @pytest.mark.parametrize(
@@ -301,7 +327,7 @@ def _held_and_watched(
     session: Session, enter: object, seconds: float = 5.0
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Hold 2 s, enter (a callable posting the request), then watch; returns (poses, springs, the torque held at entry)."""
-    session.runtime.pass_time(2.0)
+    session.runtime.runner.pass_time(2.0)
     held = session.hal.truth().tau_spring_nm
     session.ok(enter())  # type: ignore[operator]
     poses, springs, _ = watch(session, seconds)
@@ -309,7 +335,7 @@ def _held_and_watched(
 
 
 def _assert_bumpless(session: Session, poses: FloatArray, springs: FloatArray, held: FloatArray) -> None:
-    assert not session.runtime._core.monitor.faulted, session.runtime._core.monitor.latched
+    assert not session_core(session.runtime).monitor.faulted, session_core(session.runtime).monitor.latched
     moved_deg = np.degrees(np.abs(poses - poses[0]).max(axis=0))
     assert np.all(moved_deg < 1.0), moved_deg
     # the support never falls below what held the arm (in the direction it held it)
@@ -346,12 +372,12 @@ def test_entering_a_position_mode_from_compensation_holds_a_limp_arm(
     runtime = session.runtime
     if state == "operative_check":
         session.press("operator")  # the state's e-stop test, before the pilot relaxes
-    runtime.pass_time(2.0)
+    runtime.runner.pass_time(2.0)
     session.relax_completely()
-    runtime.pass_time(3.0)  # the relaxed arm settles on the compensation
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    runtime.runner.pass_time(3.0)  # the relaxed arm settles on the compensation
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
     poses, springs, held = _held_and_watched(session, lambda: runtime.request(event))
-    assert runtime._core.supervisor.state.mode in ("identification", "hold")
+    assert session_core(runtime).supervisor.state.mode in ("identification", "hold")
     _assert_bumpless(session, poses, springs, held)
 
 
@@ -362,18 +388,18 @@ def test_entering_operative_check_with_the_pilot_carrying_ramps_the_support_in(s
     runtime = session.runtime
     session.ok(runtime.set_isb_limits(IsbLimits()))
     session.ok(runtime.confirm("a_priori_model"))
-    runtime.pass_time(2.0)
+    runtime.runner.pass_time(2.0)
     session.ok(runtime.advance())
-    handover = runtime._core.modes.compensation.handover
+    handover = session_core(runtime).modes.compensation.handover
     hal = session.hal
     poses_a, springs_a, withheld_a = watch(session, 5.0, also=lambda: np.abs(handover.remaining_nm))
-    assert not runtime._core.monitor.faulted
+    assert not session_core(runtime).monitor.faulted
     # the support withheld at entry (the pilot carried the arm) is handed over and never taken back
     assert withheld_a[0].max() > 0.5  # there was support to bring in (the arm's weight, Nm)
     assert np.all(np.diff(withheld_a, axis=0) <= 1e-12)
     # in 2 s (the session's ramp; and the tick it is decided in) all of it but the tolerance, which counts as
     # carried and goes over only as the pilot moves the arm away (a held arm keeps it)
-    tolerance_nm = session.runtime._core.settings.handover_tolerance_nm
+    tolerance_nm = session_core(session.runtime).settings.handover_tolerance_nm
     assert np.all(withheld_a[round(2.0 * hal.rate_hz) + 2] <= tolerance_nm + 1e-9)
     # the pilot lets go of what the robot takes over, 0.3 s behind it: a transient lift (2.3 deg at the
     # elbow, measured), then back
@@ -396,10 +422,10 @@ def test_a_pilot_relaxing_is_caught(session: Session, models: Models, after_s: f
         session.select(models.good, models.validation)
     session.walk_to(state)
     runtime = session.runtime
-    runtime.pass_time(after_s)
+    runtime.runner.pass_time(after_s)
     session.world.pilot_carries(0.0)  # sim pilot carry 0: the tester's line
     poses, _, speeds = watch(session, 5.0)
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
     limit = SPEC.state(state).limits.velocity_rad_s
     assert np.abs(speeds).max() < 0.5 * limit  # far from the velocity fault the tester saw (1.545 rad/s)
     moved = np.degrees(np.abs(poses - poses[0]).max())
@@ -415,7 +441,7 @@ def test_the_default_sweep_stays_inside_the_velocity_limit_with_margin(session: 
     session.ok(runtime.rom_start())
     end = session.world.pilot_sweep(runtime.settings.identification)
     _, _, speeds = watch(session, end - session.hal.time_s + 1.0)
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
     peak = np.abs(speeds).max()
     assert peak < 0.6 * SPEC.state("rom_limits").limits.velocity_rad_s, peak
     assert peak < 1.3 * DEFAULT_PEAK_SPEED_RAD_S  # the pilot's impedance lags the target a little
@@ -428,7 +454,7 @@ def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: st
     world = session.world
     runtime = session.runtime
     first_end = world.pilot_sweep(runtime.settings.identification)
-    runtime.pass_time(3.0)
+    runtime.runner.pass_time(3.0)
     if command == "hold":
         world.pilot_hold_here()
     elif command == "stop":
@@ -442,7 +468,7 @@ def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: st
         assert not world.pilot_moving
     # past the first sweep's end: no fault anywhere, and the arm is where the new command put it
     _, _, speeds = watch(session, first_end - session.hal.time_s + 2.0)
-    assert not runtime._core.monitor.faulted, runtime._core.monitor.latched
+    assert not session_core(runtime).monitor.faulted, session_core(runtime).monitor.latched
     assert np.abs(speeds[-1000:]).max() < 0.05  # at rest for the last second: nothing resumed
 
 
@@ -457,46 +483,46 @@ def kernels_loaded_in_ticks(directory: Path, model: Path, validation: Path) -> l
     with event.install_recorder("numba:compiler_lock") as recorder:
         hal = SimHal(SCENARIO)
         runtime = Runtime(hal, directory, settings=SessionSettings(dummy_arm=True))
-        tick = runtime._core.loop.tick
+        tick = session_core(runtime).loop.tick
 
         def watched_tick():  # type: ignore[no-untyped-def]
             before = len(recorder.buffer)
             result = tick()
             if len(recorder.buffer) > before:
-                sample = runtime._core.signals.sample
-                loads.append(f"{runtime._core.supervisor.state_name} t={sample.t_s if sample else None}")
+                sample = runtime.last_sample
+                loads.append(f"{runtime.state_name} t={sample.t_s if sample else None}")
             return result
 
-        runtime._core.loop.tick = watched_tick  # type: ignore[method-assign]
+        session_core(runtime).loop.tick = watched_tick  # type: ignore[method-assign]
         runtime.open()
         session = Session.__new__(Session)
         session.hal, session.runtime, session.world = hal, runtime, SimWorld(hal.world)
         session.walk_to("rom_limits")
         session.ok(runtime.rom_start())
         end = session.world.pilot_sweep(runtime.settings.identification)
-        runtime.pass_time(min(end - hal.time_s, 10.0))
+        runtime.runner.pass_time(min(end - hal.time_s, 10.0))
         session.world.pilot_stop()
-        runtime.pass_time(1.0)  # the arm catches up with where the pilot stopped (a sweep cut mid-move)
+        runtime.runner.pass_time(1.0)  # the arm catches up with where the pilot stopped (a sweep cut mid-move)
         runtime.wait(runtime.rom_stop())
         session.select(model, validation)
         session.walk_to("identification")
         session.relax_completely()
         session.ok(runtime.identify("training"))
-        runtime.pass_time(5.0)
+        runtime.runner.pass_time(5.0)
         session.ok(runtime.stop_identification())
         session.walk_to("compensation")
         session.ok(runtime.set_support(0.5))
-        runtime.pass_time(1.0)
-        hal.plant.place_rest_support(runtime._core.rest_q_rad)  # the lap the reaction lowers the arm onto
+        runtime.runner.pass_time(1.0)
+        hal.plant.place_rest_support(session_core(runtime).rest_q_rad)  # the lap the reaction lowers the arm onto
         hal.inject_fault("nan", 3)
-        runtime.pass_time(0.05)
+        runtime.runner.pass_time(0.05)
         assert session.state == "FAIL"
         hal.clear_faults()
         # the reaction: hold, the lowering (planned in a job), the handoff onto the lap, torque off
-        assert runtime.run_until(lambda: not runtime.arm_held, 60.0)
+        assert runtime.runner.run_until(lambda: not runtime.arm_held, 60.0)
         session.ok(runtime.acknowledge())
         session.ok(runtime.reset())
-        runtime.pass_time(0.5)
+        runtime.runner.pass_time(0.5)
         session.close()
     return loads
 

@@ -97,18 +97,18 @@ def test_a_signal_in_a_state_that_drives_the_arm_takes_the_torque_off_first(
             session.walk_to("compensation")
             session.relax_completely()
             session.hal.inject_fault("bus")
-            runtime.pass_time(0.3)
+            runtime.runner.pass_time(0.3)
             assert runtime.arm_held
         else:
             session.walk_to(state)
-            runtime.pass_time(0.3)
+            runtime.runner.pass_time(0.3)
         assert runtime.state_name == state
         assert DriveState.ENABLED in runtime.last_sample.drives  # the arm is driven when the signal comes
         assert np.any(session.hal.applied_motor_torque_nm != 0.0)
 
         def body() -> tuple[int, str]:
             timer.start()
-            runtime.pass_time(600.0)  # lock-step ticks in the main thread: the signal lands in one of them
+            runtime.runner.pass_time(600.0)  # lock-step ticks in the main thread: the signal lands in one of them
             return 0, "not signalled"
 
         said = io.StringIO()

@@ -37,6 +37,7 @@ from daror_runtime.models.files import load_model, save_model
 from daror_runtime.models.neural import Network, NetworkSpec, NnnModel
 from daror_runtime.session.core import RequestRefusedError
 from daror_runtime.session.settings import SessionSettings
+from daror_runtime.testing import session_core
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
 from tests.conftest import Models
@@ -62,8 +63,8 @@ def _held_out(path: Path) -> Path:
 def _refused(session: Session, model: Path, validation: Path) -> str:
     with pytest.raises(RequestRefusedError) as refusal:
         session.runtime.select_model(model, validation)
-    assert not session.runtime._core.jobs.pending  # refused when named: nothing queued
-    assert session.runtime._core.modes.compensation.model is None
+    assert not session_core(session.runtime).jobs.pending  # refused when named: nothing queued
+    assert session_core(session.runtime).modes.compensation.model is None
     return str(refusal.value)
 
 
@@ -129,7 +130,7 @@ def test_a_recording_of_another_pilot_is_refused_and_one_of_this_pilot_is_accept
         )
         assert status.model.conservative is True
         assert "validation data: recorded in session s-0925" in render_status(status, [], [])
-        summary = session.runtime._core.progress.last_model
+        summary = session_core(session.runtime).progress.last_model
         assert summary["validation_data"]["pilot"] == "P-001"
         assert summary["validation_data"]["origin"] == "earlier recording"
     finally:
@@ -190,7 +191,7 @@ def test_a_non_conservative_model_needs_the_operator_s_confirmation_with_its_ene
         assert len(energies) == 3
         assert abs(energies[-1]) > 1e-6  # it does not vanish with the step: energy along a closed path
         assert abs(energies[-1]) * 5.0 > abs(energies[-2])
-        assert runtime._core.modes.compensation.model is None
+        assert session_core(runtime).modes.compensation.model is None
         said = [a.text for a in runtime.drain_announcements() if a.kind.value == "model"]
         assert any(
             "is not conservative: the closed-path test leaves" in text
@@ -204,14 +205,14 @@ def test_a_non_conservative_model_needs_the_operator_s_confirmation_with_its_ene
         buffer = io.StringIO()
         console = ConsoleSession(runtime, Console(file=buffer, width=300, color_system=None), session.world)
         console.execute(f"model {nnn} {models.validation} nonconservative")
-        assert runtime.run_until(lambda: not runtime.busy, 5.0)
+        assert runtime.runner.run_until(lambda: not runtime.busy, 5.0)
         status = runtime.snapshot()
         assert status.model is not None
         assert status.model.kind == "nnn"
         assert status.model.nonconservative_confirmed
         assert status.model.conservative is False
         assert "NOT conservative" in render_status(status, [], [])
-        assert runtime._core.modes.compensation.model is not None
+        assert session_core(runtime).modes.compensation.model is not None
         document = json.loads(json.dumps(runtime.status(), default=str))
         assert document["model"]["nonconservative_confirmed"] is True
     finally:
@@ -235,7 +236,7 @@ def test_the_gate_says_how_many_validation_points_the_model_extrapolates_to(sess
     validation = load_stationary(models.validation)
     low, high = np.array(document.training.q_min_rad), np.array(document.training.q_max_rad)
     outside = np.any((validation.q_rad < low - 1e-3) | (validation.q_rad > high + 1e-3), axis=1)
-    summary = session.runtime._core.progress.last_model["extrapolation"]
+    summary = session_core(session.runtime).progress.last_model["extrapolation"]
     assert summary["points"] == len(validation)
     assert summary["outside"] == int(outside.sum())
     text = session.runtime.snapshot().model.validation_extrapolation  # type: ignore[union-attr]

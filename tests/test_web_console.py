@@ -286,7 +286,7 @@ def _websocket(server: WebServer, origin: str | None, token: str | None, host: s
 def served_lockstep(tmp_path: Path) -> Iterator[tuple[Runtime, WebServer]]:
     """A web console with its defaults (a token on the loopback) beside a lock-step session in startup."""
     runtime = _runtime(tmp_path / "session", realtime=False)
-    runtime.run_ticks(5)
+    runtime.runner.run_ticks(5)
     server = start_web(runtime, SimWorld(runtime.world), port=0)
     try:
         yield runtime, server
@@ -306,7 +306,7 @@ def test_a_token_is_required_on_the_loopback_too(served_lockstep: tuple[Runtime,
     assert code == 403
     assert "token" in answer["error"]
     assert _websocket_refused(server, origin=None, token=None)
-    runtime.run_ticks(50)
+    runtime.runner.run_ticks(50)
     assert runtime.state_name == "startup"
     assert not any("advance" in text for _, text in server.hub.since(0))
     # the printed URL: the page, and a cookie for the rest (HttpOnly, SameSite=strict, this port's)
@@ -346,7 +346,7 @@ def test_a_dns_rebinding_page_is_refused_by_the_host_header(served_lockstep: tup
     assert _raw(server, "/api/status", f"127.0.0.1:{int(port) + 1}", X_Daror_Token=token)[0] == 403  # another port
     assert _raw(server, "/api/status", "127.0.0.1", X_Daror_Token=token)[0] == 403  # port 80
     assert _websocket_refused(server, f"http://evil.example:{port}", token, host=f"evil.example:{port}")
-    runtime.run_ticks(50)
+    runtime.runner.run_ticks(50)
     assert runtime.state_name == "startup"
     for name in ("127.0.0.1", "localhost", "LOCALHOST", "[::1]"):  # what the loopback answers to
         assert _raw(server, "/api/status", f"{name}:{port}", X_Daror_Token=token)[0] == 200, name
@@ -362,7 +362,7 @@ def test_another_page_cannot_post_or_open_the_live_socket(served_lockstep: tuple
         assert code == 403, origin
         assert "refused" in answer["error"]
         assert _websocket_refused(server, origin, token), origin
-    runtime.run_ticks(50)
+    runtime.runner.run_ticks(50)
     assert runtime.state_name == "startup"  # nothing ran
     assert not any("advance" in text for _, text in server.hub.since(0))
     assert _websocket_refused(server, f"http://127.0.0.1:{port}", None)  # its own origin, without the token
@@ -443,7 +443,7 @@ def test_the_access_rules() -> None:
 def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: Path) -> None:
     """A line from the page is checked and answered as typed; refusals carry their reason; one log."""
     runtime = _runtime(tmp_path / "session", realtime=False)
-    runtime.run_ticks(5)
+    runtime.runner.run_ticks(5)
     server = start_web(runtime, SimWorld(runtime.world), port=0)
     terminal = server.hub.terminal_reader()
     try:
@@ -516,7 +516,7 @@ def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tm
     """Rows and status reach the server while the loop runs; a server that dies is reported, the robot goes on."""
     runtime = _runtime(tmp_path / "session", realtime=False)
     server = start_web(runtime, SimWorld(runtime.world), port=0)
-    runtime.start_background(realtime=False)
+    runtime.runner.start(realtime=False)
     try:
         deadline = time.monotonic() + 20.0
         token = _token(server.token)
@@ -539,7 +539,7 @@ def test_the_server_publishes_from_the_service_thread_and_its_loss_is_noticed(tm
 
 
 def test_a_publisher_that_fails_is_removed_logged_and_announced(tmp_path: Path) -> None:
-    """Runtime.add_publisher: called from the service thread (about 50 Hz); an error stops that display only."""
+    """LoopRunner.add_publisher: called from the service thread (about 50 Hz); an error stops that display only."""
     runtime = _runtime(tmp_path / "session", realtime=False)
     calls: list[float] = []
 
@@ -548,8 +548,8 @@ def test_a_publisher_that_fails_is_removed_logged_and_announced(tmp_path: Path) 
         if len(calls) == 20:
             raise ValueError("the display's own bug")
 
-    runtime.add_publisher(display)
-    runtime.start_background(realtime=False)
+    runtime.runner.add_publisher(display)
+    runtime.runner.start(realtime=False)
     try:
         deadline = time.monotonic() + 10.0
         said: list[str] = []
@@ -683,7 +683,7 @@ def served(tmp_path: Path) -> Iterator[tuple[Runtime, WebServer, Any]]:
     realtime = os.environ.get("DAROR_WEB_TEST_REALTIME") == "1"
     runtime = _runtime(tmp_path / "session", realtime=realtime)
     server = start_web(runtime, SimWorld(runtime.world), port=0)
-    runtime.start_background(realtime=realtime)
+    runtime.runner.start(realtime=realtime)
     try:
         yield runtime, server, driver
     finally:

@@ -244,9 +244,9 @@ class ConsoleSession:
 
         if args[0] == "seconds":
             if watch and args[1] > 0:
-                runtime.run_until(failed, args[1])
+                runtime.runner.run_until(failed, args[1])
             else:
-                runtime.pass_time(args[1])
+                runtime.runner.pass_time(args[1])
             latest = shown()
             if failed():
                 ended_early(latest)
@@ -254,7 +254,7 @@ class ConsoleSession:
         _, what, name, timeout_s = args
         awaited = f"{what}{' ' + name if name else ''}"
         condition = self._condition(what, name)
-        runtime.run_until(lambda: condition() or failed(), timeout_s)
+        runtime.runner.run_until(lambda: condition() or failed(), timeout_s)
         latest = shown()
         if not condition():
             if failed():

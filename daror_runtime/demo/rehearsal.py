@@ -121,7 +121,7 @@ def _support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) ->
         pilot.append(pilot_nm)
         return False
 
-    runtime.run_ticks(round(seconds * runtime.rate_hz), stop=sample)
+    runtime.runner.run_ticks(round(seconds * runtime.rate_hz), stop=sample)
     return (
         [float(v) for v in np.mean(holding, axis=0)],
         [float(v) for v in np.sqrt(np.mean(np.square(pilot), axis=0))],

@@ -258,7 +258,7 @@ class FsmSupervisor:
 
     # --- requests (any thread) ------------------------------------------------------------
 
-    def post(self, request: str, action: Action, *, essential: bool = False) -> Ticket:
+    def post(self, request: str, action: Action, *, essential: bool = False, ticket: Ticket | None = None) -> Ticket:
         """Queue ``action`` for a tick boundary; ``request`` names it in the log. Any thread; never blocks long.
 
         When ``max_pending_requests`` already wait, the request is refused at once: the returned
@@ -272,8 +272,11 @@ class FsmSupervisor:
             essential: the runtime's own bookkeeping (a finished run collected, a saved dataset,
                 a trained model handed over): queued even beyond the bound, since losing it would
                 lose data, and there is at most one per job, not one per caller's wish.
+            ticket: the ticket to resolve (one the caller handed out before the work that led to
+                this request, e.g. a training job's); default a new one.
         """
-        ticket = Ticket(request)
+        if ticket is None:
+            ticket = Ticket(request)
         with self._post_lock:  # the length check and the append as one step (held for nothing else)
             if essential or len(self._requests) < self.max_pending_requests:
                 self._requests.append((action, ticket))

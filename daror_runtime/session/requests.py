@@ -397,8 +397,11 @@ def _collect(core: SessionCore, run: IdentificationRun) -> Response:
 # --- models ------------------------------------------------------------------------------------
 
 
-def train(core: SessionCore, kind: str | None = None) -> None:
+def train(core: SessionCore, kind: str | None = None) -> Ticket:
     """Train ``kind`` (default: the session's) on this session's identification data, as a job.
+
+    Returns the request's ticket: resolved at the tick boundary that hands the model over (or
+    refuses it), or refused as soon as the job fails (the reason names the error).
 
     Raises:
         UnknownModelKindError: ``kind`` is not a registered model kind.
@@ -417,6 +420,7 @@ def train(core: SessionCore, kind: str | None = None) -> None:
     training, validation = saved["training"], saved["validation"]
     origin = validation_origin(core, validation)  # this session's own run
     log.info("request", request=f"train {kind}", origin="operator", training=str(training), validation=str(validation))
+    ticket = Ticket(f"train {kind}")
 
     def job() -> None:
         try:
@@ -424,18 +428,31 @@ def train(core: SessionCore, kind: str | None = None) -> None:
                 kind, training, validation, core.description, core.settings.dummy_arm,
                 core.settings.max_validation_rmse_nm, core.session_dir,
             )  # fmt: skip
+            post_model(core, trained, f"train {kind}", origin, data={"training_data": str(training)}, ticket=ticket)
         except DarorError as exc:
             core.progress.last_error = f"train {kind}: {exc}"
+            _refuse_failed_job(core, ticket, exc)
             raise
-        post_model(core, trained, f"train {kind}", origin, data={"training_data": str(training)})
+        except BaseException as exc:  # a bug: the job's failure is announced; the ticket must not wait forever
+            _refuse_failed_job(core, ticket, exc)
+            raise
 
     core.jobs.submit(f"train {kind}", job)
+    return ticket
+
+
+def _refuse_failed_job(core: SessionCore, ticket: Ticket, exc: BaseException) -> None:
+    """Resolve a job's ticket as refused because the job failed (from the job's thread; nothing reached the loop)."""
+    ticket.resolve(Response(ticket.request, False, core.supervisor.state_name, f"{ticket.request} failed: {exc}"))
 
 
 def select_model(
     core: SessionCore, path: Path | str, validation: Path | str | None = None, accept_nonconservative: bool = False
-) -> None:
+) -> Ticket:
     """Use an existing model file once it is validated on held-out data of this pilot (default: this session's validation run).
+
+    Returns the request's ticket: resolved at the tick boundary that makes the model the
+    compensation model (or refuses it), or refused as soon as the validation job fails.
 
     The files are read and checked now (in the caller's thread); the validation and the
     closed-path test run as a job, and the model reaches compensation only if it passes both (a
@@ -462,11 +479,18 @@ def select_model(
         validation_origin=origin.description, accept_nonconservative=accept_nonconservative,
     )  # fmt: skip
 
+    ticket = Ticket("select model")
+
     def job() -> None:
-        trained = validate_candidate(candidate, core.settings.max_validation_rmse_nm)
-        post_model(core, trained, "select model", origin, accept_nonconservative)
+        try:
+            trained = validate_candidate(candidate, core.settings.max_validation_rmse_nm)
+            post_model(core, trained, "select model", origin, accept_nonconservative, ticket=ticket)
+        except BaseException as exc:  # the job's failure is announced; the ticket says it too
+            _refuse_failed_job(core, ticket, exc)
+            raise
 
     core.jobs.submit("select model", job)
+    return ticket
 
 
 def post_model(
@@ -476,8 +500,9 @@ def post_model(
     origin: ValidationOrigin,
     accept_nonconservative: bool = False,
     data: dict[str, str] | None = None,
+    ticket: Ticket | None = None,
 ) -> None:
-    """From a job: hand a validated model to compensation at a tick boundary; refuse one that failed.
+    """From a job: hand a validated model to compensation at a tick boundary; refuse one that failed (resolving ``ticket``).
 
     Refused: a model that failed validation; one the closed-path test finds not conservative,
     unless the operator confirmed it (``accept_nonconservative``). Never while a compensation
@@ -545,4 +570,4 @@ def post_model(
         log.info("model in use", **core.progress.last_model, state=supervisor.state_name, t_s=core.t_s())
         return Response(request, True, supervisor.state_name, detail=selected)
 
-    core.supervisor.post(request, apply, essential=True)
+    core.supervisor.post(request, apply, essential=True, ticket=ticket)

@@ -5,7 +5,7 @@ The web server (HTTP, websockets, JSON) runs in a process of its own
 needs. What stays in the runtime's process is small, and none of it runs in the tick:
 
 * :meth:`WebBridge.publish`, called by the runtime's service thread every 20 ms
-  (:meth:`Runtime.add_publisher`): the last sample (and compensation's torque reference) into the
+  (:meth:`LoopRunner.add_publisher`): the last sample (and compensation's torque reference) into the
   shared ring of live rows (:class:`~daror_runtime.console.web.ring.RowRing`: array copies, no
   system call); the status (:meth:`Runtime.snapshot`, pickled) and the new lines of the shared
   log at once when the state changed or something was logged, else every 400 ms, sent without
@@ -155,12 +155,12 @@ class WebBridge:
     def start(self) -> None:
         """Publish from the service thread and answer the pages' lines (until :meth:`close`)."""
         self._thread.start()
-        self.runtime.add_publisher(self.publish)
+        self.runtime.runner.add_publisher(self.publish)
 
     def close(self) -> None:
         """Stop publishing and answering; the server sees the socket close and exits."""
         self._closed.set()
-        self.runtime.remove_publisher(self.publish)
+        self.runtime.runner.remove_publisher(self.publish)
         with contextlib.suppress(OSError):  # the server already closed its end
             self._link.shutdown(socket.SHUT_RDWR)
         self._thread.join(timeout=5.0)
