@@ -69,9 +69,9 @@ reductions by threads).
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import Any, Literal, NamedTuple
 
 import jax
@@ -296,130 +296,230 @@ class _Lbfgs(NamedTuple):
     candidate: jax.Array  # (M, P) the weights evaluated next
 
 
+#: A network's training loss (with the penalty) and validation loss (data term on the held-out points), the
+#: first with its gradient: ``(weights (P,), lambda, training weights (N,), validation weights (N,)) ->
+#: ((loss, validation loss), gradient (P,))`` (``jax.value_and_grad`` with ``has_aux``).
+_Gradient = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[tuple[jax.Array, jax.Array], jax.Array]]
+#: Every member's losses and gradients at once: ``weights (M, P) -> (loss (M,), validation loss (M,), gradient (M, P))``.
+_Evaluate = Callable[[jax.Array], tuple[jax.Array, jax.Array, jax.Array]]
+#: :func:`_track` with the program's constants bound: ``(track, step, weights (M, P), validation loss (M,)) -> track``.
+_TrackStep = Callable[[_Track, Any, jax.Array, jax.Array], _Track]
+
+
 def _program(spec: NetworkSpec, settings: TrainingSettings, n_fold_members: int) -> Any:
-    """The function trained by :func:`train_group` (to be jitted): ``G`` groups of ``M`` members."""
+    """The function trained by :func:`train_group` (to be jitted): ``G`` groups of ``M`` members.
+
+    Its arguments, as :func:`_compiled` declares them: the initial weights (G, P), lambda (G,), q and
+    tau (N, 4), the torque scale (4,), the input offset and scale, the output scale, the members'
+    training and validation weights of the points (M, N). Its result: :func:`_fit`'s, stacked over G.
+    """
     adam = optax.adam(settings.learning_rate)
     lbfgs = optax.lbfgs(learning_rate=1.0, memory_size=settings.lbfgs_memory, linesearch=None)
+    track = partial(_track, n_fold_members=n_fold_members, stop_tolerance=settings.stop_tolerance)
 
     def train(init, lam, q, tau, torque_scale, offset, spread, output, train_mask, val_mask):  # type: ignore[no-untyped-def]
-        scaling = (offset, spread, output)
+        objective = _objective(spec, settings.loss, (offset, spread, output), q, tau, torque_scale)
+        gradient: _Gradient = jax.value_and_grad(objective, has_aux=True)
 
-        def objective(theta, lam_, train_w, val_w):  # type: ignore[no-untyped-def]
-            error = networks.torque(spec, scaling, theta, q) - tau
-            if settings.loss == "scaled":
-                per_point = jnp.mean((error / torque_scale) ** 2, axis=1)
-                penalty = lam_ * jnp.mean(jnp.abs(theta))
-            else:  # Eq. 3.7: the squared error in Nm^2 (its mean), L1 summed over the parameters
-                per_point = jnp.mean(error**2, axis=1)
-                penalty = lam_ * jnp.sum(jnp.abs(theta))
-            data = jnp.sum(train_w * per_point) / jnp.sum(train_w)
-            val = jnp.sum(val_w * per_point) / jnp.maximum(jnp.sum(val_w), 1.0)
-            return data + penalty, val
-
-        gradient = jax.value_and_grad(objective, has_aux=True)
-
-        def one_group(theta0, lam_):  # type: ignore[no-untyped-def]
+        def one_group(theta0: jax.Array, lam_: jax.Array) -> dict[str, jax.Array]:
             members = train_mask.shape[0]
             theta = jnp.broadcast_to(theta0, (members, theta0.shape[0]))
-
-            def evaluate(weights):  # type: ignore[no-untyped-def]
-                (obj, val), grad = jax.vmap(gradient, in_axes=(0, None, 0, 0))(weights, lam_, train_mask, val_mask)
-                return obj, val, grad
-
-            def track(t: _Track, step, weights, val) -> _Track:  # type: ignore[no-untyped-def]
-                mean_val = jnp.mean(val[:n_fold_members])
-                better = mean_val < t.best  # NaN never is
-                best = jnp.where(better, mean_val, t.best)
-                # ``best`` only falls, so the last step within the tolerance of the running best is,
-                # at the end, the last step at or after the MVL within the tolerance of the MVL
-                near = mean_val <= best * (1.0 + settings.stop_tolerance)
-                return _Track(
-                    best,
-                    jnp.where(better, step, t.step),
-                    jnp.where(better, weights, t.params),
-                    jnp.where(near, step, t.stop),
-                    jnp.where(near, weights, t.stop_params),
-                )
-
-            def adam_step(carry, step):  # type: ignore[no-untyped-def]
-                weights, state, t = carry
-                obj, val, grad = evaluate(weights)
-                t = track(t, step, weights, val)
-                updates, state = adam.update(grad, state, weights)
-                return (optax.apply_updates(weights, updates), state, t), (obj, val)
-
-            t0 = _Track(jnp.asarray(jnp.inf), jnp.asarray(0), theta, jnp.asarray(0), theta)
-            (theta, _, t), (objs, vals) = jax.lax.scan(
-                adam_step, (theta, adam.init(theta), t0), jnp.arange(settings.adam_steps)
-            )
-            curves_obj, curves_val = [objs], [vals]
-
-            if settings.lbfgs_steps:
-
-                def lbfgs_step(carry, step):  # type: ignore[no-untyped-def]
-                    s, t = carry
-                    obj, val, grad = evaluate(s.candidate)
-                    slope = jnp.sum(s.good_grad * s.direction, axis=1)
-                    accept = jnp.isfinite(obj) & (obj <= s.good_obj + ARMIJO * s.scale * slope)
-                    a1 = accept[:, None]
-                    good = jnp.where(a1, s.candidate, s.good)
-                    good_grad = jnp.where(a1, grad, s.good_grad)
-                    new_dir, new_state = jax.vmap(lbfgs.update)(grad, s.state, s.candidate)
-                    state = jax.tree.map(
-                        lambda new, old: jnp.where(accept.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
-                        new_state,
-                        s.state,
-                    )
-                    direction = jnp.where(a1, new_dir, s.direction)
-                    # L-BFGS may give an ascent direction where the curvature is negative: then steepest descent
-                    descent = jnp.sum(good_grad * direction, axis=1) < 0.0
-                    direction = jnp.where(descent[:, None], direction, -good_grad)
-                    scale = jnp.where(accept, 1.0, 0.5 * s.scale)
-                    good_obj = jnp.where(accept, obj, s.good_obj)
-                    good_val = jnp.where(accept, val, s.good_val)
-                    t = track(t, step, good, good_val)
-                    nxt = _Lbfgs(
-                        good, good_obj, good_val, good_grad, direction, scale, state, good + scale[:, None] * direction
-                    )
-                    return (nxt, t), (good_obj, good_val)
-
-                m = theta.shape[0]
-                start = _Lbfgs(
-                    theta,
-                    jnp.full(m, jnp.inf),
-                    jnp.full(m, jnp.inf),
-                    jnp.zeros_like(theta),
-                    jnp.zeros_like(theta),
-                    jnp.ones(m),
-                    jax.vmap(lbfgs.init)(theta),
-                    theta,
-                )
-                steps = jnp.arange(settings.adam_steps, settings.adam_steps + settings.lbfgs_steps)
-                (s, t), (objs, vals) = jax.lax.scan(lbfgs_step, (start, t), steps)
-                curves_obj.append(objs)
-                curves_val.append(vals)
-                last = s.good
-            else:  # evaluate the last Adam step's weights too
-                obj, val, _ = evaluate(theta)
-                t = track(t, settings.adam_steps, theta, val)
-                curves_obj.append(obj[None])
-                curves_val.append(val[None])
-                last = theta
-            return {
-                "best": t.best,
-                "step": t.step,
-                "params": t.params,
-                "stop": t.stop,
-                "stop_params": t.stop_params,
-                "last": last,
-                "train_curve": jnp.concatenate(curves_obj),
-                "validation_curve": jnp.concatenate(curves_val),
-            }
+            evaluate = partial(_evaluate, gradient=gradient, lam=lam_, train_mask=train_mask, val_mask=val_mask)
+            return _fit(theta, evaluate, track, adam, lbfgs, settings)
 
         # lax.map, not vmap: each (lambda, seed) bit for bit as if trained alone (module docstring)
         return jax.lax.map(lambda args: one_group(*args), (init, lam))
 
     return train
+
+
+def _objective(
+    spec: NetworkSpec,
+    loss: Literal["scaled", "thesis"],
+    scaling: tuple[jax.Array, jax.Array, jax.Array],
+    q: jax.Array,
+    tau: jax.Array,
+    torque_scale: jax.Array,
+) -> Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]:
+    """The loss of one network on ``q`` (rad, (N, 4)) and ``tau`` (Nm, (N, 4)), as the module docstring defines it.
+
+    Returns:
+        ``(weights (P,), lambda, training weights (N,), validation weights (N,)) -> (training loss with
+        the penalty, validation loss)``: the points' weighted means (``loss`` "scaled": dimensionless;
+        "thesis": Nm^2).
+    """
+
+    def objective(theta, lam_, train_w, val_w):  # type: ignore[no-untyped-def]
+        error = networks.torque(spec, scaling, theta, q) - tau
+        if loss == "scaled":
+            per_point = jnp.mean((error / torque_scale) ** 2, axis=1)
+            penalty = lam_ * jnp.mean(jnp.abs(theta))
+        else:  # Eq. 3.7: the squared error in Nm^2 (its mean), L1 summed over the parameters
+            per_point = jnp.mean(error**2, axis=1)
+            penalty = lam_ * jnp.sum(jnp.abs(theta))
+        data = jnp.sum(train_w * per_point) / jnp.sum(train_w)
+        val = jnp.sum(val_w * per_point) / jnp.maximum(jnp.sum(val_w), 1.0)
+        return data + penalty, val
+
+    return objective
+
+
+def _evaluate(
+    weights: jax.Array, gradient: _Gradient, lam: jax.Array, train_mask: jax.Array, val_mask: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Every member's training loss (M,), validation loss (M,) and gradient (M, P) at ``weights`` (M, P)."""
+    (obj, val), grad = jax.vmap(gradient, in_axes=(0, None, 0, 0))(weights, lam, train_mask, val_mask)
+    return obj, val, grad
+
+
+def _track(
+    t: _Track, step: Any, weights: jax.Array, val: jax.Array, n_fold_members: int, stop_tolerance: float
+) -> _Track:
+    """``t`` after a step whose members' validation losses are ``val`` (M,) at ``weights`` (M, P): the
+    MVL (the mean over the first ``n_fold_members``, the fold networks) and the stopping step."""
+    mean_val = jnp.mean(val[:n_fold_members])
+    better = mean_val < t.best  # NaN never is
+    best = jnp.where(better, mean_val, t.best)
+    # ``best`` only falls, so the last step within the tolerance of the running best is,
+    # at the end, the last step at or after the MVL within the tolerance of the MVL
+    near = mean_val <= best * (1.0 + stop_tolerance)
+    return _Track(
+        best,
+        jnp.where(better, step, t.step),
+        jnp.where(better, weights, t.params),
+        jnp.where(near, step, t.stop),
+        jnp.where(near, weights, t.stop_params),
+    )
+
+
+def _fit(
+    theta: jax.Array,
+    evaluate: _Evaluate,
+    track: _TrackStep,
+    adam: optax.GradientTransformation,
+    lbfgs: optax.GradientTransformation,
+    settings: TrainingSettings,
+) -> dict[str, jax.Array]:
+    """One group's members trained from ``theta`` (M, P): Adam, then L-BFGS (or one more evaluation
+    without it).
+
+    Returns:
+        The MVL (``best``), its step and the members' weights there (``params``), the stopping step
+        and the weights there (``stop``, ``stop_params``), the last weights (``last``), and the
+        training and validation loss of every member at every step (``train_curve``,
+        ``validation_curve``, (steps, M)).
+    """
+    theta, t, objs, vals = _adam_phase(theta, evaluate, track, adam, settings.adam_steps)
+    curves_obj, curves_val = [objs], [vals]
+    if settings.lbfgs_steps:
+        last, t, objs, vals = _lbfgs_phase(theta, t, evaluate, track, lbfgs, settings)
+        curves_obj.append(objs)
+        curves_val.append(vals)
+    else:  # evaluate the last Adam step's weights too
+        obj, val, _ = evaluate(theta)
+        t = track(t, settings.adam_steps, theta, val)
+        curves_obj.append(obj[None])
+        curves_val.append(val[None])
+        last = theta
+    return {
+        "best": t.best,
+        "step": t.step,
+        "params": t.params,
+        "stop": t.stop,
+        "stop_params": t.stop_params,
+        "last": last,
+        "train_curve": jnp.concatenate(curves_obj),
+        "validation_curve": jnp.concatenate(curves_val),
+    }
+
+
+def _adam_phase(
+    theta: jax.Array, evaluate: _Evaluate, track: _TrackStep, adam: optax.GradientTransformation, steps: int
+) -> tuple[jax.Array, _Track, jax.Array, jax.Array]:
+    """``steps`` of Adam from ``theta`` (M, P), tracked from the start.
+
+    Returns:
+        The weights after the last step, the track, and every step's training and validation losses (steps, M).
+    """
+
+    def adam_step(carry, step):  # type: ignore[no-untyped-def]
+        weights, state, t = carry
+        obj, val, grad = evaluate(weights)
+        t = track(t, step, weights, val)
+        updates, state = adam.update(grad, state, weights)
+        return (optax.apply_updates(weights, updates), state, t), (obj, val)
+
+    t0 = _Track(jnp.asarray(jnp.inf), jnp.asarray(0), theta, jnp.asarray(0), theta)
+    (theta, _, t), (objs, vals) = jax.lax.scan(adam_step, (theta, adam.init(theta), t0), jnp.arange(steps))
+    return theta, t, objs, vals
+
+
+def _lbfgs_phase(
+    theta: jax.Array,
+    t: _Track,
+    evaluate: _Evaluate,
+    track: _TrackStep,
+    lbfgs: optax.GradientTransformation,
+    settings: TrainingSettings,
+) -> tuple[jax.Array, _Track, jax.Array, jax.Array]:
+    """``settings.lbfgs_steps`` of L-BFGS from ``theta`` (M, P), Adam's weights, continuing the track ``t``.
+
+    Returns:
+        The last accepted weights, the track, and every step's training and validation losses of
+        the accepted weights (steps, M).
+    """
+
+    def lbfgs_step(carry, step):  # type: ignore[no-untyped-def]
+        s, t = carry
+        return _lbfgs_step(s, t, step, evaluate, track, lbfgs)
+
+    m = theta.shape[0]
+    start = _Lbfgs(
+        theta,
+        jnp.full(m, jnp.inf),
+        jnp.full(m, jnp.inf),
+        jnp.zeros_like(theta),
+        jnp.zeros_like(theta),
+        jnp.ones(m),
+        jax.vmap(lbfgs.init)(theta),
+        theta,
+    )
+    steps = jnp.arange(settings.adam_steps, settings.adam_steps + settings.lbfgs_steps)
+    (s, t), (objs, vals) = jax.lax.scan(lbfgs_step, (start, t), steps)
+    return s.good, t, objs, vals
+
+
+def _lbfgs_step(
+    s: _Lbfgs, t: _Track, step: Any, evaluate: _Evaluate, track: _TrackStep, lbfgs: optax.GradientTransformation
+) -> tuple[tuple[_Lbfgs, _Track], tuple[jax.Array, jax.Array]]:
+    """One L-BFGS iteration: the candidate evaluated, accepted or not by the Armijo test (a refused
+    step is halved next time), the next direction and candidate from the accepted weights.
+
+    Returns:
+        The next (L-BFGS state, track), and the accepted weights' training and validation losses (M,).
+    """
+    obj, val, grad = evaluate(s.candidate)
+    slope = jnp.sum(s.good_grad * s.direction, axis=1)
+    accept = jnp.isfinite(obj) & (obj <= s.good_obj + ARMIJO * s.scale * slope)
+    a1 = accept[:, None]
+    good = jnp.where(a1, s.candidate, s.good)
+    good_grad = jnp.where(a1, grad, s.good_grad)
+    new_dir, new_state = jax.vmap(lbfgs.update)(grad, s.state, s.candidate)
+    state = jax.tree.map(
+        lambda new, old: jnp.where(accept.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
+        new_state,
+        s.state,
+    )
+    direction = jnp.where(a1, new_dir, s.direction)
+    # L-BFGS may give an ascent direction where the curvature is negative: then steepest descent
+    descent = jnp.sum(good_grad * direction, axis=1) < 0.0
+    direction = jnp.where(descent[:, None], direction, -good_grad)
+    scale = jnp.where(accept, 1.0, 0.5 * s.scale)
+    good_obj = jnp.where(accept, obj, s.good_obj)
+    good_val = jnp.where(accept, val, s.good_val)
+    t = track(t, step, good, good_val)
+    nxt = _Lbfgs(good, good_obj, good_val, good_grad, direction, scale, state, good + scale[:, None] * direction)
+    return (nxt, t), (good_obj, good_val)
 
 
 @lru_cache(maxsize=16)
