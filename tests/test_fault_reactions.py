@@ -253,7 +253,9 @@ def test_each_fault_is_met_with_its_declared_reaction_and_the_limp_arm_is_not_dr
         off = [j - 1 for j in plan.joints_off]
         falling = np.flatnonzero(np.abs(dq[:, off]).max(axis=1) > 0.5)
         settled = int(falling[-1]) + 500 if falling.size else 0
-        record_property("held_joints_peak_speed_in_the_fall_rad_s", float(np.abs(dq[:settled, driven]).max(initial=0.0)))
+        record_property(
+            "held_joints_peak_speed_in_the_fall_rad_s", float(np.abs(dq[:settled, driven]).max(initial=0.0))
+        )
         record_property(
             "free_joint_drop_deg", np.degrees(np.abs(q[:, off] - q_fault[off]).max(axis=0)).round(1).tolist()
         )
