@@ -37,6 +37,7 @@ def _run_child(request: dict[str, Any]) -> int:
         os.chdir(cwd)
         os.environ.clear()
         os.environ.update(request["env"])
+        sys.dont_write_bytecode = bool(os.environ.get("PYTHONDONTWRITEBYTECODE"))  # as a fresh interpreter would
         sys.path.insert(0, cwd)
         importlib.invalidate_caches()
         import pytest
