@@ -1,25 +1,28 @@
 """Every hazard's test fails without its mitigation (issue 26, point 6; docs/safety.md).
 
 ``tests/hazard_mutations.yaml`` names, for every hazard of docs/safety.md's table, the code that
-mitigates it (a file and an exact snippet), a replacement that removes the mitigation, and the tests
-that must then fail. The slow tier (``pytest -m mutation``) runs each row: the repository's tracked
-files are copied to a temporary folder, the snippet is replaced there (never in the checkout: others
-run tests on it), and the row's tests are run in the copy in a fresh process; the row passes only if
-they fail. A snippet that does not occur exactly once fails the row: a refactor must update the
-table, it never makes a row pass unnoticed.
+mitigates it (a file and an exact snippet: whole lines, compared without their common indentation),
+a replacement that removes the mitigation, and the tests that must then fail. The slow tier
+(``pytest -m mutation``) runs each row: the repository's files as git lists them are copied to a
+temporary folder, the snippet is replaced there (never in the checkout: others run tests on it), and
+the row's tests run in the copy in a pytest process of their own; the row passes only if they fail.
+A snippet that does not occur exactly once fails the row: a refactor must update the table, it never
+makes a row pass unnoticed.
 
 The copy's code is what runs: the package is installed editable from the checkout, but the editable
-finder sits at the end of ``sys.meta_path``, after the path finder, so the copy on ``sys.path`` (the
-inner pytest's working folder, and ``PYTHONPATH`` for the processes the tests start) wins. Two
+finder sits at the end of ``sys.meta_path``, after the path finder, so the copy first on ``sys.path``
+(the inner pytest's working folder, and ``PYTHONPATH`` for the processes the tests start) wins. Three
 controls prove it and that the copy itself is sound: the copy imports its own ``daror_runtime`` and
 ``hal`` (also in a process started elsewhere, as the tests' own subprocesses are), an import-time
 mutation of the copy is seen by its tests, and the unmutated copy passes a sample of rows' tests.
 
+The rows' pytest processes are forked from a zygote (tests/mutation_zygote.py) that imported the
+third-party libraries once: the same run as ``python -m pytest`` in the copy, a second of CPU cheaper.
 The copy takes the checkout's bytecode and numba caches along (``__pycache__``): the interpreter
 checks a ``.pyc`` against its source's time and size (``copy2`` keeps both), numba its index against
-the source's hash, so only the mutated file is compiled again. A mutated file that defines compiled
-kernels drops every numba cache of the copy, since a kernel's cache also holds the kernels it calls
-from other files, unchecked.
+the source's hash, so only the mutated file is compiled again. A row whose snippet is inside a
+compiled kernel says so (``kernel: true``) and drops every numba cache of the copy, since a kernel's
+cache also holds the kernels it calls from other files, unchecked.
 
 The fast test below keeps docs/safety.md's mutation table, the YAML and the hazards table in step.
 """
@@ -355,6 +358,7 @@ def _ticked(cell: str) -> list[str]:
 
 
 def test_the_docs_table_and_the_yaml_agree() -> None:
+    """docs/safety.md's mutation table lists the YAML's rows (hazard, site, tests) in order; every hazard has one."""
     markdown = SAFETY.read_text(encoding="utf-8")
     hazards = {cells[0] for cells in _table(markdown, "Hazards and mitigations")}
     assert hazards, "no hazards table"
@@ -364,8 +368,16 @@ def test_the_docs_table_and_the_yaml_agree() -> None:
         hazard, site, _removes, tests = cells
         documented.append((hazard, tuple(_ticked(site)), tuple(_ticked(tests))))
     tabled = [(row.hazard, (row.site,), ("no code site",) if row.no_code_site else row.tests) for row in ROWS]
-    assert documented == tabled
-    assert {row.hazard for row in ROWS} == hazards, "every hazard of the table has a row, and only those"
+    only_docs = [r for r in documented if r not in tabled]
+    only_yaml = [r for r in tabled if r not in documented]
+    assert not only_docs, f"in docs/safety.md, not in tests/hazard_mutations.yaml: {only_docs}"
+    assert not only_yaml, f"in tests/hazard_mutations.yaml, not in docs/safety.md: {only_yaml}"
+    assert documented == tabled, "the same rows, in another order"
+    without = sorted(hazards - {row.hazard for row in ROWS}, key=lambda h: int(h.lstrip("HR")))
+    assert not without, f"hazards of docs/safety.md without a row: {without}"
+    unknown = sorted({row.hazard for row in ROWS} - hazards)
+    assert not unknown, f"rows for hazards docs/safety.md does not list: {unknown}"
+    assert len({row.id for row in ROWS}) == len(ROWS), "row names are unique per hazard"
     for row in MUTATIONS:
         for edit in row.edits:
             assert (ROOT / edit.file).is_file(), edit.file
@@ -377,4 +389,3 @@ def test_the_docs_table_and_the_yaml_agree() -> None:
             function = name.split("[", 1)[0]
             if function:
                 assert re.search(rf"def {re.escape(function)}\b", (ROOT / path).read_text(encoding="utf-8")), test
-    assert len({row.id for row in ROWS}) == len(ROWS), "row names are unique per hazard"
