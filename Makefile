@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench lint clean bytecode
+.PHONY: demo test check bench lint clean bytecode
 
 # The project's bytecode, compiled ahead (only what changed since): a shell that sets
 # PYTHONDONTWRITEBYTECODE (this machine's does) would otherwise compile ~150 modules at every start of
@@ -45,10 +45,21 @@ $(VENV)/.chromium: | $(BIN)/python
 		|| echo "make: chromium could not be installed; the web console's browser test will be skipped"; }
 	touch $@
 
+# The whole suite (CI): everything over both cores (whole files per worker, the longest first:
+# tests/conftest.py), then alone the tests that need wall-clock time (marker realtime), each measuring
+# the machine's margin before it runs (docs/testing.md).
 test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile -m "not realtime"
+	$(BIN)/python -m pytest -m realtime
+
+# The fast tier, a developer's loop: everything but the slow, subprocess, browser, mutation and
+# real-time tests.
+check: $(VENV)/.installed-all bytecode
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python -m pytest -n 2 -m "not slow and not subprocess and not browser and not mutation and not realtime" --durations=40
 
 bench: $(VENV)/.installed-all bytecode
 	$(BIN)/daror bench --json bench_out/latest.json

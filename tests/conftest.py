@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,3 +118,76 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
         result = fit_model("plf+", data, exo_dummy_arm.description(), installation_options("plf+", dummy_arm=True))
         save_model(path, result.model, training_summary(data, files.training if scale == 1.0 else None), result.report)
     return files
+
+
+#: Seconds the longest files took in one run of the whole suite on two workers (2026-11-28, load 5-8;
+#: the sum of their tests over 2.4 s, from ``pytest -n 2 --durations=150``). A scheduling hint only:
+#: a stale figure costs balance, never a result.
+LONG_FILES_S = {
+    "test_hazard_mutations.py": 232,
+    "test_readme_transcript.py": 191,
+    "test_canopen_robot_golden.py": 186,
+    "test_hal_contract.py": 124,
+    "test_canopen_hil.py": 105,
+    "test_canopen_interop_lockstep.py": 87,
+    "test_protocol_design.py": 74,
+    "test_residual_hysteresis.py": 65,
+    "test_boundaries.py": 57,
+    "test_console_operator.py": 52,
+    "test_loop_batch.py": 37,
+    "test_hpsearch.py": 28,
+    "test_session_safety.py": 27,
+    "test_fault_reactions.py": 26,
+}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The longest files first (stable within a file and among the others).
+
+    ``make test`` hands whole files to its two workers (``--dist loadfile``: a module's fixtures are
+    built once); starting with the longest keeps one worker from finishing alone with a long file
+    left. Every worker collects the same order (it depends on file names only).
+    """
+    first_index: dict[str, int] = {}
+    for index, item in enumerate(items):
+        first_index.setdefault(item.path.name, index)
+    items.sort(key=lambda item: (-LONG_FILES_S.get(item.path.name, 0), first_index[item.path.name]))
+
+
+#: A real-time test runs only while this process gets at least this share of a core when it asks for one.
+REALTIME_CPU_SHARE = 0.4
+#: How long the share is measured before a real-time test (s of wall-clock time).
+REALTIME_PROBE_S = 0.1
+
+
+def cpu_share_now(probe_s: float = REALTIME_PROBE_S) -> float:
+    """The share of one core a busy thread of this process gets now (CPU time / wall-clock time, 0..1).
+
+    What a real-time test needs is CPU when its threads (the drives, the master, a terminal's
+    process) are due; a wake-up latency probe does not see another process keeping the cores busy
+    (the scheduler favours a thread that slept), the CPU share does.
+    """
+    wall_began, cpu_began = time.perf_counter(), time.thread_time()
+    while time.perf_counter() - wall_began < probe_s:
+        pass
+    return (time.thread_time() - cpu_began) / (time.perf_counter() - wall_began)
+
+
+@pytest.fixture(autouse=True)
+def _real_time_margin(request: pytest.FixtureRequest) -> None:
+    """A test marked ``realtime`` needs wall-clock time (threads paced by the clock, a pseudo-terminal).
+
+    It measures the machine's margin first: when other processes keep the cores so busy that this
+    one gets less than :data:`REALTIME_CPU_SHARE` of a core, the test is skipped with the figure and
+    the load instead of failing by luck. ``make test`` runs these tests alone, after the parallel
+    tier, so the suite itself never loads the machine under them.
+    """
+    if request.node.get_closest_marker("realtime") is None:
+        return
+    share = cpu_share_now()
+    if share < REALTIME_CPU_SHARE:
+        load_1min = os.getloadavg()[0]
+        pytest.skip(
+            f"this machine cannot give real time now: this process gets {share:.0%} of a core "
+            f"(margin {REALTIME_CPU_SHARE:.0%}), 1-min load {load_1min:.1f}"
+        )

@@ -600,6 +600,7 @@ class HalContract:
         finally:
             hal.close()
 
+    @pytest.mark.slow
     def test_random_sequences_keep_the_contract(self, backend: BackendUnderTest) -> None:
         """Random sequences of open, close, read and writes (enabled, disabled, refused) keep the contract."""
         run_state_machine_as_test(

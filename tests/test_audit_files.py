@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import structlog
 
 from daror_runtime.logs import configure_logging, flush_logs
@@ -20,6 +21,8 @@ def _events(path: Path) -> list[dict[str, object]]:
     return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
 
 
+@pytest.mark.subprocess
+@pytest.mark.slow
 def test_a_console_session_with_log_json_keeps_its_own_audit_too(tmp_path: Path) -> None:
     out, extra = tmp_path / "session1", tmp_path / "collector" / "audit.jsonl"
     run = subprocess.run(

@@ -655,6 +655,7 @@ def _names_the_stand_in(path: Path) -> list[str]:
     return found
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_a_new_backend_registered_from_outside_appears_in_hal_and_in_the_contract_suite() -> None:
     """A new backend registered from outside the packages appears in --hal and in the contract suite without edits elsewhere.

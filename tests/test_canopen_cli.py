@@ -161,6 +161,8 @@ def _real_time_session(tmp_path: Path, out: Path) -> tuple[float, dict[str, obje
     return wall_s, json.loads((out / "session.json").read_text()), faults
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_an_operator_session_runs_over_can_sim_in_real_time(tmp_path: Path) -> None:
     """``daror console --hal can-sim --realtime``: the loop on the wall clock over the simulated bus.
 

@@ -264,6 +264,7 @@ def test_lost_drives_were_brought_back_by_nmt_reset_and_configured_again(hil: Hi
         assert start, "node 2 was not started again after its configuration"
 
 
+@pytest.mark.subprocess
 def test_can_utils_log2asc_reads_the_bus_log(hil: HilRun, tmp_path: Path) -> None:
     log2asc = shutil.which("log2asc")
     if log2asc is None:

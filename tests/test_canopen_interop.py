@@ -49,6 +49,9 @@ from tests.durand_drives import (
     sdo_responses,
 )
 
+#: The drives are durand nodes on their own threads, the master on its receive thread: wall-clock time.
+pytestmark = pytest.mark.realtime
+
 #: The drives' node ids: spread out, so a COB-ID computed for the wrong node shows.
 NODE_IDS = (3, 17, 42, 100)
 MASTER_ID = 127

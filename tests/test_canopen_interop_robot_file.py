@@ -39,6 +39,9 @@ from hal.interface import ENABLE_WITHIN_S, Command, DriveState, Sample
 from hal.robot import load_description
 from tests.durand_drives import DevicePower, DurandDrives, robot_file_drives, sdo_responses
 
+#: The drives are durand nodes on their own threads, the master on its receive thread: wall-clock time.
+pytestmark = pytest.mark.realtime
+
 ROBOT_FILE = Path(__file__).resolve().parents[1] / "examples" / "robot" / "epos4.yaml"
 DRIVES = robot_file_drives(ROBOT_FILE)
 NODE_IDS = tuple(sorted(DRIVES))

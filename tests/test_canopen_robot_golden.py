@@ -44,6 +44,7 @@ def _hil(out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 @pytest.mark.parametrize("run", ["emcy_2_at_30", "session"])
 def test_the_daror01_robot_file_reproduces_the_golden_run_bit_for_bit(tmp_path: Path, run: str) -> None:
@@ -71,6 +72,7 @@ SESSION_PATH = [
 ]
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_the_epos4_family_runs_the_demo_session_as_the_daror01_does(tmp_path: Path) -> None:
     out = tmp_path / "out"

@@ -15,6 +15,7 @@ from pathlib import Path
 from unittest import mock
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -92,6 +93,7 @@ class _Run:
             self.seen.append(("write refused", str(exc)))
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(steps=st.lists(_steps, min_size=3, max_size=10))
 def test_the_steady_cycle_sends_and_reads_what_the_general_path_does(tmp_path_factory, steps: list[Step]) -> None:  # type: ignore[no-untyped-def]

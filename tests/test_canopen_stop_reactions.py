@@ -526,6 +526,7 @@ def test_a_pressed_button_shows_at_once_and_the_drives_keep_their_power_for_the_
 # ---------------------------------------------------------------------------- the hardware code path
 
 
+@pytest.mark.slow
 def test_on_the_hardware_code_path_the_drives_are_configured_and_the_slope_follows() -> None:
     """The ``can`` backend's own code (Notifier thread, wall clock) against the simulated drives in their thread:
     the same report, and after 1.2 s of holding the arm every drive holds the slope of its torque over 2 s."""

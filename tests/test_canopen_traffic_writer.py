@@ -154,6 +154,7 @@ def test_a_frame_marshal_sends_as_bytes_is_latched_not_written_wrong(tmp_path: P
     assert path.read_text() == ""
 
 
+@pytest.mark.subprocess
 def test_a_parent_that_dies_leaves_a_complete_log_and_no_writer_behind(tmp_path: Path) -> None:
     path = tmp_path / "bus.log.gz"
     parent = textwrap.dedent(
@@ -189,6 +190,7 @@ def test_a_parent_that_dies_leaves_a_complete_log_and_no_writer_behind(tmp_path:
     assert lines[-1] == f"({EPOCH + 4999 * 0.0025:f}) can0 181#{(4999).to_bytes(4, 'little').hex().upper()} R"
 
 
+@pytest.mark.subprocess
 def test_the_writer_imports_the_standard_library_only(tmp_path: Path) -> None:
     read_end, write_end = os.pipe()
     os.close(write_end)  # no batch: it starts, closes the log, reports and ends

@@ -162,6 +162,7 @@ def test_a_backend_no_longer_registered_is_no_longer_offered() -> None:
     assert refused.value.code == 2
 
 
+@pytest.mark.subprocess
 def test_daror_help_imports_neither_the_hal_nor_numpy() -> None:
     """The flags that need the HAL's registry are declared on use: ``daror --help`` stays fast."""
     code = (

@@ -82,6 +82,7 @@ def _blocks(stdout: str) -> list[tuple[str, str]]:
     return blocks
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_an_unguided_operator_reaches_compensation_with_the_default_settings(tmp_path: Path) -> None:
     typed = TRANSCRIPT.read_text(encoding="utf-8").splitlines()
@@ -138,6 +139,8 @@ def _session_json(out: Path) -> dict:
     return json.loads((out / "session.json").read_text(encoding="utf-8"))
 
 
+@pytest.mark.subprocess
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_a_terminal_session_completes_remembers_announces_and_ends_with_torque_off_on_ctrl_c(tmp_path: Path) -> None:
     out = tmp_path / "first"
@@ -181,6 +184,8 @@ def test_a_terminal_session_completes_remembers_announces_and_ends_with_torque_o
 # --- lines piped in -------------------------------------------------------------------------------
 
 
+@pytest.mark.subprocess
+@pytest.mark.slow
 def test_piped_lines_are_echoed_and_a_refusal_exits_1(tmp_path: Path) -> None:
     out = tmp_path / "session"
     run = subprocess.run(
@@ -208,6 +213,7 @@ def session(tmp_path: Path) -> Iterator[Session]:
     s.runtime.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("state", [*NAMES, "FAIL"])
 def test_quitting_in_any_state_takes_the_torque_off_first_and_records_it(
     session: Session, models: Models, state: str

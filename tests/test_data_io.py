@@ -185,6 +185,7 @@ def raw_logs(draw: st.DrawFn) -> RawLog:
     return RawLog(t, q, dq, tau, theta, tau_cmd)
 
 
+@pytest.mark.slow
 @given(data=stationary_sets(), suffix=st.sampled_from(FORMATS))
 def test_property_stationary_round_trip(data: StationaryDataset, suffix: str) -> None:
     with tempfile.TemporaryDirectory() as folder:
@@ -193,6 +194,7 @@ def test_property_stationary_round_trip(data: StationaryDataset, suffix: str) ->
         assert_same_stationary(load_dataset(path), data)
 
 
+@pytest.mark.slow
 @given(raw=raw_logs(), suffix=st.sampled_from(FORMATS))
 def test_property_raw_round_trip(raw: RawLog, suffix: str) -> None:
     with tempfile.TemporaryDirectory() as folder:

@@ -204,6 +204,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
 # --- 1. every fault kind, in every state that carries the arm -----------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("state", STATES)
 @pytest.mark.parametrize("kind", list(FaultKind), ids=lambda k: k.value)
 def test_each_fault_is_met_with_its_declared_reaction_and_the_limp_arm_is_not_dropped(
@@ -324,6 +325,7 @@ def test_a_hold_reaction_holds_the_limp_arm_until_the_operator_lowers_it(tmp_pat
         rig.close()
 
 
+@pytest.mark.slow
 def test_with_nothing_under_the_rest_pose_the_arm_is_held_there_until_someone_takes_it(
     rig: Rig, models: Models
 ) -> None:

@@ -543,6 +543,7 @@ class RandomStartWithReactions(FsmWithReactions):
         self.begin(pair, button)
 
 
+@pytest.mark.slow
 def test_random_sessions_with_fault_reactions_keep_the_rules() -> None:
     HELD.clear()
     run_state_machine_as_test(RandomStartWithReactions, settings=_settings(100))

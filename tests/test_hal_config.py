@@ -324,6 +324,7 @@ def test_console_on_a_backend_without_its_package_exits_2_with_one_line(
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_console_runs_on_a_hal_configuration_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = write(tmp_path / "hal.yaml", "backend: sim\nscenario: exo\nrate_hz: 500\n")
     script = write(tmp_path / "s.txt", SCRIPT)
@@ -421,6 +422,7 @@ def test_the_entry_points_are_read_once_and_only_when_needed() -> None:
     assert reads == [1]
 
 
+@pytest.mark.subprocess
 def test_importing_the_hal_and_building_a_builtin_reads_no_entry_point() -> None:
     """Start-up (``daror hil``, a session on ``sim``) never reads the installed packages' entry points."""
     code = (

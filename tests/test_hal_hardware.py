@@ -105,6 +105,7 @@ def test_the_runtime_refuses_lock_step_on_hardware_before_anything_is_written(tm
     assert not directory.exists()
 
 
+@pytest.mark.slow
 def test_the_runtime_runs_a_backend_on_its_own_time_by_default(tmp_path: Path) -> None:
     on_hardware = Runtime(StandInDrives(), tmp_path / "a")
     assert isinstance(on_hardware.runner.clock, RealTimeClock)

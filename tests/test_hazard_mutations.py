@@ -291,6 +291,7 @@ def test_the_hazards_test_fails_without_its_mitigation(row: Row, tmp_path: Path,
     )
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 @pytest.mark.mutation
 def test_the_copy_imports_its_own_code_also_from_a_process_started_elsewhere(tmp_path: Path) -> None:

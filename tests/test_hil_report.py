@@ -152,6 +152,7 @@ def test_the_power_stage_figure_is_the_drives_own_statusword_on_the_bus(readme_e
     assert set(ramping) == {0x0F}
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_the_compressed_bus_log_holds_every_frame_and_can_utils_read_it(readme_example: Run, tmp_path: Path) -> None:
     run = readme_example

@@ -46,6 +46,9 @@ from daror_runtime.neural.hpsearch.winner import fit_arguments, fit_options
 from daror_runtime.neural.hpsearch.work import NetworkRow
 from daror_runtime.neural.training import TrainingSettings
 
+#: A search trains networks (JAX) in worker processes: left out of `make check`.
+pytestmark = pytest.mark.slow
+
 TINY_GRID = """\
 name: tiny
 models: [penn, nnn]
@@ -620,6 +623,7 @@ raise SystemExit(code)
 """
 
 
+@pytest.mark.subprocess
 def test_without_jax_the_search_says_how_to_install_it(folder: Path) -> None:
     out = folder / "not_written"
     run = subprocess.run(
@@ -725,6 +729,7 @@ def _start(folder: Path, tmp_path: Path, env: dict[str, str] | None = None) -> s
     )
 
 
+@pytest.mark.subprocess
 def test_a_failing_unit_ends_the_search_with_its_error_and_nothing_written(folder: Path, tmp_path: Path) -> None:
     """The first unit fails while the others wait in the queue to the workers: the command ends the
     workers and reports the error."""
@@ -741,6 +746,7 @@ def test_a_failing_unit_ends_the_search_with_its_error_and_nothing_written(folde
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.subprocess
 def test_workers_that_die_as_they_start_end_the_search(folder: Path, tmp_path: Path) -> None:
     """Nothing is left half-sent to a dead worker (the start of a worker, written by the command's main
     thread, would block it for ever if it outgrew the pipe: it did with the dataset in it)."""
@@ -776,6 +782,7 @@ def command(folder: Path, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str
                 os.kill(pid, signal.SIGKILL)
 
 
+@pytest.mark.subprocess
 def test_a_killed_worker_ends_the_search_with_nothing_written(
     command: tuple[subprocess.Popen[str], list[int], Path],
 ) -> None:
@@ -791,6 +798,7 @@ def test_a_killed_worker_ends_the_search_with_nothing_written(
     assert all(_gone(pid) for pid in workers)
 
 
+@pytest.mark.subprocess
 def test_ctrl_c_ends_the_workers_and_writes_nothing(command: tuple[subprocess.Popen[str], list[int], Path]) -> None:
     process, workers, out = command
     process.send_signal(signal.SIGINT)
@@ -802,6 +810,7 @@ def test_ctrl_c_ends_the_workers_and_writes_nothing(command: tuple[subprocess.Po
     assert all(_gone(pid) for pid in workers)
 
 
+@pytest.mark.subprocess
 def test_the_workers_end_when_the_command_is_killed(command: tuple[subprocess.Popen[str], list[int], Path]) -> None:
     process, workers, out = command
     time.sleep(1.0)  # into their initialisation or training (a unit trains for seconds)

@@ -52,6 +52,7 @@ def session(tmp_path: Path) -> Iterator[Session]:
     s.close()
 
 
+@pytest.mark.slow
 def test_a_session_keeps_the_limits_it_used_for_the_next_one(session: Session, tmp_path: Path) -> None:
     runtime = session.runtime
     session.walk_to("rom_limits")

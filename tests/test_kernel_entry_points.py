@@ -184,6 +184,7 @@ def test_what_the_tick_passes_fits_every_resolved_signature(tmp_path: Path) -> N
     loop.recorder.close()  # type: ignore[union-attr]
 
 
+@pytest.mark.slow
 def test_plain_samples_and_commands_take_the_dispatcher_and_give_the_same_results(tmp_path: Path) -> None:
     """The same ticks with every sample and command made plain (no CheckedSample, no CheckedCommand):
     the entry points are never called, and the recording, the commands and the faults are the same
@@ -217,6 +218,7 @@ def _never_called(*args: object) -> None:
     raise AssertionError("an entry point was called with a plain sample or command")
 
 
+@pytest.mark.slow
 def test_a_recorder_without_push_into_gets_the_same_row(tmp_path: Path) -> None:
     """The loop's own row through ``push`` (any recorder) and the row filled straight into a
     ``Recorder``'s block (``push_into``): the same ticks record the same bytes."""
@@ -301,6 +303,7 @@ def test_another_filter_order_is_left_to_scipy() -> None:
     np.testing.assert_array_equal(filtered_velocity(raw, settings), expected)
 
 
+@pytest.mark.subprocess
 def test_identify_needs_neither_scipy_signal_nor_the_torque_loop() -> None:
     """What ``daror identify`` imports and runs must not pull in scipy.signal (~0.5 s, ~50 MB) or the
     SEA torque controller's kernel; the control package's other names still import on first use."""

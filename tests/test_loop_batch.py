@@ -170,6 +170,7 @@ WORLD_EVENTS = st.sampled_from(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(chunks=st.lists(st.tuples(st.integers(1, 700), WORLD_EVENTS), min_size=1, max_size=8))
 def test_random_runs_with_world_events_match_tick_for_tick(

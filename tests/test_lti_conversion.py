@@ -157,6 +157,7 @@ def test_the_filters_designed_are_the_ones_scipy_gives() -> None:
             _same(ours, (a, b, c, d))
 
 
+@pytest.mark.subprocess
 def test_a_hil_session_starts_without_scipy_signal() -> None:
     """``daror hil``'s imports and its session's construction (every filter designed) must not pull in
     scipy.signal or scipy.stats (~0.5 s each of start-up)."""

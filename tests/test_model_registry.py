@@ -76,6 +76,7 @@ def test_a_clean_registry_lists_every_kind_built_in_first() -> None:
     assert model_class("augmented") is AugmentedModel
 
 
+@pytest.mark.subprocess
 def test_listing_the_kinds_imports_no_model_code_and_no_residual_analysis() -> None:
     """Help texts and the settings check list the kinds; that must stay cheap (no numpy, no scipy)."""
     code = (

@@ -192,6 +192,7 @@ def test_altered_model_file_is_refused(dataset_b, description: RobotDescription,
         load_model(path)
 
 
+@pytest.mark.slow
 def test_single_and_batch_torque_agree_for_every_kind(dataset_b, description: RobotDescription) -> None:
     train, validation = dataset_b
     for kind in kind_names():

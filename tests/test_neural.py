@@ -63,6 +63,9 @@ from hal.kernels import misfits
 from hal.robot import RobotDescription
 from tests.test_model_files_hostile import signed
 
+#: Networks trained with JAX, seconds each: left out of `make check`.
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Validation RMSE a PENN must reach on dataset B, relative to PLF+'s (issue 13's acceptance).
@@ -509,6 +512,7 @@ raise SystemExit(code)
 """
 
 
+@pytest.mark.subprocess
 def test_without_jax_fitting_says_how_to_install_it_and_models_still_run(
     files: tuple[Path, Path, Path], penn_fits: dict[int, FitResult]
 ) -> None:

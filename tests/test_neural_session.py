@@ -40,6 +40,7 @@ def session(tmp_path: Path) -> Iterator[Session]:
     s.close()
 
 
+@pytest.mark.slow
 def test_a_penn_is_validated_installed_and_holds_a_limp_arm(session: Session, penn_file: Path, models: Models) -> None:
     runtime = session.runtime
     session.walk_to("rom_limits", a_priori=False)

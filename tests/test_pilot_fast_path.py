@@ -171,6 +171,7 @@ def test_the_pilots_torque_is_the_numpy_formulas_to_the_bit(
         assert same_floats(pilot.torque_nm, expected)
 
 
+@pytest.mark.slow
 @given(carried=shares, move=moves, ticks=steps, stops=st.lists(st.booleans(), min_size=25, max_size=25))
 def test_the_hal_tick_gives_the_numpy_formulas_torque_to_the_bit(
     hal: SimHal,

@@ -119,6 +119,7 @@ def test_a_two_minute_protocol_identifies_plf_plus_as_well_as_the_full_one(
 # --- the design ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("budget", "approach"), [(60.0, "both"), (120.0, "both"), (60.0, "once"), (120.0, "once")])
 def test_the_design_beats_random_choices_of_equal_robot_time_in_log_det(budget: float, approach: str) -> None:
     result = design_protocol(budget, settings=DesignSettings(approach=approach))  # type: ignore[arg-type]
@@ -153,6 +154,7 @@ isb_limits = st.builds(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None)
 @given(limits=isb_limits, budget=st.floats(40.0, 90.0), approach=st.sampled_from(["both", "once"]))
 def test_a_designed_protocol_never_leaves_the_recorded_isb_limits(
@@ -391,6 +393,7 @@ ABOVE_HOME = (
 )
 
 
+@pytest.mark.slow
 def test_a_protocol_designed_for_limits_that_exclude_the_home_pose_runs_with_those_limits_enforced(
     tmp_path: Path, description: RobotDescription
 ) -> None:

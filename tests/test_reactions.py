@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -96,6 +97,7 @@ def test_the_plan_is_the_spec_s_and_never_softer_than_any_fault_asks(
     assert set(plan.causes) == {f"{f.kind.value} {f.joint}" if f.joint is not None else f.kind.value for f in found}
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(table=reaction_tables(), found=faults, state=st.sampled_from(STATES), wiring=st.sampled_from(["sto", "ss1"]))
 def test_any_checked_spec_s_reaction_is_followed(

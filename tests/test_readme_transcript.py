@@ -148,6 +148,7 @@ CHECKS: dict[str, Callable[[Ran, Path], None]] = {
 }
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_the_readme_s_commands_in_order(tmp_path: Path) -> None:
     (tmp_path / "lines.txt").write_text("status\nadvance\nwait 0.5\nstatus\nquit\n", encoding="utf-8")

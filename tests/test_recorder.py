@@ -412,6 +412,7 @@ CRASH_CHILD = textwrap.dedent(
 )
 
 
+@pytest.mark.subprocess
 def test_kill_9_leaves_every_complete_row_readable_and_exact(tmp_path: Path) -> None:
     path = tmp_path / "crash.rec"
     n_columns, target_rows = 13, 3000

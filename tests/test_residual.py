@@ -60,6 +60,7 @@ FAMILY_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("scenario", "expected"), FAMILY_CASES, ids=[c[0] for c in FAMILY_CASES])
 def test_each_family_is_named_and_closes_to_the_noise_floor(scenario: str, expected: Effect) -> None:
     c = case(scenario)
@@ -136,6 +137,7 @@ def test_plf_base_finds_the_elbow_stiffness_plf_plus_adds() -> None:
     assert c.closure.after.rmse_nm <= NOISE_FLOOR_FACTOR * c.floor_nm
 
 
+@pytest.mark.slow
 def test_dataset_b_names_joint_2_direction_error_first(dataset_b: tuple[StationaryDataset, StationaryDataset]) -> None:
     train, validate = dataset_b
     diagnosis = diagnose(train, load_description())

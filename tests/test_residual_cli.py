@@ -41,6 +41,7 @@ def run(files: tuple[Path, Path], tmp_path_factory: pytest.TempPathFactory) -> P
     return out
 
 
+@pytest.mark.slow
 def test_summary_json_is_exactly_the_design_contract(run: Path) -> None:
     summary = json.loads((run / "summary.json").read_text())
     assert tuple(summary) == SUMMARY_KEYS
@@ -96,6 +97,7 @@ def test_the_a_priori_base_is_augmented(files: tuple[Path, Path], tmp_path: Path
     assert summary["rmse_after"] < summary["rmse_before"]
 
 
+@pytest.mark.slow
 def test_data_from_another_source_works(tmp_path: Path) -> None:
     # The example files do not come from hal.sim: own column order, extra columns, no t, a .mat file.
     out = tmp_path / "external"
@@ -107,6 +109,7 @@ def test_data_from_another_source_works(tmp_path: Path) -> None:
     assert summary["rmse_after"] == pytest.approx(0.03, abs=0.005)  # the generator's noise
 
 
+@pytest.mark.slow
 def test_a_raw_log_is_reduced_first(tmp_path: Path) -> None:
     scenario = load_scenario("residual_clean")
     stops = scenario_stops(scenario, "training", n_waypoints=30, sub_steps=3)
@@ -241,6 +244,7 @@ def test_a_failed_run_leaves_an_earlier_report_untouched(
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_identical_inputs_give_identical_summaries(files: tuple[Path, Path], run: Path, tmp_path: Path) -> None:
     out = tmp_path / "again"
     assert main(["residual", "--train", str(files[0]), "--validate", str(files[1]), "--out", str(out)]) == 0
@@ -281,6 +285,7 @@ def test_raw_names_at_most_two_logs_and_only_raw_logs(
     _refused([*args, "--raw", str(other)], tmp_path / "c", capsys, str(other), "outside this raw log")
 
 
+@pytest.mark.slow
 def test_a_raw_log_given_as_training_data_is_the_hysteresis_path(tmp_path: Path) -> None:
     """``--train`` a raw log: its own samples are the joints' path when the direction error is weighed."""
     scenario = load_scenario("residual_direction_offset")

@@ -102,6 +102,7 @@ PLANTS = [
 ]
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 @pytest.mark.parametrize(("scenario", "amplitudes", "travel", "floor_ratio"), PLANTS)
 def test_the_closed_loop_runs_hysteresis_is_named_and_closed(
@@ -153,6 +154,7 @@ def test_the_closed_loop_runs_hysteresis_is_named_and_closed(
     assert np.linalg.norm(carried_tracked) < np.linalg.norm(carried_untracked)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["residual_direction_offset", "exo_dummy_arm"])
 def test_a_static_direction_offset_stays_a_direction_offset(scenario: str) -> None:
     """Static data (every stop reverses the error fully): the sign of the last motion is the truth."""

@@ -54,6 +54,9 @@ from hal.sim.static_dataset import generate_stationary, noise_floor_rmse_nm
 from tests.conftest import as_dataset
 from tests.test_model_files_hostile import signed
 
+#: A network trained on the residual (JAX): left out of `make check`.
+pytestmark = pytest.mark.slow
+
 #: Issue 13's acceptance: PLF+ plus a PENN residual within this factor of the noise floor.
 NOISE_FLOOR_FACTOR = 1.1
 
@@ -359,6 +362,7 @@ raise SystemExit(code)
 """
 
 
+@pytest.mark.subprocess
 def test_without_jax_learned_says_how_to_install_it(fitted: tuple[Path, Path, Path], tmp_path: Path) -> None:
     train, model, validate = fitted
     out, written = tmp_path / "no_jax", tmp_path / "m.json"

@@ -88,6 +88,7 @@ def _states(case: Case) -> tuple[StationaryDataset, StationaryDataset]:
     return train, validate
 
 
+@pytest.mark.slow
 def test_the_pipeline_chose_the_injected_hysteresis(case: Case) -> None:
     """The premise of the other tests: the model carries the hysteresis on joints 2 and 4 only."""
     spec = case.run.model.spec
@@ -171,6 +172,7 @@ def test_curve_data_refuses_a_dataset_without_states(case: Case) -> None:
         hysteresis_curve_data(case.run.model, outside)
 
 
+@pytest.mark.slow
 def test_a_run_without_hysteresis_writes_none_and_removes_an_earlier_one(
     case: Case, without: tuple[Path, Path], tmp_path: Path
 ) -> None:

@@ -25,6 +25,7 @@ def test_a_change_shows_both_rmses_and_the_signed_difference() -> None:
     assert rmse_change(0.40, 0.45, digits=2) == "validation RMSE 0.40 -> 0.45 Nm (+0.05 Nm)"
 
 
+@pytest.mark.slow
 def test_the_command_and_the_report_word_the_found_effects_change_as_a_change(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -98,6 +98,7 @@ STRUCTURES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effects", STRUCTURES.values(), ids=STRUCTURES.keys())
 def test_fits_on_the_reduced_rows_equal_the_full_design(effects: tuple[Effect, ...]) -> None:
     train, _ = shipped("residual_gravity_tilt")
@@ -219,6 +220,7 @@ def large_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     return runs
 
 
+@pytest.mark.slow
 def test_a_large_set_finds_the_planted_tilt(large_runs: dict[str, object]) -> None:
     large = large_runs["large"]
     assert large["points"] > 2e5  # type: ignore[index]

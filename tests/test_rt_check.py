@@ -145,6 +145,7 @@ def test_a_one_second_run_in_process_reports_consistent_figures() -> None:
     assert document["machine"]["date_utc"]
 
 
+@pytest.mark.subprocess
 def test_daror_rt_check_writes_its_report_and_exits_with_its_verdict(tmp_path: Path) -> None:
     """The command in a child process (SCHED_FIFO and mlockall when granted), at the can backend's 400 Hz (D160)."""
     out = tmp_path / "rt.json"

@@ -575,6 +575,7 @@ def _fault_cases() -> list[Any]:
     ]
 
 
+@pytest.mark.slow
 def test_the_fault_classes_left_out_cannot_occur_there(sessions: Callable[[str], Session]) -> None:
     """isb_limit is left out exactly where the state does not enforce the ISB limits: the monitor has none there."""
     left_out = [(s.name, k) for s in SPEC.states for k in FaultKind if not_applicable(s, k)]
@@ -634,6 +635,7 @@ def settle_until_clearable(session: Session, max_ticks: int = 200) -> None:
 # --- 1a: a full session ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_full_session_start_to_compensation(tmp_path: Path, audit: AuditLog, monkeypatch: pytest.MonkeyPatch) -> None:
     settings = SessionSettings(
         dummy_arm=True, identification=IdentificationSettings(waypoint_stride=FULL_SESSION_STRIDE)
@@ -791,6 +793,7 @@ def support_figures(runtime: Runtime, world: SimWorld, seconds: float = 2.0) -> 
 # --- 1b: every fault class in every state ----------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("state_name", "kind"), _fault_cases())
 def test_fault_in_state(state_name: str, kind: FaultKind, sessions: Callable[[str], Session], audit: AuditLog) -> None:
     session = sessions(state_name)
@@ -983,6 +986,7 @@ def test_fail_is_not_left_while_the_condition_persists(session_in_settings: Sess
     assert session.state == FAIL
 
 
+@pytest.mark.slow
 def test_acknowledging_an_overrun_in_a_test_state_keeps_its_reaction_while_it_persists(
     tmp_path: Path, model_files: ModelFiles
 ) -> None:

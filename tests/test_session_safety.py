@@ -363,6 +363,7 @@ def test_reverting_into_operative_check_holds_a_limp_arm(session: Session, model
     _assert_bumpless(session, poses, springs, held)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("state", "event"), [("operative_check", "advance"), ("compensation", "revert")])
 def test_entering_a_position_mode_from_compensation_holds_a_limp_arm(
     session: Session, models: Models, state: str, event: str
@@ -435,6 +436,7 @@ def test_a_pilot_relaxing_is_caught(session: Session, models: Models, after_s: f
 # --- 4. the pilot's sweep ------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_default_sweep_stays_inside_the_velocity_limit_with_margin(session: Session) -> None:
     session.walk_to("rom_limits")
     runtime = session.runtime
@@ -448,6 +450,7 @@ def test_the_default_sweep_stays_inside_the_velocity_limit_with_margin(session: 
     assert runtime.wait(runtime.rom_stop()).accepted  # the range was kept
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["hold", "stop", "move"])
 def test_a_new_motion_replaces_the_sweep_under_way(session: Session, command: str) -> None:
     session.walk_to("rom_limits")
@@ -527,6 +530,8 @@ def kernels_loaded_in_ticks(directory: Path, model: Path, validation: Path) -> l
     return loads
 
 
+@pytest.mark.subprocess
+@pytest.mark.slow
 def test_no_compiled_kernel_loads_inside_a_tick_of_a_whole_session(tmp_path: Path, models: Models) -> None:
     """The first call of a numba kernel loads it (4-13 ms measured): a stall the watchdog faults in
     real time. Every kernel a tick runs is loaded before the first tick, whatever the session does.

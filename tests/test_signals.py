@@ -149,6 +149,8 @@ def _spawn_prompt(tmp_path: Path, out: Path, audit: Path) -> pexpect.spawn:
     return child
 
 
+@pytest.mark.subprocess
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_at_the_prompt_sigterm_and_a_closed_terminal_end_the_session_with_torque_off(tmp_path: Path) -> None:
     out, audit = tmp_path / "term", tmp_path / "term.jsonl"
@@ -208,6 +210,7 @@ def _signal_at(command: list[str], line: str, signum: int, stdin: str | None = N
     return process.returncode, before + after
 
 
+@pytest.mark.subprocess
 def test_a_script_ends_on_sighup_in_operative_check(tmp_path: Path) -> None:
     isb = tmp_path / "isb.yaml"
     isb.write_text(ISB_LIMITS, encoding="utf-8")
@@ -232,6 +235,7 @@ def test_a_script_ends_on_sighup_in_operative_check(tmp_path: Path) -> None:
     _check_ended(out, audit, signal.SIGHUP, "operative_check")
 
 
+@pytest.mark.subprocess
 def test_piped_lines_end_on_sigterm_in_pilot_installation(tmp_path: Path) -> None:
     lines = (
         "wait 0.5\nadvance\nsim estop operator on\nwait 0.3\nsim estop operator off\nwait 0.5\n"
@@ -247,6 +251,7 @@ def test_piped_lines_end_on_sigterm_in_pilot_installation(tmp_path: Path) -> Non
     _check_ended(out, audit, signal.SIGTERM, "pilot_installation")
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_daror_hil_ends_on_sigterm_with_the_torque_off_on_the_bus(tmp_path: Path) -> None:
     script = tmp_path / "hil.txt"

@@ -305,6 +305,7 @@ def warnings_reach_capture() -> Iterator[None]:
     configure_logging("critical")
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("warnings_reach_capture")
 def test_a_flood_of_advances_is_applied_a_few_per_tick_and_every_ticket_is_resolved() -> None:
     machine = fsm()
@@ -380,6 +381,7 @@ def test_one_state_change_per_tick() -> None:
     assert second.response.state == "startup"
 
 
+@pytest.mark.slow
 def test_a_flood_never_stops_a_fault_from_failing_the_robot_in_the_same_tick() -> None:
     machine = FsmInTheTick()
     machine.walk_to("pilot_installation")  # torque on, fails on a fault

@@ -115,6 +115,7 @@ def _end(runtime: Runtime, server: WebServer | None = None) -> None:
 # --- without a browser ------------------------------------------------------------------------------
 
 
+@pytest.mark.subprocess
 def test_without_the_extra_one_line_and_exit_2(tmp_path: Path) -> None:
     code = (
         "import sys; sys.modules['fastapi'] = None\n"
@@ -129,6 +130,7 @@ def test_without_the_extra_one_line_and_exit_2(tmp_path: Path) -> None:
     assert not (tmp_path / "s").exists()  # nothing written
 
 
+@pytest.mark.subprocess
 def test_daror_console_web_serves_until_ctrl_c(tmp_path: Path) -> None:
     """The command: the page's address printed, the session served, Ctrl-C ends it with torque off."""
     out = tmp_path / "s"
@@ -182,6 +184,7 @@ class _Output:
         raise AssertionError(f"{text!r} was not printed:\n{''.join(self.seen)[-3000:]}")
 
 
+@pytest.mark.subprocess
 def test_daror_console_web_prints_what_happens_and_ends_on_sigterm(tmp_path: Path) -> None:
     """Issue 24: the terminal shows the session's transitions and faults; kill -TERM ends it with torque off."""
     out, audit = tmp_path / "s", tmp_path / "audit.jsonl"
@@ -233,6 +236,7 @@ def test_loopback_addresses() -> None:
     assert not is_loopback("192.168.1.20")
 
 
+@pytest.mark.slow
 def test_beyond_the_loopback_a_token_is_required(tmp_path: Path) -> None:
     runtime = _runtime(tmp_path / "session", realtime=False)
     server = start_web(runtime, SimWorld(runtime.world), host="0.0.0.0", port=0)
@@ -374,6 +378,7 @@ def test_another_page_cannot_post_or_open_the_live_socket(served_lockstep: tuple
     assert answer["status"]["state"] == "safety_check"
 
 
+@pytest.mark.subprocess
 def test_no_token_only_on_the_loopback_and_never_without_the_host_and_origin_checks(tmp_path: Path) -> None:
     out = tmp_path / "s"
     run = subprocess.run(
@@ -440,6 +445,7 @@ def test_the_access_rules() -> None:
         Access.for_address("192.0.2.7", 80, None)
 
 
+@pytest.mark.slow
 def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: Path) -> None:
     """A line from the page is checked and answered as typed; refusals carry their reason; one log."""
     runtime = _runtime(tmp_path / "session", realtime=False)
@@ -695,6 +701,7 @@ def served(tmp_path: Path) -> Iterator[tuple[Runtime, WebServer, Any]]:
         runtime.close()
 
 
+@pytest.mark.slow
 @pytest.mark.browser
 @pytest.mark.skipif(
     not (CHROMIUM.exists() and CHROMEDRIVER.exists()),
