@@ -156,8 +156,6 @@ def run(sim: JointSim, controller: Controller, ticks: int, record: Callable[[Sam
 class StepTorque:
     """A controller that asks the torque loop for ``reference(t)``: the locked-link tests' driver."""
 
-    commands = ("motor_torque",)
-
     def __init__(self, torque: SeaTorqueController, reference: Callable[[float], FloatArray]) -> None:
         self.torque, self.reference = torque, reference
 
@@ -496,8 +494,6 @@ def test_modes_satisfy_the_controller_protocol(torque: SeaTorqueController, desc
     ]
     for mode in modes:
         assert isinstance(mode, Controller)
-    assert TorqueOff.commands == ()
-    assert MinimalImpedance.commands == Compensation.commands == MotorPositionPD.commands == ("motor_torque",)
     off = TorqueOff().update(still_sample(), PERIOD_S)
     assert not off.enable
     np.testing.assert_array_equal(off.motor_torque_nm, 0.0)

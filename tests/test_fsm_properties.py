@@ -109,8 +109,6 @@ class ScriptedHal(Hal):
 class AskForTorque:
     """A stand-in controller: always asks for ASKED_NM on every joint."""
 
-    commands = ("motor_torque",)
-
     def __init__(self) -> None:
         self.resets = 0
 

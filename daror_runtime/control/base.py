@@ -53,13 +53,11 @@ class ControlDesignError(DarorError):
 
 @runtime_checkable
 class Controller(Protocol):
-    """What every control mode implements.
+    """What every control mode implements: a :class:`hal.interface.Command` (motor torques and enable) per tick.
 
-    ``commands`` names what the controller writes; today every torque mode writes
-    ``("motor_torque",)`` and the drives-off mode writes nothing (``()``).
+    A controller never touches the hardware: the loop writes what it returns, after the safety
+    filter. (It declares nothing else it commands: the HAL takes one kind of command, D187.)
     """
-
-    commands: tuple[str, ...]
 
     def reset(self, sample: Sample) -> None:
         """Re-initialise internal state from ``sample``; called when the controller is selected.

@@ -43,8 +43,6 @@ DAMPING_FILTER_ALPHA = 1.0 - math.exp(-2.0 * math.pi * DAMPING_FILTER_HZ * 1e-3)
 class TorqueOff:
     """Drives disabled: every tick commands ``Command.torque_off()``."""
 
-    commands: tuple[str, ...] = ()
-
     def reset(self, sample: Sample) -> None:
         """Nothing to initialise."""
 
@@ -60,8 +58,6 @@ class MinimalImpedance:
     ``ramp_per_s`` (the whole of it in ``1 / ramp_per_s`` s, :class:`~daror_runtime.control.handover.Handover`),
     so a pilot whose arm the robot was supporting has time to take its weight.
     """
-
-    commands: tuple[str, ...] = ("motor_torque",)
 
     def __init__(self, torque: SeaTorqueController, ramp_per_s: float = 0.5, walls: SoftWalls | None = None) -> None:
         self.torque = torque
@@ -141,8 +137,6 @@ class Compensation:
         ControlSettingError: a support level outside [0, 1] or not finite, or a ramp that is not
             positive.
     """
-
-    commands: tuple[str, ...] = ("motor_torque",)
 
     def __init__(
         self,

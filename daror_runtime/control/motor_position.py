@@ -270,8 +270,6 @@ class MotorPositionPD:
         ControlDesignError: the gains make a checked case unstable (the message names joint and case).
     """
 
-    commands: tuple[str, ...] = ("motor_torque",)
-
     def __init__(
         self,
         description: RobotDescription,

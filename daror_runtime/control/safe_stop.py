@@ -175,8 +175,6 @@ class SafeStop:
         ControlDesignError: the position PD is not stable for this robot (checked at construction).
     """
 
-    commands: tuple[str, ...] = ("motor_torque",)
-
     def __init__(
         self,
         description: RobotDescription,

@@ -75,8 +75,6 @@ class _HeldTorque:
 class Hold:
     """Hold the joint angles of the reset sample (motor position PD; feed-forward: what held the arm there)."""
 
-    commands: tuple[str, ...] = ("motor_torque",)
-
     def __init__(
         self, description: RobotDescription, feedforward: CompensationModel | None, bounds: LinkBounds, dt_s: float
     ) -> None:
@@ -105,8 +103,6 @@ class IdentificationMode:
     When a run's trajectory ends, :meth:`update` switches to holding the final pose and leaves the
     run in :attr:`finished_run` for the runtime to collect (outside the tick).
     """
-
-    commands: tuple[str, ...] = ("motor_torque",)
 
     def __init__(self, hold: Hold) -> None:
         self.hold = hold
