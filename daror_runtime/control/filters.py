@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import linalg
 
-from daror_runtime.control import lti_conversion
+import daror_runtime.control.lti_conversion as lti_conversion
 from daror_runtime.control.base import ControlDesignError
 from daror_runtime.errors import ShapeError
 from hal.robot import FloatArray

@@ -48,7 +48,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from daror_runtime.control import lti_conversion
+import daror_runtime.control.lti_conversion as lti_conversion
 from daror_runtime.control.base import ControlDesignError
 from daror_runtime.control.filters import DiscreteTransferFunction
 from hal.robot import FloatArray, SeaConstants

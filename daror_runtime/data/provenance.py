@@ -29,6 +29,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from daror_runtime.data.checksum import file_sha256
 from daror_runtime.errors import DataError
 from daror_runtime.util.atomic import write_text_atomic
 from hal.files import read_text_bounded
@@ -105,7 +106,6 @@ def write_provenance(
     Raises:
         DataError: the data file cannot be read (its checksum), or the provenance not written.
     """
-    from daror_runtime.models.files import file_sha256  # the one checksum of data files (models import data)
 
     provenance = Provenance(
         source=source,
@@ -128,7 +128,6 @@ def read_provenance(data_path: Path | str) -> Provenance | None:
         DataError: a provenance file that is not one (malformed JSON, a field missing or wrong,
             named in the message), or one that belongs to other data (its checksum differs).
     """
-    from daror_runtime.models.files import file_sha256
 
     path = provenance_path(data_path)
     if not path.exists():

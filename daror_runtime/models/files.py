@@ -30,14 +30,15 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from daror_runtime.data.checksum import file_sha256
 from daror_runtime.data.provenance import Provenance, read_provenance
 from daror_runtime.data.schema import StationaryDataset
-from daror_runtime.errors import DarorError, DataError, ModelFileError, UnknownModelKindError
+from daror_runtime.errors import DarorError, ModelFileError, UnknownModelKindError
 from daror_runtime.models.base import CompensationModel, FitReport
 from daror_runtime.models.registry import ModelKindPluginError, model_class
 from daror_runtime.models.regressor import GRAVITY_PARAMETER_NAMES
 from daror_runtime.util.atomic import write_text_atomic
-from hal.files import DATA_MAX_BYTES, MODEL_MAX_BYTES, read_text_bounded, regular_file
+from hal.files import MODEL_MAX_BYTES, read_text_bounded
 from hal.robot import N_JOINTS, RobotDescription
 from hal.yamlfile import Flag, Integer, Number, format_validation_error
 
@@ -117,19 +118,6 @@ class ModelFile(BaseModel):
     training: TrainingSummary | None = None
     fit: dict[str, Any] = Field(default_factory=dict)
     checksum_sha256: str
-
-
-def file_sha256(path: Path | str) -> str:
-    """SHA-256 of a data file (regular files only: a FIFO or device named here is refused, never read).
-
-    Raises:
-        DataError: not a readable regular file.
-    """
-    digest = hashlib.sha256()
-    with open(regular_file(path, DataError, DATA_MAX_BYTES, "data file"), "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def training_summary(dataset: StationaryDataset, source_path: Path | str | None = None) -> TrainingSummary:

@@ -15,12 +15,13 @@ from pathlib import Path
 
 import structlog
 
+from daror_runtime.data.checksum import file_sha256
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.errors import InputError, ModelFileError, UsageError
 from daror_runtime.fsm.signals import SelectedModel
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.extrapolation import Extrapolation, model_extrapolation
-from daror_runtime.models.files import TrainingSummary, file_sha256, load_model, save_model, training_summary
+from daror_runtime.models.files import TrainingSummary, load_model, save_model, training_summary
 from daror_runtime.models.metrics import ErrorMetrics, error_metrics
 from daror_runtime.models.registry import fit_model, installation_options, kind_entry
 from daror_runtime.session.identification import next_free_path
