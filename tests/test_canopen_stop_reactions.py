@@ -527,9 +527,15 @@ def test_a_pressed_button_shows_at_once_and_the_drives_keep_their_power_for_the_
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_on_the_hardware_code_path_the_drives_are_configured_and_the_slope_follows() -> None:
     """The ``can`` backend's own code (Notifier thread, wall clock) against the simulated drives in their thread:
-    the same report, and after 1.2 s of holding the arm every drive holds the slope of its torque over 2 s."""
+    the same report, and while the arm is held every drive comes to hold the slope of its torque over 2 s.
+
+    The slope is written by SDO, one node at a time in cycles with room (D161): on wall-clock time, a
+    machine that starves the drives' thread delays it (a clean-clone run beside another worker had
+    none written after 1.2 s), so the test holds the arm until every slope is written, up to 10 s, and
+    checks the values (the pacing's cycle count is checked in lock-step, tests/test_canopen_hil.py)."""
     # Generous timeouts: a loaded test machine may starve the drives' thread (as in the HAL contract suite).
     rig = CanOnSimulatedDrives(
         node_ids=list(NODES), heartbeat_consumer_ms=5000, sdo_timeout_ms=10_000, boot_timeout_ms=10_000
@@ -539,11 +545,14 @@ def test_on_the_hardware_code_path_the_drives_are_configured_and_the_slope_follo
     try:
         assert all("ramps its torque to zero over 2.0 s" in sentence for sentence in rig.drive_reaction_report())
         command = Command(np.array([-1.12, 2.19, 1.89, 3.56]), True)  # about what holds the arm at rest
-        for _ in range(int(1.2 / PERIOD_S)):
+        sent = [round(abs(float(t)) * 100) for t in command.motor_torque_nm]  # per mille, as the RPDO carries it
+        wanted = [-(-p // 2) for p in sent]
+        for _ in range(int(10.0 / PERIOD_S)):
             with contextlib.suppress(HalFaultError):
                 rig.read()
             rig.write(command)
-        sent = [round(abs(float(t)) * 100) for t in command.motor_torque_nm]  # per mille, as the RPDO carries it
-        assert [d.value(obj.TORQUE_SLOPE) for d in rig.drives.drives] == [-(-p // 2) for p in sent]
+            if [d.value(obj.TORQUE_SLOPE) for d in rig.drives.drives] == wanted:
+                break
+        assert [d.value(obj.TORQUE_SLOPE) for d in rig.drives.drives] == wanted
     finally:
         rig.close()
