@@ -95,11 +95,6 @@ class LoopRunner:
         self._gc_was_enabled = True
 
     @property
-    def dt_s(self) -> float:
-        """The loop's period (s)."""
-        return self._loop.dt_s
-
-    @property
     def clock(self) -> Clock:
         """The loop's clock (lock-step, paced or real time)."""
         return self._clock
