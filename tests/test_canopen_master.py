@@ -16,6 +16,7 @@ import can
 import numpy as np
 import pytest
 
+from hal.canopen.backend import SimulatedCanHal
 from hal.canopen.bus import Frame, FrameSource
 from hal.canopen.cia402.statemachine import PowerState, statusword_of
 from hal.canopen.master import LOST_CODES, CanMaster, MasterSettings
@@ -182,3 +183,84 @@ def test_a_drive_that_hears_nothing_stops_by_its_own_rpdo_deadline() -> None:
         assert hal.applied_motor_torque_nm[[0, 2, 3]] == pytest.approx(2.0)  # the other drives heard on
     finally:
         hal.close()
+
+
+# --- start-up: the drives are current when it ends ----------------------------------------------------
+
+
+class _StalledDrive:
+    """A frame-source filter for start-up (a :class:`hal.canopen.sim.link.LinkFrames` drain).
+
+    From the first TPDO of ``node`` on (robot time ``t0``): its TPDOs are lost for ``stall_s``
+    (None: for good), as a drive thread that stalls; every OPERATIONAL heartbeat is held until ``t0 +
+    heartbeat_s``, as a drive whose first OPERATIONAL heartbeat comes late (durand's: one producer
+    period after NMT start).
+    """
+
+    def __init__(self, node: int, stall_s: float | None, heartbeat_s: float) -> None:
+        self.node, self.stall_s, self.heartbeat_s = node, stall_s, heartbeat_s
+        self.t0_s: float | None = None
+        self.held: list[Frame] = []
+
+    def __call__(self, frames: list[Frame]) -> list[Frame]:
+        passed = []
+        for frame in frames:
+            cob_id, data, t_s = frame
+            tpdo = cob_id in (0x180 + self.node, 0x280 + self.node)
+            if tpdo and self.t0_s is None:
+                self.t0_s = t_s
+            elif tpdo and t_s > self.t0_s and (self.stall_s is None or t_s <= self.t0_s + self.stall_s):
+                continue
+            operational = 0x701 <= cob_id <= 0x77F and data == b"\x05"
+            if operational and (self.t0_s is None or t_s < self.t0_s + self.heartbeat_s):
+                self.held.append(frame)
+                continue
+            passed.append(frame)
+        if self.held and self.t0_s is not None and frames and frames[0][2] >= self.t0_s + self.heartbeat_s:
+            passed, self.held = self.held + passed, []
+        return passed
+
+
+def _start_with(monkeypatch: pytest.MonkeyPatch, stall: _StalledDrive) -> SimulatedCanHal:
+    """A ``can-sim`` backend whose start-up lets robot time pass while it waits, its frames through ``stall``."""
+    from hal.canopen.sim import link
+
+    class Filtered(link.LinkFrames):
+        def drain(self) -> list[Frame]:
+            return stall(super().drain())
+
+    class TimePasses(SimulatedCanHal):
+        def _master_wait(self, seconds: float) -> None:
+            self.drive_set.tick_without_sync()  # a period of robot time: the SYNCs go on meanwhile
+
+    monkeypatch.setattr(link, "LinkFrames", Filtered)
+    return TimePasses(hal_config("can-sim"))
+
+
+def test_start_up_ends_only_when_every_drive_answered_the_latest_sync(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A drive behind by more SYNCs than ``stale_syncs`` when the heartbeats come: start-up waits for it.
+
+    Ending when every drive had answered the *first* SYNC let the first read lose a drive that was
+    merely late (the CI failure of stop 35: "drive 3 lost: no TPDO for 4 SYNCs" right after open).
+    """
+    from hal.interface import DriveState
+
+    stall = _StalledDrive(node=2, stall_s=0.100, heartbeat_s=0.050)
+    hal = _start_with(monkeypatch, stall)
+    hal.open()
+    try:
+        master = hal.master
+        sample = hal.read()  # raised "drive 2 lost: no TPDO for N SYNCs" when start-up ended at the heartbeats
+        assert DriveState.FAULT not in sample.drives
+        assert master.drives[1].last_sync == master.syncs - 1
+        assert hal.plant.time_s >= stall.t0_s + 0.100  # start-up waited out the stall
+    finally:
+        hal.close()
+
+
+def test_start_up_names_a_drive_that_never_answers_the_latest_sync(monkeypatch: pytest.MonkeyPatch) -> None:
+    from hal.errors import HalError
+
+    hal = _start_with(monkeypatch, _StalledDrive(node=2, stall_s=None, heartbeat_s=0.050))
+    with pytest.raises(HalError, match=r"no TPDOs for the latest SYNC from node\(s\) 2 within"):
+        hal.open()

@@ -411,7 +411,6 @@ class CanMaster:
         self.heartbeats.start(self._now())
         self._next_heartbeat_s = self._now()
         self._send_heartbeat_if_due()
-        first = self.syncs
         self._sync()
         operational: set[int] = set()
 
@@ -419,23 +418,26 @@ class CanMaster:
             self._dispatch(frames)
             operational.update(self._operational(frames))
 
-        self._collect(handle, lambda: len(operational) == self.n and all(d.last_sync >= first for d in self.drives),
-                      self.settings.boot_timeout_s, lambda: self._not_running(operational, first), cyclic=True)  # fmt: skip
+        # Started = every drive OPERATIONAL and current: its TPDOs answered the latest SYNC. Waiting for
+        # the latest, not the first: the SYNCs go on while the heartbeats are awaited, and a start that
+        # ended with a drive several SYNCs behind would lose it in the first read (stale_syncs).
+        self._collect(handle, lambda: len(operational) == self.n and all(d.last_sync >= self.syncs - 1 for d in self.drives),
+                      self.settings.boot_timeout_s, lambda: self._not_running(operational), cyclic=True)  # fmt: skip
         self._latched.clear()  # what happened while starting is in the start's own errors
         self.health.settle()  # a bus that failed while starting and is well again: counted, not raised
 
     def _missing(self, seen: set[int]) -> str:
         return ", ".join(str(d.node_id) for d in self.drives if d.node_id not in seen)
 
-    def _not_running(self, operational: set[int], sync: int) -> str:
-        """What start-up still waits for: the OPERATIONAL heartbeats and the TPDOs of the first SYNC, naming the nodes."""
+    def _not_running(self, operational: set[int]) -> str:
+        """What start-up still waits for: the OPERATIONAL heartbeats and the TPDOs of the latest SYNC, naming the nodes."""
         parts = []
         silent = self._missing(operational)
         if silent:
             parts.append(f"no OPERATIONAL heartbeat from node(s) {silent}")
-        quiet = ", ".join(str(d.node_id) for d in self.drives if d.last_sync < sync)
+        quiet = ", ".join(str(d.node_id) for d in self.drives if d.last_sync < self.syncs - 1)
         if quiet:
-            parts.append(f"no TPDOs after the first SYNC from node(s) {quiet}")
+            parts.append(f"no TPDOs for the latest SYNC from node(s) {quiet}")
         return " and ".join(parts)
 
     def _operational(self, frames: list[Frame]) -> list[int]:
