@@ -41,6 +41,8 @@ class _Rules:
         self.command, self.waited, self.reset_phase = CW_DISABLE_VOLTAGE, 0, 0
 
     def step(self, state: PowerState | None, want: bool, fresh: bool) -> tuple[int, str | None]:
+        if self.reset_phase == 2 and state is PowerState.FAULT_REACTION_ACTIVE:
+            self.reset_phase = 0  # a new fault after the drive showed FAULT: the request is not spent on it
         if self.reset_phase:
             if state is PowerState.FAULT or self.reset_phase == 2:
                 command = CW_DISABLE_VOLTAGE if self.reset_phase == 1 else CW_FAULT_RESET
@@ -112,3 +114,14 @@ def test_a_fault_reset_requested_while_enabled_is_dropped_not_kept_for_a_later_f
     stepper.request_fault_reset()
     assert stepper.step(PowerState.FAULT, True).controlword == CW_DISABLE_VOLTAGE  # the edge: 0x00, then 0x80
     assert stepper.step(PowerState.FAULT, True).controlword == CW_FAULT_RESET
+
+
+def test_a_fault_that_comes_between_the_request_and_its_edge_is_not_reset_by_it() -> None:
+    """FAULT, the request's 0x00, then a fault reaction again: a new fault; the old request's 0x80 must not clear it."""
+    stepper = PowerStepper(5)
+    stepper.request_fault_reset()
+    assert stepper.step(PowerState.FAULT, True).controlword == CW_DISABLE_VOLTAGE  # the edge's 0x00
+    assert stepper.step(PowerState.FAULT_REACTION_ACTIVE, True).controlword == CW_DISABLE_VOLTAGE  # not 0x80
+    assert [stepper.step(PowerState.FAULT, True).controlword for _ in range(3)] == [CW_DISABLE_VOLTAGE] * 3
+    stepper.request_fault_reset()  # the operator acknowledges the new fault
+    assert [stepper.step(PowerState.FAULT, True).controlword for _ in range(2)] == [CW_DISABLE_VOLTAGE, CW_FAULT_RESET]

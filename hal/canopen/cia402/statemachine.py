@@ -220,6 +220,8 @@ class PowerStepper:
         """Send one fault-reset edge at the next ticks (the drive leaves FAULT if its cause is gone).
 
         A drive still in FAULT REACTION ACTIVE (ramping its torque down) gets the edge once it is in FAULT.
+        A drive that faults again after it showed FAULT, before the edge went out, keeps the new fault:
+        the request is dropped (a reset acknowledges the faults before it, never one after).
         """
         self._reset_phase = 1
 
@@ -238,6 +240,10 @@ class PowerStepper:
             and not self._reset_phase
         ):
             return _QUIET_ENABLE_OPERATION
+        if self._reset_phase == 2 and state is PowerState.FAULT_REACTION_ACTIVE:
+            # It showed FAULT (the 0x00 went out), now a fault reaction again: a new fault since the
+            # request. The reset was asked for the fault before; this one holds until a reset of its own.
+            self._reset_phase = 0
         if self._reset_phase:
             if state is PowerState.FAULT or self._reset_phase == 2:
                 command = CW_DISABLE_VOLTAGE if self._reset_phase == 1 else CW_FAULT_RESET
