@@ -1,7 +1,7 @@
 """The HAL contract suite: what every backend must do, written against :class:`hal.interface.Hal` only.
 
 Like python-can's back-to-back tests, one set of behaviour checks runs against every backend
-(``tests/test_hal_contract.py`` takes them from the registry, :mod:`hal.registry`, plus its test
+(``tests/hal/test_hal_contract.py`` takes them from the registry, :mod:`hal.registry`, plus its test
 rigs). A backend joins with its :class:`hal.testing.BackendUnderTest` records, named by its
 registry entry: a factory of unopened instances plus the few test hooks that only a test bench
 has (latch a bus fault, fault a drive, read back the torque the drives apply). A check that needs

@@ -1,6 +1,6 @@
 """Faults provoked as the monitor finds them on a robot, so that it finds one of a given kind in the next tick.
 
-Shared by tests/test_fault_reactions.py and bench/bench_fault_reactions.py. The faults of the drives
+Shared by tests/daror_runtime/safety/test_fault_reactions.py and bench/bench_fault_reactions.py. The faults of the drives
 and sensors are injected in the simulated plant (:func:`inject_in_plant`); those of a reading over a
 limit (a torque, a deflection, a speed, a joint or the elbow beyond its range) come from a limit
 narrowed just below the reading the session has now, on one joint (:func:`narrowed_limits`).
@@ -93,7 +93,7 @@ def fail_next_read_as_bus_off(hal: SimHal) -> None:
 
     The plant has no bus: its own one-shot ``bus`` fault (which also stops its compiled batches
     for that tick) is raised as :class:`hal.interface.HalBusFaultError`, the class the CAN backend
-    raises (hal/canopen/health.py; on the CAN bus itself: tests/test_canopen_bus_health.py).
+    raises (hal/canopen/health.py; on the CAN bus itself: tests/hal/canopen/test_canopen_bus_health.py).
     """
     hal.inject_fault("bus")
     plant_read = type(hal).read

@@ -671,7 +671,7 @@ def test_a_new_backend_registered_from_outside_appears_in_hal_and_in_the_contrac
         *sources("hal"),
         *sources("daror_runtime"),
         ROOT / "tests/hal_contract.py",
-        ROOT / "tests/test_hal_contract.py",
+        ROOT / "tests/hal/test_hal_contract.py",
     ]
     assert {str(p.relative_to(ROOT)): found for p in nowhere if (found := _names_the_stand_in(p))} == {}
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(OUTSIDE_BACKEND), str(ROOT)])}
@@ -685,7 +685,7 @@ def test_a_new_backend_registered_from_outside_appears_in_hal_and_in_the_contrac
     assert helped.returncode == 0, helped.stderr
     assert "--hal {sim,can-sim,can,stand-in}" in helped.stdout
     contract = run(
-        sys.executable, "-m", "pytest", "tests/test_hal_contract.py", "-k", "stand-in",
+        sys.executable, "-m", "pytest", "tests/hal/test_hal_contract.py", "-k", "stand-in",
         "-p", "no:cacheprovider", "-o", "addopts=", "-q", "-rs",
     )  # fmt: skip
     assert contract.returncode == 0, contract.stdout[-3000:]

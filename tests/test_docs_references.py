@@ -83,8 +83,8 @@ def test_a_missing_file_a_missing_name_and_a_missing_heading_are_found(tmp_path:
     assert not _named_thing_exists("docs/neural_draft.md")  # the file issue 26 found cited five times
     assert _named_thing_exists("hal/capabilities.LockStepBatches")
     assert not _named_thing_exists("hal/capabilities.NoSuchThing")
-    assert _named_thing_exists("tests/test_can_commissioning_")
-    assert not _named_thing_exists("tests/test_no_such_family_")
+    assert _named_thing_exists("tests/daror_runtime/commissioning/test_can_commissioning_")
+    assert not _named_thing_exists("tests/daror_runtime/test_no_such_family_")
     assert _slug("PENN and NNN") == "penn-and-nnn"
     assert (
         _slug("D174-D177: 30x reached (2026-11-28, 17:14-18:25 UTC)")

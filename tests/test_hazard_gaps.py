@@ -28,8 +28,8 @@ from daror_runtime.runtime import Runtime
 from daror_runtime.testing import session_core
 from hal.config import SimHalConfig
 from hal.interface import Command, DriveState, open_hal
-from tests.test_safety_monitor import fresh_monitor, sample
-from tests.test_session_safety import Session
+from tests.daror_runtime.safety.test_safety_monitor import fresh_monitor, sample
+from tests.daror_runtime.session.test_session_safety import Session
 
 
 @pytest.fixture

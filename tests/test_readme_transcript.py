@@ -31,17 +31,17 @@ DAROR = [sys.executable, "-m", "daror_runtime.cli"]
 NOT_RUN = {
     "daror console --hal-config robot.yaml": "drives the lab's robot over a real CAN interface",
     "daror can scan --hal-config robot.yaml": "the lab's robot file on a real CAN interface "
-    "(tests/test_can_commissioning_scan.py runs it on simulated drives)",
+    "(tests/daror_runtime/commissioning/test_can_commissioning_scan.py runs it on simulated drives)",
     "daror can check --hal-config robot.yaml --yes-no-pilot": "enables the lab's robot's drives "
-    "(tests/test_can_commissioning_check.py runs it on simulated drives)",
+    "(tests/daror_runtime/commissioning/test_can_commissioning_check.py runs it on simulated drives)",
     "daror can zero --hal-config robot.yaml --at-zero-pose": "writes the lab's robot file "
-    "(tests/test_can_commissioning_calibration.py runs it on simulated drives)",
+    "(tests/daror_runtime/commissioning/test_can_commissioning_calibration.py runs it on simulated drives)",
     "daror hil --hal-config examples/robot/epos4.yaml --script daror_runtime/console/scripts/session.txt --out hil2": "the whole demo session on the EPOS4 family, about a minute and a half "
-    "(tests/test_canopen_robot_golden.py runs it with the shorter identification of tests/data/hil_settings.yaml; "
-    "tests/test_canopen_interop_lockstep.py on durand's drives)",
+    "(tests/hal/canopen/test_canopen_robot_golden.py runs it with the shorter identification of tests/data/hil_settings.yaml; "
+    "tests/hal/canopen/test_canopen_interop_lockstep.py on durand's drives)",
     "daror bench": "runs every benchmark (many minutes; docs/performance.md has their figures)",
     "daror rt-check --hal-config robot.yaml": "the lab's robot file; its verdict (exit 0 or 1) is the machine's "
-    "(tests/test_rt_check.py runs the command for 1 s)",
+    "(tests/daror_runtime/test_rt_check.py runs the command for 1 s)",
 }
 
 
