@@ -46,7 +46,7 @@ $(VENV)/.system-packages: | $(BIN)/python
 		|| echo "make: can-utils could not be installed; the log2asc test will be skipped"; }
 	touch $@
 
-# Chromium and its driver (the web console's browser test, tests/test_web_console.py), installed
+# Chromium and its driver (the web console's browser test, tests/daror_runtime/console/test_web_console.py), installed
 # only when /usr/bin/chromium or /usr/bin/chromedriver is missing; without them that test is skipped.
 $(VENV)/.chromium: | $(BIN)/python
 	@{ test -x /usr/bin/chromium && test -x /usr/bin/chromedriver; } || { \

@@ -114,7 +114,7 @@ def bench_session_tick_in_compensation(quick: bool) -> BenchFigure:
 
 
 def _provoke(runtime: Runtime, hal: SimHal, kind: FaultKind) -> None:
-    """As tests/test_fault_reactions.py provokes each kind (a narrowed limit where the monitor must see a reading)."""
+    """As tests/daror_runtime/safety/test_fault_reactions.py provokes each kind (a narrowed limit where the monitor must see a reading)."""
     core = session_core(runtime)
     monitor = core.monitor
     limits = monitor.limits

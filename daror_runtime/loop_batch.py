@@ -24,7 +24,7 @@ tick then runs it, names the fault and removes the torque as always. A backend s
 ends the batch after it, and the loop reports it as the Python tick reports a failed write.
 
 What the loop gives up inside a batch: the per-tick work time (a batch's ticks share its mean),
-and nothing else: ``tests/test_loop_batch.py`` checks that a protocol run records the very same
+and nothing else: ``tests/daror_runtime/test_loop_batch.py`` checks that a protocol run records the very same
 rows, bit for bit, with and without batches, and that a fault mid-batch is found at the same tick.
 
 A batch never runs on a real-time clock or on a backend that drives hardware: only a backend on

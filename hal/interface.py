@@ -15,7 +15,7 @@ error the backend latched outside the tick (a CAN thread, a lost heartbeat), whi
 turns it into a fault that removes torque in the same tick.
 
 Every backend must pass the contract suite ``tests/hal_contract.py`` (run by
-``tests/test_hal_contract.py``); the docstrings of :class:`Hal` say what it checks.
+``tests/hal/test_hal_contract.py``); the docstrings of :class:`Hal` say what it checks.
 
 Units: rad, rad/s, Nm, s. Arrays are ``float64`` of shape (4,), joints 1-4 at indices 0-3.
 """
@@ -103,7 +103,7 @@ class CheckedSample(Sample):
 
     Made by its constructor, which checks the arrays (:class:`~hal.errors.ShapeError` otherwise), or
     by a backend whose arrays have that type by construction (``hal.sim.backend``, which builds it
-    with ``tuple.__new__``; ``tests/test_kernel_entry_points.py`` checks its samples). Otherwise it is a
+    with ``tuple.__new__``; ``tests/daror_runtime/test_kernel_entry_points.py`` checks its samples). Otherwise it is a
     ``Sample`` in every respect (equal to one with the same fields, ``isinstance`` of it).
     Replacing a field (``_replace``) gives a plain :class:`Sample`: the new value is not checked.
     """
@@ -151,7 +151,7 @@ class CheckedCommand(Command):
     goes through numba's dispatcher, as before. Made by its constructor, which checks the torque
     (:class:`~hal.errors.ShapeError` otherwise), or by a controller whose torque has that type by
     construction (``daror_runtime.control.motor_position``, with ``tuple.__new__``;
-    ``tests/test_kernel_entry_points.py`` checks what reaches the kernels). :data:`TORQUE_OFF` is
+    ``tests/daror_runtime/test_kernel_entry_points.py`` checks what reaches the kernels). :data:`TORQUE_OFF` is
     one. ``_replace`` gives a plain :class:`Command`.
     """
 

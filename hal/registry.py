@@ -6,7 +6,7 @@ model (a :class:`hal.config.AnyHalConfig` subclass), both as ``"module:attribute
 are imported only when the backend is asked for, and the function that builds it on a test bench
 for the contract suite (:mod:`hal.testing`). Registering a backend is the one step that makes it
 usable everywhere: ``--hal``, :func:`hal.config.load_hal_config`, :func:`hal.interface.open_hal`
-and the contract suite (``tests/test_hal_contract.py``) all ask here.
+and the contract suite (``tests/hal/test_hal_contract.py``) all ask here.
 
 The three built-in backends (``sim``, ``can-sim``, ``can``) are registered in code
 (:data:`BUILTIN_BACKENDS`). Other packages add backends through the entry point group
@@ -95,7 +95,7 @@ class BackendEntry:
         benches: ``"module:function"``: ``function() -> Sequence[hal.testing.BackendUnderTest]``,
             how the contract suite builds the backend without its hardware, with the test hooks;
             None: it cannot be built without hardware (a test rig of the suite must run its code:
-            ``tests/test_hal_contract.py`` checks every registered backend is covered).
+            ``tests/hal/test_hal_contract.py`` checks every registered backend is covered).
 
     Raises:
         HalConfigError: a malformed name or target (one line).

@@ -1,6 +1,6 @@
 """What a HAL backend hands the contract suite: how to build it on a test bench, and the bench's hooks.
 
-The contract suite (``tests/hal_contract.py``, run by ``tests/test_hal_contract.py``) runs against
+The contract suite (``tests/hal_contract.py``, run by ``tests/hal/test_hal_contract.py``) runs against
 every registered backend (:mod:`hal.registry`). A backend's registry entry names a function
 (:attr:`hal.registry.BackendEntry.benches`) that returns its :class:`BackendUnderTest` records: a
 factory of unopened instances that needs no hardware, plus the few hooks only a test bench has

@@ -5,7 +5,7 @@ compensation. So every guard an FSM spec may name has a step here: what it means
 the commands that satisfy it, in the order they are typed (on the simulated plant the world's
 ``sim`` lines are included: the pilot, the buttons). The steps follow the spec's guards in the
 order the spec lists them; a test checks every registered guard has a step, and another replays a
-whole session typed only from these steps (tests/test_console_operator.py).
+whole session typed only from these steps (tests/daror_runtime/console/test_console_operator.py).
 """
 
 from __future__ import annotations

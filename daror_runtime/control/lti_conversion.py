@@ -15,7 +15,7 @@ The functions here compute exactly that by scipy's own steps (scipy 1.17: ``norm
 ``ss2tf``), with the same numpy and :mod:`scipy.linalg` calls on the same types, so every value is
 scipy's to the bit (scipy.linalg is imported anyway; its ``solve`` and ``expm`` are the ones
 scipy.signal calls, and warn as there, from a line of this module).
-``tests/test_lti_conversion.py`` checks them against ``scipy.signal`` itself. What they do not
+``tests/daror_runtime/control/test_lti_conversion.py`` checks them against ``scipy.signal`` itself. What they do not
 cover is left to ``scipy.signal``, imported then: a numerator whose leading coefficient normalises
 to at most 1e-14 (scipy warns ``BadCoefficients`` and trims it), a denominator of degree 0 or with
 a leading zero, anything but float64 arrays of the expected shapes.

@@ -88,7 +88,7 @@ inside the *recorded* limits; the monitor faults at limit + 5 deg.
 * The damper is at full strength 4 deg into the wall (``fade`` = half the onset): where a 1 Nm
   error comes to rest.
 
-On the simulated plant (exo_dummy_arm, limp pilot, tests/test_soft_walls.py) a -1 Nm error on the
+On the simulated plant (exo_dummy_arm, limp pilot, tests/daror_runtime/control/test_soft_walls.py) a -1 Nm error on the
 elbow brings the arm into the wall at its free drift of 0.59 rad/s; it rests 4.2 deg before the
 pilot's limit (the monitor faults without the walls). A 1 Nm error lifting the arm behind the body
 stops 4.9 deg below ``e_free`` (without walls: the fault "horizontal rotation -118 deg" at 20 deg).

@@ -11,7 +11,7 @@ filter, by scipy's own steps (scipy 1.17: ``iirfilter``, ``buttap``, ``lp2lp_zpk
 ``bilinear_zpk``, ``zpk2sos`` with its one section, ``sosfilt_zi``, ``lfilter_zi``, the even
 extension, two passes of ``_sosfilt``), with the same numpy calls on the same types, so every
 value is scipy's to the bit, and the result has scipy's memory layout (a reduction over it, such
-as ``np.linalg.norm(axis=1)``, adds in the same order). ``tests/test_stationary_reduction.py``
+as ``np.linalg.norm(axis=1)``, adds in the same order). ``tests/daror_runtime/data/test_stationary_reduction.py``
 checks both against ``scipy.signal`` itself. Other orders are left to ``scipy.signal``
 (:mod:`daror_runtime.data.stationary` falls back).
 """

@@ -13,7 +13,7 @@ from enum import StrEnum
 
 
 class FaultKind(StrEnum):
-    """Classes of fault; every one is injected in a closed-loop test (tests/test_safety_loop.py)."""
+    """Classes of fault; every one is injected in a closed-loop test (tests/daror_runtime/safety/test_safety_loop.py)."""
 
     JOINT_LIMIT = "joint_limit"  # a joint outside the device's range of motion
     ISB_LIMIT = "isb_limit"  # the shoulder or elbow outside the pilot's recorded ISB limits

@@ -7,7 +7,7 @@ names, each value to its field of the drive's state, the statusword's power stat
 frame answers the last SYNC. The master builds the handlers once, with its routes.
 
 The handler does what :meth:`hal.canopen.master.CanMaster._dispatch` did for a TPDO, in the same
-order; ``tests/test_canopen_steady_cycle.py`` and the golden sessions hold it to that.
+order; ``tests/hal/canopen/test_canopen_steady_cycle.py`` and the golden sessions hold it to that.
 """
 
 from __future__ import annotations

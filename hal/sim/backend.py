@@ -631,7 +631,7 @@ class SimHal(Hal):
         # Sample(seq, t_s, q, dq, theta, tau, estop, drives, fault codes), every field given, in order;
         # tuple.__new__ because this runs every tick (the NamedTuple's __new__ is a Python function). A
         # CheckedSample without its check: its arrays are rows of a float64 (n, 4) array, so they are
-        # float64 vectors of 4 by construction (tests/test_kernel_entry_points.py checks every kind of sample).
+        # float64 vectors of 4 by construction (tests/daror_runtime/test_kernel_entry_points.py checks every kind of sample).
         return _new_tuple(
             CheckedSample,
             (tick, tick * self._dt, view[row], view[row + 1], view[row + 2], view[row + 3], self._estop,

@@ -856,7 +856,7 @@ def hal_tick_entry() -> Callable[..., int]:
     unlike the dispatcher, checks no argument type: numba only checks that each array argument is
     an ndarray of 8-byte items. The caller therefore guarantees the types: its own arrays are
     made with them, and the commanded torque is checked to be a float64 ndarray of shape (4,)
-    before the call (``hal.sim.backend.SimHal.write``; ``tests/test_kernel_entry_points.py`` checks both).
+    before the call (``hal.sim.backend.SimHal.write``; ``tests/daror_runtime/test_kernel_entry_points.py`` checks both).
     """
     return hal_tick.compile(HAL_TICK_SIGNATURE)
 
@@ -899,7 +899,7 @@ def pilot_torque(
     ``k (theta - q) + d_s (theta' - q')`` at state ``x`` (``k``, ``d_s`` from ``p``: the values
     ``DynamicPlant.spring_torque_nm`` multiplies with) when ``adapt``; the last term only where
     ``carried > 0``. The same IEEE operations in the same order as the pilot's numpy formula on
-    arrays (kept in ``tests/test_pilot_fast_path.py``), no fast-math: the torque is numpy's to the
+    arrays (kept in ``tests/hal/sim/test_pilot_fast_path.py``), no fast-math: the torque is numpy's to the
     bit. Returns False, ``out`` untouched, if an element is not finite.
     """
     for j in range(N_JOINTS):

@@ -9,7 +9,7 @@ packed from, the limits and transmission types as constants. The drive asks for 
 whenever its PDO parameters change (the layout is derived again then, as before).
 
 The program does the same steps as the generic code, in the same order, on the same drive state
-(:func:`steady_program`'s docstring lists them). ``tests/test_canopen_steady_cycle.py`` holds them
+(:func:`steady_program`'s docstring lists them). ``tests/hal/canopen/test_canopen_steady_cycle.py`` holds them
 to it: the same random sessions with and without the steady cycle give the same samples and the
 same bus log, byte for byte.
 
