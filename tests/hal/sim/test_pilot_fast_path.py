@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from hal.errors import InputError, ShapeError
@@ -69,6 +69,9 @@ class NumpyPilot:
             return self.hold
         q_to, start_s, duration_s = self.move
         if t_s >= start_s + duration_s:
+            # Done: the pilot drops a finished move and holds its end, also if time then goes back
+            # (SimulatedPilot._move_at; a back step after the end was first drawn in CI's random run).
+            self.hold, self.move = q_to, None
             return q_to
         if t_s < start_s:
             return self.hold
@@ -150,6 +153,14 @@ def set_plant_state(plant: DynamicPlant, q0: FloatArray, state: tuple[FloatArray
     move=moves,
     ticks=steps,
 )
+@example(  # back in time after the move's end: the pilot holds the end (signed zeros of a zero stiffness)
+    carried=0.0,
+    stiffness_scale=0.0,
+    adaptation_s=0.3,
+    move=(np.array([0.0, 0.0, 0.0, 1.0]), 0.3671875, 0.0546875),
+    ticks=[(-0.01, None, np.zeros(4), np.zeros(4)), (0.4375, None, np.zeros(4), np.zeros(4)),
+           (-0.01, None, np.zeros(4), np.array([0.0, 0.0, 0.0, 1.0]))],
+)  # fmt: skip
 def test_the_pilots_torque_is_the_numpy_formulas_to_the_bit(
     hal: SimHal,
     carried: float,
