@@ -27,6 +27,9 @@ from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary, noise_floor_rmse_nm
 from tests.conftest import as_dataset
 
+#: Slow tier as a whole (docs/testing.md): a diagnosis of each scenario (~4 s each) feeds every test here.
+pytestmark = pytest.mark.slow
+
 NOISE_FLOOR_FACTOR = 1.3
 
 

@@ -20,6 +20,9 @@ from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import STREAM_RAW_LOG, generate_stationary, scenario_stops, stream
 from tests.conftest import as_dataset
 
+#: Slow tier as a whole (docs/testing.md): the module's residual runs take ~9 s before the first test.
+pytestmark = pytest.mark.slow
+
 EXAMPLES = Path(__file__).resolve().parents[3] / "examples" / "residual"
 
 

@@ -44,6 +44,9 @@ from tests.conftest import as_dataset
 #: least-squares copies (~100 B), the loader's columns while it builds the dataset. 1 KB is
 #: about 30 doubles a point: 10^6 points stay under 1 GB above the interpreter's own. The
 #: implementation before issue 10 held ~46 KB a point (a copy of the design per candidate).
+#: Slow tier as a whole (docs/testing.md): the module's large datasets take ~10 s to build.
+pytestmark = pytest.mark.slow
+
 BYTES_PER_POINT_BOUND = 1000
 
 

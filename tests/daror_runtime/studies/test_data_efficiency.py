@@ -31,6 +31,9 @@ from hal.robot import RobotDescription
 Datasets = tuple[StationaryDataset, StationaryDataset]
 
 #: Draws per size in these tests: enough for a stable mean and spread, few enough to stay fast.
+#: Slow tier as a whole (docs/testing.md): the module's study takes ~8 s before the first test.
+pytestmark = pytest.mark.slow
+
 DRAWS = 16
 SIZE_KEYS = {
     "n", "fitted", "refused", "rmse_mean", "rmse_std", "rmse_min", "rmse_p5",
