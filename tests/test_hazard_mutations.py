@@ -18,9 +18,11 @@ mutation of the copy is seen by its tests, and the unmutated copy passes a sampl
 
 The rows' pytest processes are forked from a zygote (tests/mutation_zygote.py) that imported the
 third-party libraries once: the same run as ``python -m pytest`` in the copy, a second of CPU cheaper.
-The copy takes the checkout's bytecode and numba caches along (``__pycache__``): the interpreter
-checks a ``.pyc`` against its source's time and size (``copy2`` keeps both), numba its index against
-the source's hash, so only the mutated file is compiled again. A row whose snippet is inside a
+The copy takes the checkout's bytecode, numba and pytest caches along (``__pycache__``, hard links:
+each is only ever replaced, never written in place): the interpreter and pytest check a ``.pyc``
+against its source's time and size (``copy2`` keeps both), numba its index against the source's
+time and size, so only the mutated file is compiled again and no test module's asserts are rewritten
+again (``make test`` lets pytest write those caches, D193). A row whose snippet is inside a
 compiled kernel says so (``kernel: true``) and drops every numba cache of the copy, since a kernel's
 cache also holds the kernels it calls from other files, unchecked.
 
@@ -139,17 +141,30 @@ def tracked_files(root: Path = ROOT) -> list[str]:
 
 
 def copy_tree(destination: Path, root: Path = ROOT) -> Path:
-    """The tracked files, with the packages' bytecode and numba caches, copied to ``destination``."""
+    """The tracked files copied to ``destination``, with the bytecode and numba caches of the packages and tests linked.
+
+    The caches are hard links where the file system allows (:func:`_link_or_copy`): the interpreter,
+    pytest and numba only ever replace a cache file (a new file renamed over it), never write one in
+    place, so a row's run cannot change the checkout's caches through a link; the sources are copies.
+    """
     for name in tracked_files(root):
         target = destination / name
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(root / name, target)
-    for package in ("daror_runtime", "hal"):
+    for package in ("daror_runtime", "hal", "tests"):
         for cache in (root / package).rglob("__pycache__"):
             target = destination / cache.relative_to(root)
             if target.parent.is_dir():  # a folder git still knows
-                shutil.copytree(cache, target, copy_function=shutil.copy2, dirs_exist_ok=True)
+                shutil.copytree(cache, target, copy_function=_link_or_copy, dirs_exist_ok=True)
     return destination
+
+
+def _link_or_copy(source: str, target: str) -> None:
+    """``target`` as a hard link to ``source`` (the same file, its time kept), or a copy where no link can be made."""
+    try:
+        os.link(source, target)
+    except OSError:  # another file system, or links not allowed: a copy with its time
+        shutil.copy2(source, target)
 
 
 def _snippet(find: str) -> re.Pattern[str]:
