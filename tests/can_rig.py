@@ -6,15 +6,20 @@ drives of ``can-sim`` serving the bus from a thread of their own, as real drives
 own time. Opening it switches the drives on; closing it stops their thread. For the HAL contract
 suite and the real-time benchmark; never part of the package.
 
-A bus cycle takes time: four drives' frames need 1.4 ms of a 1 Mbit/s bus, and the drives answer a
-SYNC from their own thread. A test that reads right after it wrote would ask for the answers to a
-SYNC still on the wire, so the rig's :meth:`CanOnSimulatedDrives.read` comes one period after the
-last write, as the runtime's real-time clock starts the next tick (the master itself never waits).
+A bus cycle takes time: the drives answer a SYNC from their own thread. A test that reads right
+after it wrote would ask for the answers to a SYNC still on the wire, so the rig's
+:meth:`CanOnSimulatedDrives.read` first waits until the drives' thread has processed every SYNC
+the master sent and the master's receive thread has stored every frame the drives sent, woken by
+those events (the drives' thread after each pass over the bus, the receive thread after each frame
+it stores), not on a fixed period: the contract counts ticks, not periods, and a check that needs
+wall-clock time sleeps itself (the master itself never waits; a loop on the real-time clock, which
+does pace the ticks, opens the rig with ``paced=False``).
 """
 
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 
 import can
@@ -30,6 +35,70 @@ from hal.sim.backend import SimHal
 from hal.sim.scenario import load_scenario
 
 _CHANNELS = itertools.count(1)
+#: The longest a read waits for the drives' thread and the receive thread (a loaded test machine), s.
+_ANSWER_WITHIN_S = 0.5
+
+
+class _DriveBus(SimulationBus):
+    """The drives' handle: counts the frames it has put on the bus (:attr:`sent`), for the rig's wait."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.sent = 0
+        self._count = threading.Lock()  # the drives' thread sends, and a test's fault injection
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        super().send(msg, timeout)
+        with self._count:  # counted once in every receiver's queue
+            self.sent += 1
+
+
+class _MasterBus(SimulationBus):
+    """The master's handle: counts the drives' frames its receive thread has stored (:attr:`stored`), and says so.
+
+    The backend's receive thread (python-can's Notifier) takes a frame with :meth:`recv`, hands it to
+    its listeners (the backend's stores it), then calls :meth:`recv` again: every frame taken before
+    that call is stored.
+    """
+
+    def __init__(self, *args: object, answered: threading.Condition, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.stored = 0
+        self._taken = 0
+        self._answered = answered
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if self._taken != self.stored:
+            with self._answered:
+                self.stored = self._taken
+                self._answered.notify_all()
+        message = super().recv(timeout)
+        if message is not None and not message.is_error_frame:  # an error frame is no drive's
+            self._taken += 1
+        return message
+
+
+class _ThreadedDrives(SimulatedDriveSet):
+    """``can-sim``'s drives serving from their thread, saying when they processed the bus (for the rig's wait)."""
+
+    def __init__(self, *args: object, answered: threading.Condition) -> None:
+        super().__init__(*args)  # type: ignore[arg-type]
+        self._answered = answered
+
+    def step(self) -> None:
+        try:
+            super().step()
+        finally:
+            with self._answered:
+                self._answered.notify_all()
+
+    def stop_thread(self) -> None:
+        """As :class:`SimulatedDriveSet`'s, the thread woken at once (its blocking receive waits up to 5 ms)."""
+        bus = self.bus
+        if self._thread is not None and isinstance(bus, SimulationBus):
+            self._running.clear()
+            bus.put_error_frame(0, b"")  # in its own queue: no drive's frame, only a wake-up
+        super().stop_thread()
 
 
 class CanOnSimulatedDrives(CanHal):
@@ -52,11 +121,15 @@ class CanOnSimulatedDrives(CanHal):
         settings = CanHalConfig(interface="virtual", channel=self._channel, **config)  # type: ignore[arg-type]
         super().__init__(settings)
         self._plant = SimHal(plant_scenario, self.rate_hz, self.description)
-        self._drive_bus: can.BusABC | None = None
-        self.drives = SimulatedDriveSet(None, self._plant, self.profiles, settings.master_node_id)
+        self._drive_bus: _DriveBus | None = None
+        #: Notified by the drives' thread after each pass over the bus and by the master's receive thread
+        #: after each frame it stored (the rig's wait in :meth:`read`).
+        self._answered = threading.Condition()
+        self._master_bus: _MasterBus | None = None  # the master's handle (the backend's given bus) while open
+        self.drives = _ThreadedDrives(
+            None, self._plant, self.profiles, settings.master_node_id, answered=self._answered
+        )
         self._world = CanSimWorld(self._plant.world, self.drives)
-        self._period_s = 1.0 / self.rate_hz
-        self._last_write_s = 0.0
         self._written = False
         #: The time the last read waited for the drives' thread (the rig's pacing), s: not the backend's.
         self.rig_wait_s = 0.0
@@ -73,8 +146,10 @@ class CanOnSimulatedDrives(CanHal):
         """Both bus handles new, the drives switched on and serving from their thread, then the master's start-up."""
         if self._is_open:
             self.close()
-        self._given_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
-        self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
+        self._given_bus = self._master_bus = _MasterBus(
+            channel=self._channel, preserve_timestamps=True, answered=self._answered
+        )
+        self._drive_bus = _DriveBus(channel=self._channel, preserve_timestamps=True)
         self.drives.attach(self._drive_bus)
         self.drives.power_on()
         started = time.monotonic()
@@ -88,38 +163,30 @@ class CanOnSimulatedDrives(CanHal):
     def read(self) -> Sample:
         """The master's read once the bus finished the last cycle (see the module docstring).
 
-        At least one period after the last write, and once the drives answered its SYNC and the
-        master's receive thread has taken their frames: on a loaded test machine the threads may
-        need longer than a period, which a bus on the robot never does (up to 0.5 s is waited).
+        After a write: once the drives' thread has processed every SYNC the master sent and the
+        master's receive thread has stored every frame the drives sent; on a loaded test machine
+        the threads may need longer than a period, which a bus on the robot never does (up to 0.5 s
+        is waited).
         """
         self.rig_wait_s = 0.0
         if self._written and self._paced:
             began = time.perf_counter()
             self._written = False
-            wait = self._last_write_s + self._period_s - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
-            deadline = time.perf_counter() + 0.5
             master = self.master
-            while self.drives.syncs < master.syncs and time.perf_counter() < deadline:
-                time.sleep(0.0002)
-            settled = -1
-            while time.perf_counter() < deadline:  # the receive thread has taken every frame sent
-                pending = self._drive_bus_backlog()
-                if pending == 0 and settled == 0:
-                    break
-                settled = pending
-                time.sleep(0.0002)
+            with self._answered:
+                self._answered.wait_for(lambda: self._cycle_answered(master.syncs), _ANSWER_WITHIN_S)
             self.rig_wait_s = time.perf_counter() - began  # the rig's own pacing: not the backend's time
         return super().read()
 
-    def _drive_bus_backlog(self) -> int:
-        """Frames the master's handle has not taken yet (its queue on the virtual bus)."""
-        bus = self._given_bus
-        return 0 if bus is None else bus.queue.qsize()
+    def _cycle_answered(self, syncs: int) -> bool:
+        """The drives processed ``syncs`` SYNCs, and everything they sent since (their answers) is stored."""
+        master_bus, drive_bus = self._master_bus, self._drive_bus
+        if master_bus is None or drive_bus is None:
+            return True
+        # the SYNC count first: the frames the drives sent for those SYNCs are in ``sent`` read after it
+        return self.drives.syncs >= syncs and master_bus.stored >= drive_bus.sent
 
     def write(self, command: Command) -> None:
-        self._last_write_s = time.perf_counter()
         self._written = True
         super().write(command)
 
@@ -135,4 +202,4 @@ class CanOnSimulatedDrives(CanHal):
         for bus in (self._given_bus, self._drive_bus):
             if bus is not None:
                 bus.shutdown()
-        self._given_bus = self._drive_bus = None
+        self._given_bus = self._master_bus = self._drive_bus = None

@@ -324,7 +324,9 @@ class CanHal(Hal):
         return ListenedFrames(bus, now)  # type: ignore[arg-type]
 
     def _make_master(self, bus: can.BusABC, source: FrameSource, now: object) -> CanMaster:
-        return CanMaster(bus, source, self.profiles, self.settings(), now, wait=time.sleep, traffic=self._traffic)  # type: ignore[arg-type]
+        # Start-up waits for the drives' answers woken by the frame that arrives, not polling on a sleep.
+        wait = source.wait if isinstance(source, ListenedFrames) else time.sleep
+        return CanMaster(bus, source, self.profiles, self.settings(), now, wait=wait, traffic=self._traffic)  # type: ignore[arg-type]
 
     def close(self) -> None:
         """Torque off, every drive to pre-operational, the receive thread stopped, the bus closed. Safe twice.

@@ -8,7 +8,9 @@ Two ways to receive, one interface (:class:`FrameSource`): drain what arrived si
   slow tick does not let the controller's buffer overflow). Its listener only stores the COB-ID,
   the bytes and the time the frame was received; an exception in the receive thread (python-can
   ends the thread on one) is latched and raised by the next drain, so the tick learns of it at
-  once instead of reading an empty bus forever.
+  once instead of reading an empty bus forever. Start-up (outside the tick) waits for answers
+  with :meth:`ListenedFrames.wait`, woken by the frame that arrives rather than polling; the tick
+  never waits (the listener sets the waiter's event only while a start-up waits).
 
 A frame's time is the interface's receive time (``msg.timestamp``: socketcan's kernel stamp,
 SO_TIMESTAMPNS), put on the master's clock by its age (:class:`ReceiveClock`, D153), so that the
@@ -178,12 +180,20 @@ class _StoringListener(can.Listener):
         self._clock = clock
         self._error_frames = error_frames
         self.failures = 0
+        #: Set after each frame or failure stored while a start-up waits (:meth:`ListenedFrames.wait`); None
+        #: otherwise (the tick: one attribute read a frame, no lock).
+        self.waiter: threading.Event | None = None
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
             self._error_frames.append((msg.arbitration_id, bytes(msg.data)))
         elif not (msg.is_remote_frame or msg.is_extended_id):
             self._frames.append((msg.arbitration_id, bytes(msg.data), self._clock(msg.timestamp)))
+        else:
+            return
+        waiter = self.waiter  # read after the append: a waiter that missed the frame in its check is woken
+        if waiter is not None:
+            waiter.set()
 
     def on_error(self, exc: Exception) -> None:
         # Latched (the first one; the tick raises it) and handled, so python-can keeps the thread
@@ -191,6 +201,9 @@ class _StoringListener(can.Listener):
         # once, forever: a pause bounds that spin to a hundred tries a second.
         if not self._errors:
             self._errors.append(exc)
+        waiter = self.waiter
+        if waiter is not None:
+            waiter.set()
         self.failures += 1
         time.sleep(0.01)
 
@@ -210,9 +223,32 @@ class ListenedFrames(FrameSource):
         self._failures: list[BaseException] = []
         self._errors: deque[tuple[int, bytes]] = deque()
         self.clock = ReceiveClock(now, wall)
-        listener = _StoringListener(self._frames, self._failures, self.clock, self._errors)
-        self._notifier = can.Notifier(bus, [listener], timeout=0.05)
+        self._listener = _StoringListener(self._frames, self._failures, self.clock, self._errors)
+        self._notifier = can.Notifier(bus, [self._listener], timeout=0.05)
         self._reported = False
+        self._arrived = threading.Event()
+
+    def wait(self, timeout_s: float) -> float:
+        """Start-up only: wait until a frame (or an error frame, or a failure of the receive thread) is
+        stored, at most ``timeout_s``; the time waited, s.
+
+        Returns at once when a frame the last :meth:`drain` did not take, or a failure it did not raise,
+        is already there. The master's start-up waits with it between its polls (the ``wait`` of
+        :class:`hal.canopen.master.CanMaster`): woken by the answer it waits for instead of sleeping a
+        fixed step, and counting the time it really waited against its timeouts. Never called in the
+        tick (it would block it).
+        """
+        began = time.monotonic()
+        arrived = self._arrived
+        arrived.clear()
+        self._listener.waiter = arrived  # from now on a stored frame sets it: checked below, then waited for
+        try:
+            if self._frames or (not self._reported and (self._failures or self._notifier.exception is not None)):
+                return 0.0  # for the next drain (error frames are not what a start-up waits for: no early return)
+            arrived.wait(timeout_s)
+        finally:
+            self._listener.waiter = None
+        return time.monotonic() - began
 
     def drain(self) -> list[Frame]:
         frames = []

@@ -231,7 +231,10 @@ class CanMaster:
         now: the master's clock, s (robot time on a simulated bus, wall time since open on hardware).
         pump: called after the master sent frames, before it expects answers (lock-step simulated
             drives process the bus then; None on hardware).
-        wait: how start-up waits for answers between polls (``time.sleep`` on hardware).
+        wait: how start-up waits for answers between polls, given the longest wait in s: ``time.sleep``,
+            or on hardware the frame source's :meth:`hal.canopen.bus.ListenedFrames.wait`, which returns
+            as soon as a frame arrives and says how long it waited (s; None: the whole time asked, as a
+            sleep): the start-up's timeouts count the time waited.
         traffic: the bus log (None: no log).
         transmit: puts one frame on the bus: ``(COB-ID, data, the master's time s)``; None: a
             :class:`can.Message` to ``bus.send`` (hardware). Lock-step over simulated drives gives
@@ -250,7 +253,7 @@ class CanMaster:
         settings: MasterSettings,
         now: Callable[[], float],
         pump: Callable[[], None] | None = None,
-        wait: Callable[[float], None] | None = None,
+        wait: Callable[[float], float | None] | None = None,
         traffic: TrafficLog | None = None,
         transmit: Callable[[int, bytes, float], None] | None = None,
     ) -> None:
@@ -484,8 +487,8 @@ class CanMaster:
                 return
             if waited >= timeout_s:
                 raise HalError(f"CAN bus: {missing()} within {timeout_s:g} s{self.health.note()}")
-            self._wait(step)
-            waited += step
+            slept = self._wait(step)  # on hardware: until the next frame arrives, at most the step
+            waited += step if slept is None else slept
             if cyclic and self._now() - self._last_sync_s >= self.settings.period_s:
                 self._send_heartbeat_if_due()
                 self._sync()
@@ -570,10 +573,14 @@ class CanMaster:
         return writes
 
     def _run_sdo(self) -> None:
-        """Start-up only: run the SDO client until every queued transfer is done (failures are judged by the caller)."""
+        """Start-up only: run the SDO client until every queued transfer is done (failures are judged by the caller).
+
+        On hardware it waits only while nothing arrives (until the next frame, at most 0.5 ms): an answer
+        taken lets that drive's next request go at once, as the SDO timeouts run on the master's clock.
+        """
         waited = 0.0
         # On a simulated bus (a pump) robot time stands still while nothing is synchronised, so the SDO
-        # timeouts count the time waited here; on hardware the master's clock runs by itself.
+        # timeouts count the time waited here, 0.5 ms a pass; on hardware the master's clock runs by itself.
         virtual = self._pump is not None
         while self.sdo.busy:
             for cob_id, data in self.sdo.frames_due(self._now() + waited if virtual else self._now()):
@@ -586,9 +593,13 @@ class CanMaster:
                 node_id = cob_id - SDO_RESPONSE_BASE
                 if node_id in self._by_node:
                     self.sdo.on_response(node_id, data)
-            if self.sdo.busy:
+            if not self.sdo.busy:
+                return
+            if virtual:
                 self._wait(0.0005)
                 waited += 0.0005
+            elif not frames:
+                self._wait(0.0005)  # ListenedFrames.wait: until the next frame arrives
 
     def _check_configuration(self, drives: list[_Drive]) -> None:
         """Every drive is a CiA 402 drive with the robot file's mode, identity and units and keeps what was written.
