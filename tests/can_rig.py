@@ -18,6 +18,7 @@ does pace the ticks, opens the rig with ``paced=False``).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import threading
 import time
@@ -26,15 +27,44 @@ import can
 import numpy as np
 
 from hal.canopen.backend import CanHal
+from hal.canopen.profile import DriveProfile, resolve_profiles
 from hal.canopen.sim.bus import SimulationBus
 from hal.canopen.sim.drives import SimulatedDriveSet
 from hal.canopen.sim.world import CanSimWorld
 from hal.config import CanHalConfig
 from hal.interface import Command, Sample
+from hal.robot import RobotDescription, load_description
 from hal.sim.backend import SimHal
-from hal.sim.scenario import load_scenario
+from hal.sim.scenario import Scenario, load_scenario
 
 _CHANNELS = itertools.count(1)
+
+
+# What a rig is built from, read once a process: frozen models and the EDS's read-only dictionary (a rig
+# is made for each of the contract's random sequences: reading the YAML and EDS files again was ~30 ms each).
+@functools.cache
+def _plant_scenario(name: str) -> Scenario:
+    """The scenario's plant, its encoders not quantised (the drives quantise, in the units of their EDS)."""
+    scenario = load_scenario(name)
+    return scenario.model_copy(update={"sensors": scenario.sensors.model_copy(update={"quantise": False})})
+
+
+@functools.cache
+def _description() -> RobotDescription:
+    return load_description()
+
+
+_PROFILES: dict[tuple[str, float], tuple[DriveProfile, ...]] = {}
+
+
+def _profiles(settings: CanHalConfig, spring_k_nm_per_rad: float) -> tuple[DriveProfile, ...]:
+    """The drives of ``settings`` (:func:`resolve_profiles`), resolved once for every rig configured alike."""
+    key = (settings.model_copy(update={"channel": ""}).model_dump_json(), spring_k_nm_per_rad)
+    if key not in _PROFILES:
+        _PROFILES[key] = resolve_profiles(settings, spring_k_nm_per_rad)
+    return _PROFILES[key]
+
+
 #: The longest a read waits for the drives' thread and the receive thread (a loaded test machine), s.
 _ANSWER_WITHIN_S = 0.5
 
@@ -81,16 +111,17 @@ class _MasterBus(SimulationBus):
 class _ThreadedDrives(SimulatedDriveSet):
     """``can-sim``'s drives serving from their thread, saying when they processed the bus (for the rig's wait)."""
 
-    def __init__(self, *args: object, answered: threading.Condition) -> None:
+    def __init__(self, *args: object, answered: threading.Condition | None) -> None:
         super().__init__(*args)  # type: ignore[arg-type]
-        self._answered = answered
+        self._answered = answered  # None: nobody waits (a rig paced by a real-time clock)
 
     def step(self) -> None:
         try:
             super().step()
         finally:
-            with self._answered:
-                self._answered.notify_all()
+            if self._answered is not None:
+                with self._answered:
+                    self._answered.notify_all()
 
     def stop_thread(self) -> None:
         """As :class:`SimulatedDriveSet`'s, the thread woken at once (its blocking receive waits up to 5 ms)."""
@@ -114,20 +145,19 @@ class CanOnSimulatedDrives(CanHal):
     def __init__(self, scenario: str = "exo_dummy_arm", paced: bool = True, **config: object) -> None:
         self._paced = paced  # False: a real-time clock paces the reads (a loop on RealTimeClock)
         self._channel = f"can-rig-{next(_CHANNELS)}"
-        plant_scenario = load_scenario(scenario)
-        plant_scenario = plant_scenario.model_copy(
-            update={"sensors": plant_scenario.sensors.model_copy(update={"quantise": False})}
-        )
         settings = CanHalConfig(interface="virtual", channel=self._channel, **config)  # type: ignore[arg-type]
-        super().__init__(settings)
-        self._plant = SimHal(plant_scenario, self.rate_hz, self.description)
-        self._drive_bus: _DriveBus | None = None
+        description = _description()
+        profiles = _profiles(settings, description.sea.spring_stiffness_nm_per_rad)
+        super().__init__(settings, description, profiles=profiles)
+        self._plant = SimHal(_plant_scenario(scenario), self.rate_hz, self.description)
+        self._drive_bus: SimulationBus | None = None
         #: Notified by the drives' thread after each pass over the bus and by the master's receive thread
         #: after each frame it stored (the rig's wait in :meth:`read`).
         self._answered = threading.Condition()
-        self._master_bus: _MasterBus | None = None  # the master's handle (the backend's given bus) while open
+        #: The master's handle and the drives', counting what they carry, while open (a rig that waits: paced).
+        self._counting: tuple[_MasterBus, _DriveBus] | None = None
         self.drives = _ThreadedDrives(
-            None, self._plant, self.profiles, settings.master_node_id, answered=self._answered
+            None, self._plant, self.profiles, settings.master_node_id, answered=self._answered if paced else None
         )
         self._world = CanSimWorld(self._plant.world, self.drives)
         self._written = False
@@ -146,10 +176,13 @@ class CanOnSimulatedDrives(CanHal):
         """Both bus handles new, the drives switched on and serving from their thread, then the master's start-up."""
         if self._is_open:
             self.close()
-        self._given_bus = self._master_bus = _MasterBus(
-            channel=self._channel, preserve_timestamps=True, answered=self._answered
-        )
-        self._drive_bus = _DriveBus(channel=self._channel, preserve_timestamps=True)
+        if self._paced:
+            master_bus = _MasterBus(channel=self._channel, preserve_timestamps=True, answered=self._answered)
+            drive_bus = _DriveBus(channel=self._channel, preserve_timestamps=True)
+            self._given_bus, self._drive_bus, self._counting = master_bus, drive_bus, (master_bus, drive_bus)
+        else:  # nothing counted: the benchmark's threads carry no more than the backend's
+            self._given_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
+            self._drive_bus = SimulationBus(channel=self._channel, preserve_timestamps=True)
         self.drives.attach(self._drive_bus)
         self.drives.power_on()
         started = time.monotonic()
@@ -180,9 +213,9 @@ class CanOnSimulatedDrives(CanHal):
 
     def _cycle_answered(self, syncs: int) -> bool:
         """The drives processed ``syncs`` SYNCs, and everything they sent since (their answers) is stored."""
-        master_bus, drive_bus = self._master_bus, self._drive_bus
-        if master_bus is None or drive_bus is None:
+        if self._counting is None:
             return True
+        master_bus, drive_bus = self._counting
         # the SYNC count first: the frames the drives sent for those SYNCs are in ``sent`` read after it
         return self.drives.syncs >= syncs and master_bus.stored >= drive_bus.sent
 
@@ -202,4 +235,4 @@ class CanOnSimulatedDrives(CanHal):
         for bus in (self._given_bus, self._drive_bus):
             if bus is not None:
                 bus.shutdown()
-        self._given_bus = self._master_bus = self._drive_bus = None
+        self._given_bus = self._drive_bus = self._counting = None
