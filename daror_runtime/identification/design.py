@@ -438,6 +438,42 @@ def _protocol_of(visits: list[tuple[FloatArray, float, int]], shoulder: Shoulder
     return out
 
 
+#: Candidate sets of recent designs, by their inputs: a study designs one pilot's limits for many budgets.
+_CANDIDATES: dict[tuple[str, str, int, int, float, float, float | None], Candidates] = {}
+_CANDIDATES_KEPT = 4
+
+
+def _candidates(
+    description: RobotDescription, shoulder: Shoulder, limits: IsbLimits, settings: DesignSettings, via: float | None
+) -> Candidates:
+    """:func:`candidate_poses` of the design's inputs, drawn once a process for the same inputs.
+
+    The candidates depend on the robot, the limits and the sampling settings alone, not on the
+    budget; the arrays of a kept set are made read-only, so no design can change another's.
+    """
+    key = (
+        description.model_dump_json(),
+        limits.model_dump_json(),
+        settings.candidates,
+        settings.seed,
+        settings.margin_deg,
+        settings.min_sigma,
+        via,
+    )
+    found = _CANDIDATES.get(key)
+    if found is None:
+        found = candidate_poses(
+            shoulder, limits, settings.candidates, settings.seed, settings.margin_deg, settings.min_sigma, via
+        )
+        for array in (found.isb, found.q, found.via_up_q, found.via_down_q, found.via_up_isb, found.via_down_isb):
+            if array is not None:
+                array.setflags(write=False)
+        if len(_CANDIDATES) >= _CANDIDATES_KEPT:
+            del _CANDIDATES[next(iter(_CANDIDATES))]
+        _CANDIDATES[key] = found
+    return found
+
+
 def design_protocol(
     budget_s: float,
     limits: IsbLimits | None = None,
@@ -482,9 +518,7 @@ def design_protocol(
     except UnreachablePoseError as exc:
         raise DesignError(f"the start pose: {exc}") from None
     via = settings.via_deg if settings.approach == "both" else None
-    candidates = candidate_poses(
-        shoulder, limits, settings.candidates, settings.seed, settings.margin_deg, settings.min_sigma, via
-    )
+    candidates = _candidates(description, shoulder, limits, settings, via)
     if len(candidates) < 2:
         raise DesignError(
             f"only {len(candidates)} of {candidates.sampled} sampled poses inside the pilot's ISB limits are reachable "

@@ -17,13 +17,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+import numpy.typing as npt
 
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.identification.trajectory_planning import MIN_JERK_PEAK, TrajectorySettings
 from hal.isb import IsbLimits, Shoulder, UnreachablePoseError
 from hal.robot import FloatArray
+
+IntArray = npt.NDArray[np.intp]
+BoolArray = npt.NDArray[np.bool_]
 
 __all__ = ["RouteTimes", "geodesic_leaves_limits", "improve_tour", "insertion_costs", "rotation_angles"]
 
@@ -103,6 +108,20 @@ def insertion_costs(times: RouteTimes, tour: list[int], candidates: FloatArray) 
     return stacked[best, np.arange(c.size)] + times.visit[c], best
 
 
+@lru_cache(maxsize=256)
+def _reversal_index(n: int) -> tuple[IntArray, IntArray, IntArray, IntArray, BoolArray, BoolArray]:
+    """The positions every 2-opt reversal of an ``n``-pose tour reads (arrays shared: read-only).
+
+    Returns ``i``, ``k`` (``np.triu_indices(n, 1)``), ``max(i - 1, 0)``, ``min(k + 1, n - 1)``,
+    ``i > 0`` and ``k >= n - 1``; they depend on ``n`` alone, and a tour is improved many times.
+    """
+    i, k = np.triu_indices(n, 1)
+    out = (i, k, np.maximum(i - 1, 0), np.minimum(k + 1, n - 1), i > 0, k >= n - 1)
+    for array in out:
+        array.setflags(write=False)
+    return out
+
+
 def _best_reversal(times: RouteTimes, tour: FloatArray) -> tuple[float, int, int]:
     """The 2-opt move (reverse ``tour[i..k]``) that saves the most time: (saving s, i, k).
 
@@ -113,15 +132,43 @@ def _best_reversal(times: RouteTimes, tour: FloatArray) -> tuple[float, int, int
     b, t = times.between, tour
     forward = np.concatenate([[0.0], np.cumsum(b[t[:-1], t[1:]])])  # forward[j]: edges 0..j-1
     backward = np.concatenate([[0.0], np.cumsum(b[t[1:], t[:-1]])])
-    i, k = np.triu_indices(n, 1)
-    into_old = np.where(i > 0, b[t[np.maximum(i - 1, 0)], t[i]], times.start[t[i]])
-    into_new = np.where(i > 0, b[t[np.maximum(i - 1, 0)], t[k]], times.start[t[k]])
-    last = k >= n - 1
-    out_old = np.where(last, 0.0, b[t[k], t[np.minimum(k + 1, n - 1)]])
-    out_new = np.where(last, 0.0, b[t[i], t[np.minimum(k + 1, n - 1)]])
+    i, k, before_i, after_k, inner, last = _reversal_index(n)
+    t_before, t_i, t_k, t_after = t[before_i], t[i], t[k], t[after_k]
+    into_old = np.where(inner, b[t_before, t_i], times.start[t_i])
+    into_new = np.where(inner, b[t_before, t_k], times.start[t_k])
+    out_old = np.where(last, 0.0, b[t_k, t_after])
+    out_new = np.where(last, 0.0, b[t_i, t_after])
     saving = (into_old + out_old + forward[k] - forward[i]) - (into_new + out_new + backward[k] - backward[i])
     best = int(np.argmax(saving))
     return float(saving[best]), int(i[best]), int(k[best])
+
+
+@lru_cache(maxsize=256)
+def _relocation_index(n: int) -> tuple[IntArray, ...]:
+    """The positions every relocation in an ``n``-pose tour reads (arrays shared: read-only).
+
+    Returns, for positions ``p = 0..n-1``: ``p``, ``p < n - 1``, ``min(p + 1, n - 1)``,
+    ``max(p - 1, 0)``, ``p > 0``; for gaps ``g = 0..n``: ``max(g - 1, 0)``, ``min(g, n - 1)``,
+    ``g > 0`` (1, n + 1), ``g < n`` (1, n + 1), ``g < n``, ``g > 0``.
+    """
+    position = np.arange(n)
+    gap = np.arange(n + 1)
+    out = (
+        position,
+        position < n - 1,
+        np.minimum(position + 1, n - 1),
+        np.maximum(position - 1, 0),
+        position > 0,
+        np.maximum(gap - 1, 0),
+        np.minimum(gap, n - 1),
+        gap[None, :] > 0,
+        gap[None, :] < n,
+        gap < n,
+        gap > 0,
+    )
+    for array in out:
+        array.setflags(write=False)
+    return out
 
 
 def _best_relocation(times: RouteTimes, tour: FloatArray) -> tuple[float, int, int]:
@@ -132,20 +179,21 @@ def _best_relocation(times: RouteTimes, tour: FloatArray) -> tuple[float, int, i
     """
     n = tour.size
     b, t = times.between, tour
-    position = np.arange(n)
-    has_next = position < n - 1
-    nxt = t[np.minimum(position + 1, n - 1)]
-    into = np.where(position > 0, b[t[np.maximum(position - 1, 0)], t], times.start[t])
+    position, has_next, next_p, previous_p, not_first, before_g, after_g, gap_inner, gap_not_end, not_end, inner = (
+        _relocation_index(n)
+    )
+    nxt = t[next_p]
+    t_previous = t[previous_p]
+    into = np.where(not_first, b[t_previous, t], times.start[t])
     out = np.where(has_next, b[t, nxt], 0.0)
-    bridge = np.where(has_next, np.where(position > 0, b[t[np.maximum(position - 1, 0)], nxt], times.start[nxt]), 0.0)
+    bridge = np.where(has_next, np.where(not_first, b[t_previous, nxt], times.start[nxt]), 0.0)
     removal = into + out - bridge  # (n,)
-    gap = np.arange(n + 1)
-    before = t[np.maximum(gap - 1, 0)]
-    after = t[np.minimum(gap, n - 1)]
+    before = t[before_g]
+    after = t[after_g]
     # add[x, g]: pose x put into gap g
-    to_x = np.where(gap[None, :] > 0, b[before][:, t].T, times.start[t][:, None])
-    from_x = np.where(gap[None, :] < n, b[t][:, after], 0.0)
-    old = np.where(gap < n, np.where(gap > 0, b[before, after], times.start[after]), 0.0)
+    to_x = np.where(gap_inner, b[before][:, t].T, times.start[t][:, None])
+    from_x = np.where(gap_not_end, b[t][:, after], 0.0)
+    old = np.where(not_end, np.where(inner, b[before, after], times.start[after]), 0.0)
     add = to_x + from_x - old[None, :]
     saving = removal[:, None] - add
     saving[position, position] = -np.inf  # its own place
