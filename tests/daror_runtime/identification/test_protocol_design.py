@@ -14,7 +14,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -50,6 +52,7 @@ from daror_runtime.models.least_squares import min_norm_least_squares
 from daror_runtime.models.linear import APModel
 from daror_runtime.models.registry import fit_model, installation_options
 from daror_runtime.session.identification import prepare_run, session_waypoints
+from daror_runtime.studies import protocol_study
 from daror_runtime.studies.protocol_study import ProtocolStudyResult, run_protocol_study
 from hal.isb import IsbLimits, Shoulder, UnreachablePoseError
 from hal.robot import RobotDescription
@@ -73,20 +76,43 @@ def limits_of(**ranges: tuple[float, float]) -> IsbLimits:
 # --- acceptance: three scenarios, closed loop ----------------------------------------------------
 
 
+class _Once:
+    """``function``'s result for arguments equal to an earlier call's is that call's result (made once)."""
+
+    def __init__(self, function: Callable[..., Any]) -> None:
+        self.function = function
+        self.made: list[tuple[tuple[Any, ...], dict[str, Any], Any]] = []
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        for made_args, made_kwargs, result in self.made:
+            if made_args == args and made_kwargs == kwargs:
+                return result
+        result = self.function(*args, **kwargs)
+        self.made.append((args, kwargs, result))
+        return result
+
+
 @pytest.fixture(scope="module")
 def studies(description: RobotDescription) -> dict[str, ProtocolStudyResult]:
+    # The three plants share the robot and the limits, so each study plans the same full protocol
+    # (training and validation trajectories) and designs the same protocol: planned once (the
+    # study's own functions, their results handed out again for equal arguments: both are pure),
+    # then run in closed loop on every plant as before.
     out = {}
-    for name, dummy_arm in SCENARIOS.items():
-        out[name] = run_protocol_study(
-            name,
-            lambda name=name: SimHal(name),
-            description,
-            APModel.from_description(description, dummy_arm, dummy_arm),
-            dummy_arm,
-            budgets_s=(BUDGET_S,),
-            approaches=("both",),
-            draws=100,
-        )
+    with pytest.MonkeyPatch.context() as patch:
+        for name in ("build_trajectory", "design_protocol"):
+            patch.setattr(protocol_study, name, _Once(getattr(protocol_study, name)))
+        for name, dummy_arm in SCENARIOS.items():
+            out[name] = run_protocol_study(
+                name,
+                lambda name=name: SimHal(name),
+                description,
+                APModel.from_description(description, dummy_arm, dummy_arm),
+                dummy_arm,
+                budgets_s=(BUDGET_S,),
+                approaches=("both",),
+                draws=100,
+            )
     return out
 
 
