@@ -27,6 +27,7 @@ identification protocol uses.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -189,6 +190,11 @@ TABLE_SIGNATURE = (
 )
 
 
+# Memoised: a pure function of its numbers, evaluated 192 times by every session's start-up (the gains of each
+# position controller checked over the inertia, gravity and margin cases), ~33 distinct cases in all. The
+# scipy expm of a 5 x 5 matrix costs 0.1 ms alone and up to 10 ms when OpenBLAS threads compete for a busy
+# machine's cores: 0.2-2 s a session built, now once a process.
+@functools.lru_cache(maxsize=1024)
 def motor_loop_spectral_radius(
     kp: float,
     kd: float,
