@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from collections.abc import Iterator
+import pickle
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -76,10 +77,19 @@ class Rig(Session):
 
     def lap_clear(self) -> bool:
         """True when the pilot's lap (under the rest pose) does not touch the arm where it is now."""
-        rest = self.core.rest_q_rad
+        return self.lap_clear_check()()
+
+    def lap_clear_check(self) -> Callable[[], bool]:
+        """:meth:`lap_clear` as a check polled after every tick: the rest pose and the side gravity pulls it to
+        (the plant's holding torque there: fixed while no support is placed) are read once, the arm each call."""
+        rest = self.core.rest_q_rad.copy()
         pulled = np.sign(self.hal.plant.holding_torque_nm(rest))  # +: gravity pulls the joint below its rest angle
-        q = self.hal.truth().q_rad
-        return bool(np.all(pulled * (q - rest) > 0.01))
+        plant = self.hal.plant
+
+        def clear() -> bool:
+            return bool(np.all(pulled * (plant.q_rad - rest) > 0.01))
+
+        return clear
 
     def lap_at_rest(self) -> None:
         """The pilot's lap under the rest pose of the settings (what the lowering hands the arm to), clear of the arm."""
@@ -111,22 +121,36 @@ class Trace:
 
 
 def record(rig: Rig, seconds: float, until_released: bool = False, until_fault: bool = False) -> Trace:
-    """Ticks for ``seconds`` (or until the reaction released the arm, or until a fault is latched): the truth."""
+    """Ticks for ``seconds`` (or until the reaction released the arm, or until a fault is latched): the truth.
+
+    Called after every tick, so it reads only what the trace keeps: the plant's q and dq (not the whole
+    ``hal.truth()``, five copies and the spring torque), and the stop condition picked once.
+    """
     hal, runtime, monitor = rig.hal, rig.runtime, rig.core.monitor
+    plant = hal.plant  # the plant's truth (its time, synced by this property, is not read here)
     q, dq, t, enable, applied = [], [], [], [], []
 
-    def row(result: Any) -> bool:
-        truth = hal.truth()
-        q.append(truth.q_rad)
-        dq.append(truth.dq_rad_s)
+    def row(result: Any) -> None:
+        q.append(plant.q_rad)
+        dq.append(plant.dq_rad_s)
         t.append(hal.time_s)
         enable.append(1.0 if result.command.enable else 0.0)
         applied.append(hal.applied_motor_torque_nm)
-        if until_fault:
-            return monitor.faulted
-        return until_released and not runtime.arm_held and len(t) > 10
 
-    runtime.runner.run_ticks(round(seconds * 1000), stop=row)
+    def until_fault_row(result: Any) -> bool:
+        row(result)
+        return monitor.faulted
+
+    def until_released_row(result: Any) -> bool:
+        row(result)
+        return not runtime.arm_held and len(t) > 10
+
+    def every_row(result: Any) -> bool:
+        row(result)
+        return False
+
+    stop = until_fault_row if until_fault else until_released_row if until_released else every_row
+    runtime.runner.run_ticks(round(seconds * 1000), stop=stop)
     return Trace(np.array(q), np.array(dq), np.array(t), np.array(enable), np.array(applied))
 
 
@@ -184,7 +208,8 @@ def walk_and_limp(rig: Rig, state: str, models: Models) -> None:
         runtime.runner.pass_time(
             20.0
         )  # the protocol moves the arm away from its rest: the fault at a stop clear of the lap
-        assert runtime.runner.run_until(lambda: runtime.at_rest and rig.lap_clear(), 60.0)
+        lap_clear = rig.lap_clear_check()
+        assert runtime.runner.run_until(lambda: runtime.at_rest and lap_clear(), 60.0)
         rig.lap_at_rest()  # (not before: the protocol's poses would run into it)
         return
     # Limp long enough for an arm under the A Priori model (operative_check) to have come to its walls.
@@ -192,6 +217,33 @@ def walk_and_limp(rig: Rig, state: str, models: Models) -> None:
 
 
 STATES = ("compensation", "operative_check", "identification")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _identification_trajectory_built_once() -> Iterator[None]:
+    """The identification's training trajectory, planned once for the module (1-3 s each time).
+
+    ``build_trajectory`` is a pure function of its arguments (the waypoints, the settings, the pilot's
+    limits, the robot): the sessions of this module all ask for the same one, and the run's reference is
+    made from it by ``prepend_approach``, which only reads it (new arrays: the approach from where the arm
+    is, planned each time as before; the run's controller, cursor and recorder are the run's own). A call
+    with other arguments plans anew. (Its arrays stay writeable: a read-only array is another type to the
+    compiled kernels, which would compile anew.)
+    """
+    from daror_runtime.session import identification
+
+    plan = identification.build_trajectory
+    planned: dict[bytes, Any] = {}
+
+    def build_trajectory(*args: Any, **kwargs: Any) -> Any:
+        key = pickle.dumps((args, kwargs))
+        if key not in planned:
+            planned[key] = plan(*args, **kwargs)
+        return planned[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(identification, "build_trajectory", build_trajectory)
+        yield
 
 
 @pytest.fixture
