@@ -22,6 +22,7 @@ elbow beyond its range), as tests/daror_runtime/session/test_session_loop.py doe
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import io
 import pickle
@@ -35,6 +36,7 @@ from rich.console import Console
 
 from daror_runtime.console.commands import CommandError, ConsoleSession, QuitRequested
 from daror_runtime.console.world import SimWorld
+from daror_runtime.control.position import LinkBounds
 from daror_runtime.control.safe_stop import SafeStopPhase
 from daror_runtime.fsm.spec import load_fsm_spec
 from daror_runtime.runtime import Runtime
@@ -243,6 +245,28 @@ def _identification_trajectory_built_once() -> Iterator[None]:
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(identification, "build_trajectory", build_trajectory)
+        yield
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _link_bounds_derived_once() -> Iterator[None]:
+    """``LinkBounds.from_description`` (2000 sampled poses, 0.1-0.2 s), derived once a module per robot.
+
+    A pure function of the description and its arguments (a seeded sample): every session of the module
+    derives the same bounds 2-3 times (its controllers, its safe stop, an identification run). Each
+    caller gets its own copy, as before.
+    """
+    derive = LinkBounds.from_description
+    derived: dict[bytes, LinkBounds] = {}
+
+    def from_description(cls: type[LinkBounds], description: Any, *args: Any, **kwargs: Any) -> LinkBounds:
+        key = pickle.dumps((description, args, kwargs))
+        if key not in derived:
+            derived[key] = derive(description, *args, **kwargs)
+        return copy.deepcopy(derived[key])
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(LinkBounds, "from_description", classmethod(from_description))
         yield
 
 
