@@ -123,24 +123,26 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
     return files
 
 
-#: Seconds the longest files took in one run of the whole suite on two workers (2026-11-28, load 5-8;
-#: the sum of their tests over 2.4 s, from ``pytest -n 2 --durations=150``). A scheduling hint only:
-#: a stale figure costs balance, never a result.
+#: Seconds the longest files took in one run of the whole suite on two workers (2026-11-29, load ~2;
+#: the sum of each file's tests, from ``pytest -n 2 --dist loadfile --junitxml``). A scheduling hint
+#: only: a stale figure costs balance, never a result.
 LONG_FILES_S = {
-    "test_hazard_mutations.py": 232,
-    "test_readme_transcript.py": 191,
-    "test_canopen_robot_golden.py": 186,
-    "test_hal_contract.py": 124,
-    "test_canopen_hil.py": 105,
-    "test_canopen_interop_lockstep.py": 87,
-    "test_protocol_design.py": 74,
-    "test_residual_hysteresis.py": 65,
-    "test_boundaries.py": 57,
-    "test_console_operator.py": 52,
-    "test_loop_batch.py": 37,
-    "test_hpsearch.py": 28,
-    "test_session_safety.py": 27,
-    "test_fault_reactions.py": 26,
+    "test_hazard_mutations.py": 118,
+    "test_readme_transcript.py": 106,
+    "test_canopen_hil.py": 58,
+    "test_canopen_robot_golden.py": 56,
+    "test_residual_hysteresis.py": 47,
+    "test_canopen_interop_lockstep.py": 46,
+    "test_web_console.py": 36,
+    "test_hal_contract.py": 35,
+    "test_fault_reactions.py": 29,
+    "test_hpsearch.py": 29,
+    "test_protocol_design.py": 28,
+    "test_console_operator.py": 25,
+    "test_neural.py": 24,
+    "test_residual_learned.py": 19,
+    "test_session_safety.py": 15,
+    "test_boundaries.py": 14,
 }
 
 
