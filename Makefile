@@ -23,9 +23,10 @@ KERNELS = scratch=$$(mktemp -d) && $(BIN)/daror --log-level error identify --sce
 # The project and its dependencies into the venv: with uv where it can be installed (the same
 # resolution and wheels as pip, downloaded in parallel and compiled to bytecode over both cores:
 # 33 s against pip's 55 s for everything, D193), with pip otherwise (or when uv fails).
+# PACKAGE is set per target below (a comma in an argument of `call` would split it).
 INSTALL = { $(BIN)/python -m pip install --quiet --disable-pip-version-check uv > /dev/null 2>&1 \
-	&& $(BIN)/uv pip install --quiet --python $(BIN)/python --compile-bytecode -e $(1); } \
-	|| $(BIN)/python -m pip install --quiet --disable-pip-version-check -e $(1)
+	&& $(BIN)/uv pip install --quiet --python $(BIN)/python --compile-bytecode -e $(PACKAGE); } \
+	|| $(BIN)/python -m pip install --quiet --disable-pip-version-check -e $(PACKAGE)
 
 # pytest with its rewritten test modules cached (tests/**/__pycache__) whatever the shell says of
 # bytecode: rewriting the asserts of the 108 test modules is half of a collection's 10 s of CPU, paid
@@ -33,8 +34,9 @@ INSTALL = { $(BIN)/python -m pip install --quiet --disable-pip-version-check uv 
 PYTEST = PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 
 # The runtime alone (what `make demo` needs).
+$(VENV)/.installed-base: PACKAGE = .
 $(VENV)/.installed-base: pyproject.toml | $(BIN)/python
-	$(call INSTALL,.)
+	$(INSTALL)
 	$(KERNELS)
 	touch $@
 
@@ -42,8 +44,9 @@ bytecode: $(VENV)/.installed-base
 	$(BYTECODE)
 
 # Everything, optional extras included (what `make test` and `make bench` need).
+$(VENV)/.installed-all: PACKAGE = '.[nn,can,dev,ray,web]'
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(call INSTALL,'.[nn,can,dev,ray,web]')
+	$(INSTALL)
 	$(KERNELS)
 	touch $@ $(VENV)/.installed-base
 
