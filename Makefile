@@ -13,12 +13,16 @@ BYTECODE = $(BIN)/python -m compileall -q daror_runtime hal
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-# The compiled kernels of a lock-step run (numba's cache, beside the sources), compiled at install as
-# the bytecode is: the identification's validation trajectory run once in a scratch folder (~17 s,
-# of which ~13 s compiling the 34 kernels a run loads). The first `daror identify` after install then
-# runs warm: 4.7-5.0 s instead of 18.5 s for the training trajectory (D186).
-KERNELS = scratch=$$(mktemp -d) && $(BIN)/daror --log-level error identify --scenario exo_dummy_arm \
-	--trajectory validation --out $$scratch/kernels.npz > /dev/null && rm -rf $$scratch
+# The compiled kernels (numba's cache, beside the sources), compiled at install as the bytecode is,
+# on both cores: the identification's validation trajectory run once in a scratch folder (~17 s, of
+# which ~13 s compiling the 34 kernels a lock-step run loads) and, beside it, a console session that
+# only starts and quits (~11 s: the session's controllers' kernels, which it loads as it opens). The
+# first `daror identify` after install then runs warm (4.7-5.0 s instead of 18.5 s for the training
+# trajectory, D186), and so does the first session (D197).
+KERNELS = scratch=$$(mktemp -d) && printf 'wait 0.1\nquit\n' > $$scratch/opens.txt \
+	&& { $(BIN)/daror --log-level error console --script $$scratch/opens.txt --out $$scratch/session > /dev/null & \
+	session=$$!; $(BIN)/daror --log-level error identify --scenario exo_dummy_arm --trajectory validation \
+	--out $$scratch/kernels.npz > /dev/null && wait $$session; } && rm -rf $$scratch
 
 # The project and its dependencies into the venv: with uv where it can be installed (the same
 # resolution and wheels as pip, downloaded in parallel and compiled to bytecode over both cores:
