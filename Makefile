@@ -16,13 +16,17 @@ $(BIN)/python:
 # The compiled kernels (numba's cache, beside the sources), compiled at install as the bytecode is,
 # on both cores: the identification's validation trajectory run once in a scratch folder (~17 s, of
 # which ~13 s compiling the 34 kernels a lock-step run loads) and, beside it, a console session that
-# only starts and quits (~11 s: the session's controllers' kernels, which it loads as it opens). The
-# first `daror identify` after install then runs warm (4.7-5.0 s instead of 18.5 s for the training
-# trajectory, D186), and so does the first session (D197).
+# only starts and quits (~11 s: the session's controllers' kernels, which it loads as it opens), then
+# a fit of a dataset read from CSV (the reader's kernels, ~2 s). The first `daror identify` after
+# install then runs warm (4.7-5.0 s instead of 18.5 s for the training trajectory, D186), and so do
+# the first session and the first fit (D197).
+DAROR_QUIET = $(BIN)/daror --log-level error
 KERNELS = scratch=$$(mktemp -d) && printf 'wait 0.1\nquit\n' > $$scratch/opens.txt \
-	&& { $(BIN)/daror --log-level error console --script $$scratch/opens.txt --out $$scratch/session > /dev/null & \
-	session=$$!; $(BIN)/daror --log-level error identify --scenario exo_dummy_arm --trajectory validation \
-	--out $$scratch/kernels.npz > /dev/null && wait $$session; } && rm -rf $$scratch
+	&& { { $(DAROR_QUIET) console --script $$scratch/opens.txt --out $$scratch/session \
+	&& $(DAROR_QUIET) simulate static --scenario exo_dummy_arm --trajectory validation --out $$scratch/v.csv \
+	&& $(DAROR_QUIET) fit plf+ --train $$scratch/v.csv --out $$scratch/plf_plus.json; } > /dev/null & \
+	beside=$$!; $(DAROR_QUIET) identify --scenario exo_dummy_arm --trajectory validation \
+	--out $$scratch/kernels.npz > /dev/null && wait $$beside; } && rm -rf $$scratch
 
 # The project and its dependencies into the venv: with uv where it can be installed (the same
 # resolution and wheels as pip, downloaded in parallel and compiled to bytecode over both cores:
