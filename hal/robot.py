@@ -198,7 +198,26 @@ class RobotDescription(_Strict):
         return np.array([r.upper_rad for r in self.joint_limits])
 
     def kinematics(self) -> Kinematics:
-        return Kinematics(self.geometry)
+        """The forward kinematics of this robot's geometry (:class:`Kinematics`).
+
+        Built once a process per geometry and shared by every caller (a description is frozen; a
+        chain is ~0.3 ms to build and some commands ask thousands of times): callers must not change
+        the instance or its arrays (:meth:`Kinematics.with_base_rotation` returns a new one). The
+        key is the geometry's JSON, every number to the bit (``-0.0`` is not ``0.0``).
+        """
+        key = self.geometry.model_dump_json()
+        kinematics = _KINEMATICS_BY_GEOMETRY.get(key)
+        if kinematics is None:
+            if len(_KINEMATICS_BY_GEOMETRY) >= _KINEMATICS_CACHE_SIZE:
+                _KINEMATICS_BY_GEOMETRY.clear()  # bounded: generated geometries (tests) do not pile up
+            kinematics = _KINEMATICS_BY_GEOMETRY[key] = Kinematics(self.geometry)
+        return kinematics
+
+
+#: Geometries whose chain :meth:`RobotDescription.kinematics` keeps at most (then starts afresh).
+_KINEMATICS_CACHE_SIZE = 64
+#: The shared chains, by the geometry's JSON (exact: JSON numbers are the shortest round-trip repr).
+_KINEMATICS_BY_GEOMETRY: dict[str, Kinematics] = {}
 
 
 DEFAULT_DESCRIPTION_FILE = "daror01.yaml"

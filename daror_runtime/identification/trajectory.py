@@ -113,8 +113,9 @@ class ReferenceTrajectory:
     def sample(self, t_s: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Vectorised :meth:`reference`: (N, 4) angles and (N, 4) velocities at times ``t_s`` (N,)."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
-        k = np.clip(np.searchsorted(np.asarray(self._starts), t, side="right") - 1, 0, len(self._starts) - 1)
-        tau = t - np.asarray(self._starts)[k]
+        starts = self._starts_array  # the same float64 values as the list ``_starts``, already an array
+        k = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+        tau = t - starts[k]
         basis = np.stack([np.ones_like(tau), tau, tau * tau, tau * tau * tau], axis=-1)
         out = np.einsum("nrc,nc->nr", self._coefficients[k], basis)
         return out[:, :N_JOINTS], out[:, N_JOINTS:]
