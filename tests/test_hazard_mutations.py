@@ -46,6 +46,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _pytest.config import default_plugins
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "tests" / "hazard_mutations.yaml"
@@ -210,15 +211,22 @@ def environment(copy: Path) -> dict[str, str]:
 
 
 #: What a row's tests import before the repository's code: the zygote imports them once (tests/mutation_zygote.py).
+#: Third-party modules only, each only imported: pydantic's and numba's submodules that a package's import
+#: leaves for later (BaseModel; the CPU target's implementations, loaded with the first cached kernel), the
+#: web console's server and client, and pytest's own plug-ins and what they import (every row loaded them).
 PRELOAD = (
     "numpy", "scipy.linalg", "scipy.signal", "scipy.optimize", "scipy.interpolate", "scipy.integrate", "numba",
     "hypothesis", "hypothesis.strategies", "hypothesis.stateful", "pydantic", "structlog", "yaml", "rich.console",
     "matplotlib", "transitions", "prompt_toolkit", "jsonschema", "can", "canopen", "pytest", "_pytest.assertion.rewrite",
+    "pydantic.main", "pydantic.json_schema", "numba.np.npyimpl", "numba.typed", "numba.experimental.jitclass",
+    "numba.cpython.charseq", "numba.cpython.unicode", "transitions.extensions", "durand",
+    "fastapi", "fastapi.responses", "fastapi.staticfiles", "uvicorn", "websockets.sync.client", "pexpect",
+    *(f"_pytest.{name}" for name in default_plugins), "_hypothesis_pytestplugin", "pdb", "readline",
 )  # fmt: skip
 #: The inner pytest's options: stop at the first failure; no cache, no plug-ins the rows do not use, no addopts;
 #: hypothesis's plug-in module was imported by the zygote, so pytest cannot rewrite its asserts (it says so once).
 PYTEST_ARGS = (
-    "-x", "-q", "-p", "no:cacheprovider", "-p", "no:anyio", "-p", "no:xdist", "-o", "addopts=",
+    "-x", "-q", "-p", "no:cacheprovider", "-p", "no:anyio", "-p", "no:xdist", "-p", "no:xdist.looponfail", "-o", "addopts=",
     "-W", "ignore::pytest.PytestAssertRewriteWarning",
 )  # fmt: skip
 
