@@ -31,6 +31,7 @@ The fast test below keeps docs/safety.md's mutation table, the YAML and the haza
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import re
@@ -125,6 +126,46 @@ def load_rows(path: Path = TABLE) -> list[Row]:
 
 ROWS = load_rows()
 MUTATIONS = [row for row in ROWS if not row.no_code_site]
+
+
+def needs_real_time(test_id: str, root: Path = ROOT) -> bool:
+    """True if the test ``path::name[...]`` (or ``path::Class::name``) is marked ``realtime`` in its source.
+
+    Read from the source, not imported (an import here would skip pytest's assertion rewriting of
+    the module): a module-level ``pytestmark`` or a decorator of the test or its class that names
+    ``mark.realtime``.
+    """
+    path, _, rest = test_id.partition("::")
+    names = [part.split("[", 1)[0] for part in rest.split("::")] if rest else []
+    tree = ast.parse((root / path).read_text(encoding="utf-8"))
+
+    def marked(node: ast.expr) -> bool:
+        return "mark.realtime" in ast.unparse(node)
+
+    for node in tree.body:
+        is_pytestmark = isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "pytestmark" for t in node.targets)
+        if is_pytestmark and marked(node.value):  # type: ignore[union-attr]
+            return True
+    scope: list[ast.stmt] = tree.body
+    for name in names:
+        found = [n for n in scope if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name == name]
+        if not found:
+            return False
+        if any(marked(d) for d in found[0].decorator_list):
+            return True
+        scope = found[0].body if isinstance(found[0], ast.ClassDef) else []
+    return False
+
+
+def _param(row: Row) -> object:
+    """The row as a pytest parameter: marked ``realtime`` when a test it names is.
+
+    Such a test measures the machine's margin first and is skipped without it (tests/conftest.py);
+    a skip in the row's run would make the row fail for the machine's load, not the mutation. Marked,
+    the row runs in the real-time tier, alone, where the margin is there.
+    """
+    marks = [pytest.mark.realtime] if any(needs_real_time(test) for test in row.tests) else []
+    return pytest.param(row, id=row.id, marks=marks)
 
 
 # --- the copy ----------------------------------------------------------------------------------------
@@ -303,7 +344,7 @@ def zygote() -> Iterator[Zygote]:
 
 @pytest.mark.slow
 @pytest.mark.mutation
-@pytest.mark.parametrize("row", MUTATIONS, ids=[row.id for row in MUTATIONS])
+@pytest.mark.parametrize("row", [_param(row) for row in MUTATIONS])
 def test_the_hazards_test_fails_without_its_mitigation(row: Row, tmp_path: Path, zygote: Zygote) -> None:
     copy = copy_tree(tmp_path / "copy")
     mutate(row, copy)
@@ -348,13 +389,20 @@ def test_a_mutation_of_the_copy_is_what_its_tests_run(tmp_path: Path, zygote: Zy
 
 #: The unmutated copy passes these rows' tests: a row's failure is its mutation's, not the copy's.
 CONTROL_SAMPLE = ("H1", "H6", "H8", "H14", "H33")
+#: Their tests.
+CONTROL_TESTS = sorted({t for row in MUTATIONS if row.hazard in CONTROL_SAMPLE for t in row.tests})
+#: In the real-time tier when a sampled test needs real time (as a row is: :func:`_param`).
+CONTROL_MARKS = [pytest.mark.realtime] if any(needs_real_time(t) for t in CONTROL_TESTS) else []
 
 
 @pytest.mark.slow
 @pytest.mark.mutation
-def test_the_unmutated_copy_passes_a_sample_of_the_rows_tests(tmp_path: Path, zygote: Zygote) -> None:
+@pytest.mark.parametrize("sample", [pytest.param(CONTROL_SAMPLE, id="sample", marks=CONTROL_MARKS)])
+def test_the_unmutated_copy_passes_a_sample_of_the_rows_tests(
+    tmp_path: Path, zygote: Zygote, sample: tuple[str, ...]
+) -> None:
     copy = copy_tree(tmp_path / "copy")
-    tests = sorted({t for row in MUTATIONS if row.hazard in CONTROL_SAMPLE for t in row.tests})
+    tests = sorted({t for row in MUTATIONS if row.hazard in sample for t in row.tests})
     assert len(tests) >= len(CONTROL_SAMPLE)
     done = zygote.run(copy, tests)
     assert done.code == 0, done.tail()
@@ -365,6 +413,25 @@ def test_the_unmutated_copy_passes_a_sample_of_the_rows_tests(tmp_path: Path, zy
 
 
 # --- fast: the docs' table, the YAML and the hazards agree ---------------------------------------------
+
+
+def test_a_row_that_names_a_real_time_test_runs_in_the_real_time_tier() -> None:
+    """A module's ``pytestmark`` and a test's decorator are found; a row naming such a test is marked ``realtime``."""
+    assert needs_real_time(
+        "tests/hal/canopen/test_canopen_interop.py::test_start_up_refuses_a_drive_whose_units_are_not_its_eds[not-cia402]"
+    )
+    assert needs_real_time(
+        "tests/hal/canopen/test_canopen_stop_reactions.py::"
+        "test_on_the_hardware_code_path_the_drives_are_configured_and_the_slope_follows"
+    )
+    assert not needs_real_time(
+        "tests/daror_runtime/session/test_session_loop.py::test_full_session_start_to_compensation"
+    )
+    assert not needs_real_time("tests/hal/canopen/test_canopen_stop_reactions.py::no_such_test")
+    marked = {row.id for row in MUTATIONS if _param(row).marks}  # type: ignore[attr-defined]
+    assert "H18-device-type-check" in marked
+    assert marked == {row.id for row in MUTATIONS if any(needs_real_time(t) for t in row.tests)}
+    assert [mark.name for mark in CONTROL_MARKS] == (["realtime"] if any(map(needs_real_time, CONTROL_TESTS)) else [])
 
 
 def _table(markdown: str, heading: str) -> list[list[str]]:
