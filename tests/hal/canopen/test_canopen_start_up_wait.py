@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 import pytest
@@ -82,22 +82,35 @@ def _chatter(bus: can.BusABC, stop: threading.Event) -> None:
         time.sleep(0.0002)
 
 
-def test_the_boot_timeout_counts_the_time_waited_on_a_busy_bus(pair: tuple[can.BusABC, can.BusABC, str]) -> None:
-    """Woken thousands of times a second by frames it does not wait for, the start-up still waits its whole boot timeout."""
+def _open_fails(
+    pair: tuple[can.BusABC, can.BusABC, str],
+    drives_side: Callable[[can.BusABC, threading.Event], None],
+    match: str,
+    at_least_s: float,
+    **config: int,
+) -> None:
+    """``open()`` of a ``CanHal`` with ``config`` raises ``HalError`` matching ``match``, after ``at_least_s`` of wall time,
+    while ``drives_side(bus, stop)`` plays the drives on their own thread."""
     drives, master, channel = pair
-    hal = CanHal(CanHalConfig(interface="virtual", channel=channel, boot_timeout_ms=300), bus=master)
+    hal = CanHal(CanHalConfig(interface="virtual", channel=channel, **config), bus=master)
     stop = threading.Event()
-    chatter = threading.Thread(target=_chatter, args=(drives, stop), daemon=True)
-    chatter.start()
+    thread = threading.Thread(target=drives_side, args=(drives, stop), daemon=True)
+    thread.start()
     try:
         began = time.monotonic()
-        with pytest.raises(HalError, match=r"^CAN bus: no boot-up message from node\(s\) 1, 2, 3, 4 within 0.3 s"):
+        with pytest.raises(HalError, match=match):
             hal.open()
-        assert time.monotonic() - began >= 0.3
+        assert time.monotonic() - began >= at_least_s
     finally:
         stop.set()
-        chatter.join()
+        thread.join()
         hal.close()
+
+
+def test_the_boot_timeout_counts_the_time_waited_on_a_busy_bus(pair: tuple[can.BusABC, can.BusABC, str]) -> None:
+    """Woken thousands of times a second by frames it does not wait for, the start-up still waits its whole boot timeout."""
+    match = r"^CAN bus: no boot-up message from node\(s\) 1, 2, 3, 4 within 0.3 s"
+    _open_fails(pair, _chatter, match, 0.3, boot_timeout_ms=300)
 
 
 def _boot_but_never_answer_sdo(bus: can.BusABC, stop: threading.Event) -> None:
@@ -111,17 +124,5 @@ def _boot_but_never_answer_sdo(bus: can.BusABC, stop: threading.Event) -> None:
 
 
 def test_an_sdo_never_answered_fails_the_start_up_after_its_timeout(pair: tuple[can.BusABC, can.BusABC, str]) -> None:
-    drives, master, channel = pair
-    hal = CanHal(CanHalConfig(interface="virtual", channel=channel, sdo_timeout_ms=200), bus=master)
-    stop = threading.Event()
-    responder = threading.Thread(target=_boot_but_never_answer_sdo, args=(drives, stop), daemon=True)
-    responder.start()
-    try:
-        began = time.monotonic()
-        with pytest.raises(HalError, match=r"^CAN bus: configuring the drives: .*no SDO response within 200 ms"):
-            hal.open()
-        assert time.monotonic() - began >= 0.2
-    finally:
-        stop.set()
-        responder.join()
-        hal.close()
+    match = r"^CAN bus: configuring the drives: .*no SDO response within 200 ms"
+    _open_fails(pair, _boot_but_never_answer_sdo, match, 0.2, sdo_timeout_ms=200)
