@@ -29,7 +29,7 @@ pytestmark = pytest.mark.slow
 
 DATA = Path(__file__).parents[1] / "data"
 SESSION = Path(__file__).parents[2] / "daror_runtime" / "console" / "scripts" / "session.txt"
-SETTINGS = DATA / "hil_settings.yaml"
+SETTINGS = DATA / "hil_fault_settings.yaml"  # every sixth waypoint (D200)
 FAULT_BLOCK = DATA / "hil_fault_and_new_session.txt"
 PERIOD_S = 1.0 / 400.0  # the default rate of four drives on 1 Mbit/s (D160)
 NODES = (1, 2, 3, 4)

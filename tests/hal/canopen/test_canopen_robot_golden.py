@@ -3,28 +3,29 @@
 ``tests/data/daror01_golden.json`` holds one sha256 per stream (:mod:`tests.golden_streams`) of two
 ``daror hil`` runs of the demo session made with the code before the robot file existed (the short
 form, commit 7f4f4f3, with ``--rate-hz 400``: the default rate since the worst cycle is budgeted, D160):
-the session with the shorter identification of ``tests/data/hil_settings.yaml`` (every third waypoint,
-the Dummy Arm installed: ``--settings``, the same file at 7f4f4f3), and the session with the built-in
-settings and an EMCY of drive 2 at 30 s. The same runs with ``--hal-config examples/robot/daror01.yaml``
+the session with the shorter identification of ``tests/data/hil_settings.yaml`` (every twelfth
+waypoint, the Dummy Arm installed: ``--settings``, this checkout's file given to 7f4f4f3's code), and
+the session with the built-in settings and an EMCY of drive 2 at 30 s. The same runs with ``--hal-config examples/robot/daror01.yaml``
 must give the same streams: every SYNC's time and every RPDO and TPDO payload in bus order, every
 recorded array and dataset, the session's end state and the audit log's events. Start-up's SDO and NMT
 frames and the heartbeats are not compared (issue 25 added start-up steps and the heartbeat at NMT
 start).
 
-The session's golden was first the whole identification (584,087 SYNCs, 59 s of the suite's time);
-the shorter one (259,272 SYNCs, 24 s) passes the same states with the same drives, mapping and
-lock-step, the identification on every third waypoint, and still compares every PDO frame of its
-run. It was made in a worktree of 7f4f4f3 (``git worktree add DIR 7f4f4f3``; in DIR: ``python -m
-daror_runtime.cli hil --script daror_runtime/console/scripts/session.txt --rate-hz 400 --settings
+The session's golden was first the whole identification (584,087 SYNCs, 59 s of the suite's time),
+then every third waypoint (259,272 SYNCs, 24 s, D193); every twelfth (52,389 SYNCs, 6 s, D200)
+passes the same states with the same drives, mapping and lock-step, and still compares every PDO
+frame of its run. It was made in a worktree of 7f4f4f3 (``git worktree add DIR 7f4f4f3``; in DIR:
+``python -m daror_runtime.cli hil --script daror_runtime/console/scripts/session.txt --rate-hz 400 --settings
 tests/data/hil_settings.yaml --out OUT``, then ``python -m tests.golden_streams OUT`` of this
-checkout); the same procedure without ``--settings`` gave the earlier whole-session golden bit for
-bit. The EMCY run ends 45 s into the session, before the identification (at 73 s): it keeps the
-built-in settings, which the shorter ones would not shorten.
+checkout, with this checkout's ``tests/data/hil_settings.yaml`` copied into the worktree); the same
+procedure without ``--settings`` gave the earlier whole-session golden bit for bit, and with every
+third waypoint the golden of D193. The EMCY run ends 45 s into the session, before the
+identification (at 73 s): it keeps the built-in settings, which the shorter ones would not shorten.
 
 The second drive family (maxon EPOS4, ``examples/robot/epos4.yaml``), described by its vendor's EDS
 and its robot file only, runs the same demo session on simulated drives built from that EDS and
 ends as the DAROR-01's does: the same states in the same order, the model validated. It runs with the
-shorter identification of ``tests/data/hil_settings.yaml`` (every third waypoint), as its run on
+shorter identification of ``tests/data/hil_settings.yaml`` (every twelfth waypoint), as its run on
 durand's drives does (tests/hal/canopen/test_canopen_interop_lockstep.py): the drive family is what is tested,
 and the whole identification took 100 s of the suite's time for nothing the shorter one misses.
 """
