@@ -79,13 +79,14 @@ $(VENV)/.chromium: | $(BIN)/python
 
 # The whole suite (CI): everything over both cores (whole files per worker, the longest first:
 # tests/conftest.py), then alone the tests that need wall-clock time (marker realtime), each measuring
-# the machine's margin before it runs (docs/testing.md). Both print their slowest tests: CI's log
-# says where the time went.
+# the machine's margin before it runs (docs/testing.md); it collects only the files the first run's
+# collection found real-time tests in (tests/conftest.py, D201). Both print their slowest tests: CI's
+# log says where the time went.
 test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(PYTEST) -n 2 --dist loadfile -m "not realtime" --durations=25
-	$(PYTEST) -m realtime --durations=10
+	$(PYTEST) -m realtime --realtime-files-from-cache --durations=10
 
 # The fast tier, a developer's loop: everything but the slow, subprocess, browser, mutation and
 # real-time tests.

@@ -124,16 +124,15 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
 
 
 #: Seconds the longest files took in one run of the whole suite on two workers (2026-11-29, load ~2;
-#: the sum of each file's tests, from ``pytest -n 2 --dist loadfile --junitxml``). A scheduling hint
-#: only: a stale figure costs balance, never a result.
+#: the sum of each file's tests, from ``pytest -n 2 --dist loadfile --junitxml``; the README's and the
+#: CAN sessions' from a fresh-clone ``make test``'s durations after D200). A scheduling hint only: a
+#: stale figure costs balance, never a result.
 LONG_FILES_S = {
     "test_hazard_mutations.py": 118,
-    "test_readme_transcript.py": 106,
-    "test_canopen_hil.py": 58,
-    "test_canopen_robot_golden.py": 56,
+    "test_readme_transcript.py": 86,
     "test_residual_hysteresis.py": 47,
-    "test_canopen_interop_lockstep.py": 46,
     "test_web_console.py": 36,
+    "test_canopen_hil.py": 35,
     "test_hal_contract.py": 35,
     "test_fault_reactions.py": 29,
     "test_hpsearch.py": 29,
@@ -142,21 +141,69 @@ LONG_FILES_S = {
     "test_neural.py": 24,
     "test_residual_learned.py": 19,
     "test_session_safety.py": 15,
+    "test_canopen_robot_golden.py": 15,
     "test_boundaries.py": 14,
+    "test_canopen_interop_lockstep.py": 12,
 }
 
 
+#: Where a run that collected the whole suite keeps the files that hold real-time tests (pytest's
+#: cache, ``.pytest_cache``): ``make test``'s real-time tier, run right after, collects only those.
+REALTIME_FILES_KEY = "daror/realtime_files"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--realtime-files-from-cache",
+        action="store_true",
+        help="collect only the files that held a realtime test in the last whole-suite collection "
+        "(make test's real-time tier; everything when no such collection is cached)",
+    )
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """With ``--realtime-files-from-cache``: a test file that held no real-time test is not even imported.
+
+    Collecting the whole suite to deselect all but 29 tests was 6 s of the serial real-time tier;
+    its seven files take 2.3 s. The list comes from the parallel tier's collection in the same
+    ``make test`` (:func:`pytest_collection_modifyitems`), never from an older run of a part.
+    """
+    if not config.getoption("realtime_files_from_cache") or not collection_path.name.startswith("test_"):
+        return None
+    assert config.cache is not None
+    files = config.cache.get(REALTIME_FILES_KEY, None)
+    if files is None:
+        return None
+    return str(collection_path.relative_to(config.rootpath)) not in files
+
+
+def _whole_suite(config: pytest.Config) -> bool:
+    """True when this run collected every test file (the configured test paths, no last-failed filter)."""
+    return (
+        config.args_source == pytest.Config.ArgsSource.TESTPATHS
+        and not config.getoption("lf", False)
+        and not config.getoption("realtime_files_from_cache")
+    )
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects: every item, real-time ones included
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The longest files first (stable within a file and among the others).
+    """The longest files first (stable within a file and among the others); remember the real-time files.
 
     ``make test`` hands whole files to its two workers (``--dist loadfile``: a module's fixtures are
     built once); starting with the longest keeps one worker from finishing alone with a long file
-    left. Every worker collects the same order (it depends on file names only).
+    left. Every worker collects the same order (it depends on file names only). A whole-suite
+    collection also stores which files hold a test marked ``realtime`` (:data:`REALTIME_FILES_KEY`).
     """
     first_index: dict[str, int] = {}
     for index, item in enumerate(items):
         first_index.setdefault(item.path.name, index)
     items.sort(key=lambda item: (-LONG_FILES_S.get(item.path.name, 0), first_index[item.path.name]))
+    if _whole_suite(config) and config.cache is not None:
+        realtime = {
+            str(item.path.relative_to(config.rootpath)) for item in items if item.get_closest_marker("realtime")
+        }
+        config.cache.set(REALTIME_FILES_KEY, sorted(realtime))
 
 
 #: A real-time test runs only while this process gets at least this share of a core when it asks for one.
