@@ -78,14 +78,14 @@ $(VENV)/.chromium: | $(BIN)/python
 	touch $@
 
 # The whole suite (CI): everything over both cores (whole files per worker, the longest first:
-# tests/conftest.py), then alone the tests that need wall-clock time (marker realtime), each measuring
+# tests/conftest.py; xdist would otherwise reorder the files by their number of tests, D202), then alone the tests that need wall-clock time (marker realtime), each measuring
 # the machine's margin before it runs (docs/testing.md); it collects only the files the first run's
 # collection found real-time tests in (tests/conftest.py, D201). Both print their slowest tests: CI's
 # log says where the time went.
 test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(PYTEST) -n 2 --dist loadfile -m "not realtime" --durations=25
+	$(PYTEST) -n 2 --dist loadfile --no-loadscope-reorder -m "not realtime" --durations=25
 	$(PYTEST) -m realtime --realtime-files-from-cache --durations=10
 
 # The fast tier, a developer's loop: everything but the slow, subprocess, browser, mutation and

@@ -34,21 +34,22 @@ def _config(root: Path, options: dict[str, Any], stored: dict[str, Any] | None =
     )
 
 
-LISTED = {conftest.REALTIME_FILES_KEY: ["tests/hal/test_a.py", "tests/test_b.py"]}
+#: A stored list (files of a made-up suite under ``suite/``, relative to its root).
+LISTED = {conftest.REALTIME_FILES_KEY: ["suite/hal/test_a.py", "suite/test_b.py"]}
 
 
 def test_the_real_time_tier_collects_only_the_listed_test_files(tmp_path: Path) -> None:
     config = _config(tmp_path, {"realtime_files_from_cache": True}, LISTED)
-    assert conftest.pytest_ignore_collect(tmp_path / "tests" / "hal" / "test_a.py", config) is False
-    assert conftest.pytest_ignore_collect(tmp_path / "tests" / "test_b.py", config) is False
-    assert conftest.pytest_ignore_collect(tmp_path / "tests" / "hal" / "test_c.py", config) is True
+    assert conftest.pytest_ignore_collect(tmp_path / "suite" / "hal" / "test_a.py", config) is False
+    assert conftest.pytest_ignore_collect(tmp_path / "suite" / "test_b.py", config) is False
+    assert conftest.pytest_ignore_collect(tmp_path / "suite" / "hal" / "test_c.py", config) is True
     # Folders and helpers are pytest's to decide: a conftest is still loaded, a folder still walked.
-    assert conftest.pytest_ignore_collect(tmp_path / "tests" / "hal" / "conftest.py", config) is None
-    assert conftest.pytest_ignore_collect(tmp_path / "tests" / "hal", config) is None
+    assert conftest.pytest_ignore_collect(tmp_path / "suite" / "hal" / "conftest.py", config) is None
+    assert conftest.pytest_ignore_collect(tmp_path / "suite" / "hal", config) is None
 
 
 def test_without_a_stored_list_or_without_the_option_everything_is_collected(tmp_path: Path) -> None:
-    path = tmp_path / "tests" / "hal" / "test_c.py"
+    path = tmp_path / "suite" / "hal" / "test_c.py"
     assert conftest.pytest_ignore_collect(path, _config(tmp_path, {"realtime_files_from_cache": True})) is None
     assert conftest.pytest_ignore_collect(path, _config(tmp_path, {"realtime_files_from_cache": False}, LISTED)) is None
 
