@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "models",  # fit, evaluate, cvf
     "residual",  # residual
     "study",  # study data-efficiency|protocol
+    "data",  # data check
     "protocol",  # protocol design
     "hpsearch",  # hpsearch
     "console",  # console

@@ -429,9 +429,56 @@ def dataset_from_table(table: Table) -> StationaryDataset | RawLog:
     """
     # t with only some dq columns is a raw log that lost a column, not a stationary dataset whose
     # every (moving) sample would count as a stationary point: _optional_group refuses it.
-    if "t" in table.columns and _optional_group(table, DQ_COLUMNS) is None and _is_log_without_velocity(table):
-        return raw_from_table(table)
-    return raw_from_table(table) if is_raw_log(table) else stationary_from_table(table)
+    try:
+        if "t" in table.columns and _optional_group(table, DQ_COLUMNS) is None and _is_log_without_velocity(table):
+            return raw_from_table(table)
+        return raw_from_table(table) if is_raw_log(table) else stationary_from_table(table)
+    except DataError as exc:
+        mix_up = _mix_up_of_refused(table)
+        if mix_up is None:
+            raise
+        from daror_runtime.data.signal_map import SignalMapError
+
+        raise SignalMapError(f"{exc}; the signal map looks wrong: most likely {mix_up}") from exc
+
+
+#: A dataset's joint groups by the field they fill (:class:`RawLog`, :class:`StationaryDataset`).
+_FIELDS = {
+    "q_rad": Q_COLUMNS,
+    "dq_rad_s": DQ_COLUMNS,
+    "tau_nm": TAU_COLUMNS,
+    "theta_rad": THETA_COLUMNS,
+    "tau_cmd_nm": TAU_CMD_COLUMNS,
+}
+
+
+def _mix_up_of_refused(table: Table) -> str | None:
+    """For a table refused for its values: the exchange or shift of its columns that explains it (issue 27).
+
+    Only when every column the kinds need is there and finite (a missing column or a NaN is its own
+    error) and a remap puts every value in its range with the springs, the command, the velocity and
+    the A Priori torque consistent (:func:`daror_runtime.data.signal_map.explain_refused_groups`).
+    """
+    names = {field: group for field, group in _FIELDS.items() if all(c in table.columns for c in group)}
+    if "q_rad" not in names or "tau_nm" not in names:
+        return None
+    groups = {field: table.matrix(group) for field, group in names.items()}
+    if not all(np.isfinite(values).all() for values in groups.values()):
+        return None
+    t_s = table.matrix(("t",))[:, 0] if "t" in table.columns and "dq_rad_s" in names else None
+    if t_s is not None and not (np.isfinite(t_s).all() and np.all(np.diff(t_s) > 0)):
+        return None
+    if t_s is None:  # a stationary dataset: what its kind holds
+        groups = {field: groups[field] for field in ("q_rad", "tau_nm")}
+    # here: the check is needed only for a refused file; the robot is the packaged one (a hint only)
+    from daror_runtime.data.signal_map import explain_refused_groups
+    from hal.robot import load_description
+
+    def in_range(field: str, values: np.ndarray) -> bool:
+        limit, _ = _LIMITS[_FIELDS[field][0].rstrip("0123456789")]
+        return bool(np.abs(values).max() <= limit)
+
+    return explain_refused_groups(groups, t_s, in_range, load_description())
 
 
 def load_stationary(path: Path | str, reduction: ReductionSettings | None = None) -> StationaryDataset:

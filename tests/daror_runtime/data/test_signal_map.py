@@ -1,0 +1,203 @@
+"""Issue 27: a dataset's signal map judged from physics (daror_runtime/data/signal_map.py, `daror data check`).
+
+The thesis's mistake (Sec. 6.7: the joint angle and the gearbox angle exchanged, the joint torque
+and the motor torque exchanged), names shifted by one column, two joints exchanged: each is refused
+with its mix-up named, from a raw log of a closed-loop identification run written as a user's file
+would be (every column there, only the names wrong). No clean dataset the project makes or ships is
+refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daror_runtime.cli import main
+from daror_runtime.data.load import load_dataset
+from daror_runtime.data.schema import RawLog, StationaryDataset
+from daror_runtime.data.signal_map import SignalMapError, check_signal_map
+from hal.robot import RobotDescription, load_description
+from hal.sim.scenario import load_scenario, scenario_names
+from hal.sim.static_dataset import generate_stationary
+from tests.conftest import as_dataset
+
+ROOT = Path(__file__).resolve().parents[3]
+GROUPS = ("q", "dq", "tau", "theta", "tau_cmd")
+THESIS = "q and theta exchanged, and tau and tau_cmd exchanged"
+
+
+@pytest.fixture(scope="module")
+def raw_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The raw log of a closed-loop identification run (validation trajectory, Dummy Arm installed)."""
+    folder = tmp_path_factory.mktemp("signal_map")
+    out = folder / "run.npz"
+    assert (
+        main(
+            ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--trajectory", "validation", "--out", str(out)]
+        )
+        == 0
+    )
+    return folder / "run.raw.npz"
+
+
+def _renamed(source: Path, target: Path, rename: dict[str, str]) -> Path:
+    """``source``'s columns written to ``target``, the column named ``a`` under the name ``rename[a]``."""
+    columns = dict(np.load(source))
+    np.savez(target, **{rename.get(name, name): values for name, values in columns.items()})
+    return target
+
+
+def _every_joint(pairs: tuple[tuple[str, str], ...]) -> dict[str, str]:
+    rename = {}
+    for a, b in pairs:
+        for j in range(1, 5):
+            rename[f"{a}{j}"], rename[f"{b}{j}"] = f"{b}{j}", f"{a}{j}"
+    return rename
+
+
+def _data_check(path: Path, capsys: pytest.CaptureFixture[str], *extra: str) -> tuple[int, str]:
+    code = main(["data", "check", str(path), *extra])
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+@pytest.mark.slow
+def test_the_closed_loop_run_s_raw_log_holds_every_relation(raw_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    report = check_signal_map(load_dataset(raw_file), load_description())
+    assert report.passed
+    held = {(r.joint, r.name) for r in report.relations if r.held}
+    # every relation judged on every joint of a run that moves every joint; the A Priori torque of
+    # the bare robot (the Dummy Arm is not assumed) barely changes at the elbow: not judged there
+    judged = {(j, n) for j in range(1, 5) for n in ("spring", "deflection", "command", "velocity", "a priori")}
+    assert held == judged - {(4, "a priori")}
+    code, out = _data_check(raw_file, capsys)
+    assert code == 0
+    assert "signal map consistent" in out
+    assert out.count(" ok ") == 19
+
+
+@pytest.mark.slow
+def test_the_thesis_s_mistake_is_refused_and_named(
+    raw_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    wrong = _renamed(raw_file, tmp_path / "thesis.npz", _every_joint((("q", "theta"), ("tau", "tau_cmd"))))
+    report = check_signal_map(load_dataset(wrong), load_description())
+    assert {(r.joint, r.name) for r in report.failures} >= {(j, "spring") for j in range(1, 5)}
+    assert report.mix_up is not None
+    assert report.mix_up.startswith(THESIS)
+    code, out = _data_check(wrong, capsys)
+    assert code == 2
+    last = out.strip().splitlines()[-1]
+    assert last.startswith(
+        f"daror data check: error: {wrong}: the signal map looks wrong: spring relation fails on joints 1, 2, 3, 4"
+    )
+    assert f"most likely {THESIS}" in last
+    # q and theta alone exchanged is named as such (tau is the springs' torque, and says so)
+    alone = _renamed(raw_file, tmp_path / "q_theta.npz", _every_joint((("q", "theta"),)))
+    assert check_signal_map(load_dataset(alone), load_description()).mix_up == (
+        "q and theta exchanged (the gearbox angle read as the joint angle)"
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("shift", "said"), [(1, "later"), (-1, "earlier")])
+def test_names_shifted_by_one_column_are_refused_and_named(
+    raw_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], shift: int, said: str
+) -> None:
+    names = [f"{g}{j}" for g in GROUPS for j in range(1, 5)]  # the file's column order after t
+    # each data column under the name ``shift`` columns away: a torque then sits under an angle's name
+    rename = {names[(i + shift) % len(names)]: names[i] for i in range(len(names))}
+    wrong = _renamed(raw_file, tmp_path / f"shift{shift}.npz", rename)
+    with pytest.raises(
+        SignalMapError, match=f"most likely the column names shifted by 1 .each name 1 column.s. {said}"
+    ):
+        load_dataset(wrong)
+    code, out = _data_check(wrong, capsys)
+    assert code == 2
+    assert len(out.strip().splitlines()) == 1  # refused as it was read: one line, no report
+    assert "the column names shifted by 1" in out
+
+
+@pytest.mark.slow
+def test_two_joints_exchanged_are_refused_and_named(
+    raw_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rename = {f"{g}{a}": f"{g}{b}" for g in GROUPS for a, b in ((2, 3), (3, 2))}
+    wrong = _renamed(raw_file, tmp_path / "joints.npz", rename)
+    report = check_signal_map(load_dataset(wrong), load_description())
+    # each joint's own springs still hold; the geometry's gravity torque tells the joints apart
+    assert {r.name for r in report.failures} == {"a priori"}
+    assert report.mix_up == "joints 2 and 3 exchanged (every column of the two)"
+    code, out = _data_check(wrong, capsys)
+    assert code == 2
+    assert "most likely joints 2 and 3 exchanged" in out
+
+
+def _stationary(description: RobotDescription, scenario: str, trajectory: str) -> StationaryDataset:
+    return as_dataset(generate_stationary(load_scenario(scenario), trajectory), f"{scenario}-{trajectory}")
+
+
+@pytest.mark.parametrize("scenario", scenario_names())
+def test_no_scenario_s_stationary_data_is_refused(description: RobotDescription, scenario: str) -> None:
+    for trajectory in ("training", "validation"):
+        data = _stationary(description, scenario, trajectory)
+        for dummy_arm in (False, True):  # whatever the user says of the Dummy Arm
+            report = check_signal_map(data, description, dummy_arm=dummy_arm)
+            assert report.passed, report.lines()
+            assert sum(r.held is True for r in report.relations) >= 3  # judged, not waved through
+
+
+@pytest.mark.parametrize(
+    ("columns", "named"),
+    [
+        ([1, 0, 2, 3], "joints 1 and 2 exchanged"),
+        ([0, 1, 3, 2], "joints 3 and 4 exchanged"),
+    ],
+)
+def test_stationary_points_with_two_joints_exchanged_are_named(
+    description: RobotDescription, columns: list[int], named: str
+) -> None:
+    data = _stationary(description, "exo_dummy_arm", "training")
+    wrong = replace(data, q_rad=data.q_rad[:, columns], tau_nm=data.tau_nm[:, columns])
+    report = check_signal_map(wrong, description, dummy_arm=True)
+    assert not report.passed
+    assert report.mix_up is not None
+    assert report.mix_up.startswith(named)
+
+
+def test_a_torque_of_the_wrong_sign_is_refused_and_no_mix_up_invented(description: RobotDescription) -> None:
+    data = _stationary(description, "exo_dummy_arm", "training")
+    report = check_signal_map(replace(data, tau_nm=-data.tau_nm), description, dummy_arm=True)
+    assert {r.joint for r in report.failures} >= {1, 2, 3}
+    assert report.mix_up is None
+    assert report.failure_line().endswith("(no exchange or shift of its columns explains it)")
+
+
+@pytest.mark.parametrize("name", ["external_train.csv", "external_validate.mat"])
+def test_the_shipped_external_datasets_are_not_refused(
+    name: str, capsys: pytest.CaptureFixture[str], description: RobotDescription
+) -> None:
+    path = ROOT / "examples" / "residual" / name
+    assert check_signal_map(load_dataset(path), description).passed
+    code, _ = _data_check(path, capsys)
+    assert code == 0
+
+
+def test_a_robot_standing_still_is_not_judged_rather_than_refused(description: RobotDescription) -> None:
+    """Relations the data cannot judge (no motion, no change of torque) are never failures."""
+    n = 2000
+    t = np.arange(n) * 1e-3
+    q = np.tile([0.3, 0.8, 0.2, 1.0], (n, 1))
+    deflection = np.tile([0.005, 0.02, 0.008, 0.003], (n, 1))
+    tau = description.sea.spring_stiffness_nm_per_rad * deflection
+    raw = RawLog(t, q, np.zeros_like(q), tau, theta_rad=q + deflection, tau_cmd_nm=tau.copy(), source="still")
+    report = check_signal_map(raw, description)
+    assert report.passed
+    by_name = {(r.joint, r.name): r.held for r in report.relations}
+    assert all(by_name[(j, "velocity")] is None and by_name[(j, "command")] is None for j in range(1, 5))
+    assert all(by_name[(j, "spring")] is True for j in range(1, 5))  # its mean still says k (theta - q)
+    flipped = replace(raw, theta_rad=q - deflection)  # the spring's sign wrong, even standing still
+    assert {r.name for r in check_signal_map(flipped, description).failures} == {"spring"}
