@@ -115,6 +115,13 @@ def bind(parser: argparse.ArgumentParser, handler: Handler, **defaults: Any) -> 
     parser.set_defaults(handler=handler, command_name=parser.prog.partition(" ")[2], **defaults)
 
 
+#: ``--trust-signal-map``'s help: a command that reads data accepts a file whose columns fail the physics check.
+TRUST_SIGNAL_MAP_HELP = (
+    "accept data whose columns fail the physics check of their names (daror data check, docs/data.md); "
+    "what the command writes then says so"
+)
+
+
 def run_command(args: argparse.Namespace, console: Console) -> int:
     """Run the handler bound to the parsed command; its errors as exit codes.
 

@@ -14,7 +14,15 @@ from typing import Any
 import structlog
 from rich.console import Console
 
-from daror_runtime.cli.common import CommandParser, Commands, UsageError, bind, output_file, write_json
+from daror_runtime.cli.common import (
+    TRUST_SIGNAL_MAP_HELP,
+    CommandParser,
+    Commands,
+    UsageError,
+    bind,
+    output_file,
+    write_json,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -27,6 +35,7 @@ def register(commands: Commands) -> None:
     ev.add_argument("models", type=Path, nargs="+", metavar="MODEL.json")
     ev.add_argument("--data", type=Path, required=True, help="stationary dataset or raw log")
     ev.add_argument("--json", type=Path, help="write the figures as JSON here")
+    ev.add_argument("--trust-signal-map", action="store_true", help=TRUST_SIGNAL_MAP_HELP)
     bind(ev, cmd_evaluate)
 
     cvf = commands.add_parser("cvf", help="closed-path energy test: is the model conservative? (Table IV)")
@@ -67,6 +76,7 @@ def _register_fit(commands: Commands) -> None:
     fit.add_argument("--out", type=Path, required=True, help="model file to write (JSON)")
     fit.add_argument("--name", help="model name shown in tables (default: the kind's name)")
     fit.add_argument("--robot", type=Path, help="robot description YAML (default: the packaged DAROR-01)")
+    fit.add_argument("--trust-signal-map", action="store_true", help=TRUST_SIGNAL_MAP_HELP)
     fit.add_argument(
         "--dummy-arm",
         action="store_true",
@@ -154,7 +164,7 @@ def cmd_fit(args: argparse.Namespace, console: Console) -> int:
     Raises:
         UsageError: a kind that learns from data without ``--train``, or a flag the kind does not take.
     """
-    from daror_runtime.data.load import load_stationary
+    from daror_runtime.data.load import load_stationary_checked
     from daror_runtime.models.files import save_model, training_summary
     from daror_runtime.models.registry import FIT_OPTION_FLAGS, fit_model, kind_entry, options_for
     from hal.robot import load_description
@@ -167,14 +177,23 @@ def cmd_fit(args: argparse.Namespace, console: Console) -> int:
         raise UsageError(f"model kind {kind} learns from data; give --train FILE")
     output_file(args.out, args.train)
     description = load_description(args.robot)
-    dataset = load_stationary(args.train) if args.train is not None else None
+    dataset, signal_map = (
+        load_stationary_checked(args.train, description, bool(args.dummy_arm), args.trust_signal_map)
+        if args.train is not None
+        else (None, None)
+    )
     log.info("fit requested", kind=kind, train=None if args.train is None else str(args.train))
     result = fit_model(kind, dataset, description, options)
     summary = training_summary(dataset, args.train) if dataset is not None else None
+    trusted = signal_map.trust_note() if signal_map is not None else None
+    if summary is not None and trusted is not None:
+        summary = summary.model_copy(update={"signal_map": trusted})
     save_model(args.out, result.model, summary, result.report)
     report = result.report
     log.info("model written", path=str(args.out), kind=kind, duration_s=round(report.duration_s, 6))
     console.print(f"{args.out}: {result.model.display_name} model {result.model.name!r} ({kind})")
+    if trusted is not None:
+        console.print(f"  training data {trusted}", markup=False)
     if report.training is not None:
         t = report.training
         console.print(
@@ -206,18 +225,24 @@ def _load_models(paths: Sequence[Path]) -> tuple[list[Any], list[Any]]:
 
 def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
     """RMSE and nRMSE (Nm) of the models on a dataset, with their extrapolation; optionally as JSON."""
-    from daror_runtime.data.load import load_stationary
+    from daror_runtime.data.load import load_stationary_checked
     from daror_runtime.models.compare import evaluate_models, evaluation_document, evaluation_table
+    from hal.robot import load_description
 
     if args.json is not None:
         output_file(args.json, args.data, *args.models)
     from daror_runtime.residual.data import prediction_signal
 
     models, training = _load_models(args.models)
-    data = load_stationary(args.data)
+    # the models' own robot: the relations are judged with its springs and geometry
+    description = models[0].description if models else load_description()
+    data, signal_map = load_stationary_checked(args.data, description, trust_signal_map=args.trust_signal_map)
+    trusted = signal_map.trust_note()
     signals = [prediction_signal(m, data, args.data) for m in models]
     evaluations = evaluate_models(models, data, signals, training)
     console.print(evaluation_table(evaluations, f"Errors on {args.data} ({len(data)} points), Eq. 4.31-4.32"))
+    if trusted is not None:
+        console.print(f"{args.data}: {trusted}", markup=False)
     for e in evaluations:
         x = e.extrapolation
         if x is not None and x.n_outside and x.rmse_outside_nm is not None:
@@ -227,7 +252,10 @@ def cmd_evaluate(args: argparse.Namespace, console: Console) -> int:
                 f"RMSE {x.rmse_outside_nm:.3g} Nm there, {inside}"
             )
     if args.json is not None:
-        write_json(args.json, evaluation_document(evaluations))
+        document = evaluation_document(evaluations)
+        if trusted is not None:
+            document["signal_map"] = trusted
+        write_json(args.json, document)
         console.print(f"{args.json}: written")
     return 0
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
@@ -37,6 +38,10 @@ from daror_runtime.data.schema import (
 from daror_runtime.data.stationary import ReductionSettings, reduce_to_stationary
 from daror_runtime.data.tables import Table, read_table, shown_names, write_table
 from daror_runtime.errors import DataError
+
+if TYPE_CHECKING:
+    from daror_runtime.data.signal_map import SignalMapReport
+    from hal.robot import RobotDescription
 
 log = structlog.get_logger(__name__)
 
@@ -489,6 +494,27 @@ def load_stationary(path: Path | str, reduction: ReductionSettings | None = None
     """
     data = load_dataset(path)
     return reduce_to_stationary(data, reduction) if isinstance(data, RawLog) else data
+
+
+def load_stationary_checked(
+    path: Path | str, description: RobotDescription, dummy_arm: bool = False, trust_signal_map: bool = False
+) -> tuple[StationaryDataset, SignalMapReport]:
+    """:func:`load_stationary` with the file's signal map judged from physics first (issue 27).
+
+    A raw log is judged on its own samples (the springs, the command, the velocity, the A Priori
+    torque), then reduced; a stationary dataset on its points (the A Priori torque). ``dummy_arm``:
+    the Dummy Arm was installed. ``trust_signal_map``: a failed map is accepted (the report says so).
+
+    Raises:
+        DataError: the file does not match, or a raw log holds no stationary points.
+        SignalMapError: the columns are not what their names say, and the user did not trust the file.
+    """
+    from daror_runtime.data.signal_map import require_signal_map
+
+    data = load_dataset(path)
+    # the file's own contract first (a log with no stationary point says so), then its physics
+    points = reduce_to_stationary(data) if isinstance(data, RawLog) else data
+    return points, require_signal_map(data, description, dummy_arm=dummy_arm, trust=trust_signal_map)
 
 
 def write_dataset(path: Path | str, data: StationaryDataset | RawLog) -> None:

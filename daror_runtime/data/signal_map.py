@@ -38,10 +38,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import structlog
 
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.errors import DataError
 from hal.robot import FloatArray, RobotDescription
+
+log = structlog.get_logger(__name__)
 
 __all__ = [
     "Relation",
@@ -52,6 +55,7 @@ __all__ = [
     "check_stationary_map",
     "explain_refused_groups",
     "most_likely_mix_up",
+    "require_signal_map",
 ]
 
 N_JOINTS = 4
@@ -84,7 +88,7 @@ PRIORI_MIN_CORRELATION = 0.7
 #: links. The elbow's is mostly the forearm's (the pilot's, the Dummy Arm's), which the design masses
 #: do not know: judged there, it refused clean data of the bare robot, the heavy arm and an external
 #: dataset (gains 0.2-11 at correlations 0.64-0.9). Two joints exchanged, the elbow among them, still
-#: fail at the shoulder (correlations 0.48-0.67 measured).
+#: fail at the shoulder (correlations 0.50-0.67 measured).
 PRIORI_JOINTS = (1, 2, 3)
 #: Below this spread of the A Priori torque (Nm) at a joint's points, that joint is not judged.
 PRIORI_MIN_SPREAD_NM = 0.2
@@ -147,6 +151,12 @@ class SignalMapReport:
             else "no exchange or shift of its columns explains it"
         )
         return f"{self.source}: the signal map looks wrong: {what} ({guess})"
+
+    def trust_note(self) -> str | None:
+        """What an output says of data accepted with ``--trust-signal-map`` (None: the map held)."""
+        if self.passed:
+            return None
+        return f"accepted with --trust-signal-map although {self.failure_line()}"
 
     def lines(self) -> list[str]:
         """The whole report, a line per relation (``daror data check``)."""
@@ -466,3 +476,24 @@ def explain_refused_groups(
         return _stationary_relations(data, description, dummy_arm=False)
 
     return most_likely_mix_up(judge, groups)
+
+
+def require_signal_map(
+    data: RawLog | StationaryDataset, description: RobotDescription, dummy_arm: bool = False, trust: bool = False
+) -> SignalMapReport:
+    """:func:`check_signal_map`, refused when a relation fails unless the user trusts the file.
+
+    ``trust`` (``--trust-signal-map``): a failed map is accepted, logged, and the report marked
+    trusted, so the command writes :meth:`SignalMapReport.trust_note` into what it writes.
+
+    Raises:
+        SignalMapError: a relation fails and ``trust`` is False (one line: the joints, the relations,
+            the likely mix-up, and the flag that accepts the file anyway).
+    """
+    report = check_signal_map(data, description, dummy_arm)
+    if report.passed:
+        return report
+    if not trust:
+        raise SignalMapError(f"{report.failure_line()}; --trust-signal-map accepts the file anyway")
+    log.warning("signal map trusted by the user", source=report.source, failure=report.failure_line())
+    return replace(report, trusted=True)

@@ -101,6 +101,9 @@ class TrainingSummary(BaseModel):
     q_max_rad: list[Number] = Field(min_length=N_JOINTS, max_length=N_JOINTS)
     # whose data it was (the training file's provenance file, when it has one: data/provenance.py)
     provenance: Provenance | None = None
+    # set only when the data failed the physics check of its column names and the user accepted it
+    # (--trust-signal-map: data/signal_map.py); absent otherwise
+    signal_map: str | None = None
 
 
 class ModelFile(BaseModel):
@@ -159,7 +162,10 @@ def model_document(
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "robot": model.description.model_dump(mode="json"),
         "parameters": model.parameters(),
-        "training": None if training is None else training.model_dump(mode="json"),
+        # signal_map only when set: a file trained on trusted data says so, the others are as before
+        "training": None
+        if training is None
+        else training.model_dump(mode="json", exclude={"signal_map"} if training.signal_map is None else None),
         "fit": {} if report is None else report.to_dict(),
     }
     document["checksum_sha256"] = _checksum(document)

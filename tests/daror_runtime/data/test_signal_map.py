@@ -9,6 +9,7 @@ refused.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -201,3 +202,33 @@ def test_a_robot_standing_still_is_not_judged_rather_than_refused(description: R
     assert all(by_name[(j, "spring")] is True for j in range(1, 5))  # its mean still says k (theta - q)
     flipped = replace(raw, theta_rad=q - deflection)  # the spring's sign wrong, even standing still
     assert {r.name for r in check_signal_map(flipped, description).failures} == {"spring"}
+
+
+@pytest.mark.slow
+def test_fit_and_evaluate_refuse_the_thesis_s_mistake_unless_trusted_and_then_say_so(
+    raw_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    wrong = _renamed(raw_file, tmp_path / "thesis.npz", _every_joint((("q", "theta"), ("tau", "tau_cmd"))))
+    model = tmp_path / "m.json"
+    assert main(["fit", "plf+", "--train", str(wrong), "--out", str(model)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert err[0].startswith(f"daror fit: error: {wrong}: the signal map looks wrong: spring relation fails")
+    assert err[0].endswith("--trust-signal-map accepts the file anyway")
+    assert not model.exists()  # nothing written
+    # trusted: the model is fitted and its file says on what
+    assert main(["fit", "plf+", "--train", str(wrong), "--out", str(model), "--trust-signal-map"]) == 0
+    said = json.loads(model.read_text(encoding="utf-8"))["training"]["signal_map"]
+    assert said.startswith(f"accepted with --trust-signal-map although {wrong}: the signal map looks wrong")
+    assert THESIS in said
+    table = tmp_path / "errors.json"
+    assert main(["evaluate", str(model), "--data", str(wrong), "--json", str(table)]) == 2
+    assert not table.exists()
+    assert main(["evaluate", str(model), "--data", str(wrong), "--json", str(table), "--trust-signal-map"]) == 0
+    assert json.loads(table.read_text(encoding="utf-8"))["signal_map"] == said
+    # clean data: the files are as before (no signal_map key)
+    clean_model, clean_table = tmp_path / "clean.json", tmp_path / "clean_errors.json"
+    assert main(["fit", "plf+", "--train", str(raw_file), "--out", str(clean_model)]) == 0
+    assert "signal_map" not in json.loads(clean_model.read_text(encoding="utf-8"))["training"]
+    assert main(["evaluate", str(clean_model), "--data", str(raw_file), "--json", str(clean_table)]) == 0
+    assert "signal_map" not in json.loads(clean_table.read_text(encoding="utf-8"))
