@@ -8,7 +8,15 @@ from pathlib import Path
 import structlog
 from rich.console import Console
 
-from daror_runtime.cli.common import CommandParser, Commands, UsageError, bind, output_dir, output_file
+from daror_runtime.cli.common import (
+    TRUST_SIGNAL_MAP_HELP,
+    CommandParser,
+    Commands,
+    UsageError,
+    bind,
+    output_dir,
+    output_file,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -30,6 +38,7 @@ def _declare_flags(residual: CommandParser) -> None:
     bases = [k.kind for k in kinds() if k.residual_base]
     residual.add_argument("--train", type=Path, required=True, help="training data (stationary dataset or raw log)")
     residual.add_argument("--validate", type=Path, required=True, help="validation data: every reported RMSE is on it")
+    residual.add_argument("--trust-signal-map", action="store_true", help=TRUST_SIGNAL_MAP_HELP)
     residual.add_argument("--base", default="plf+", help=f"base model kind: {', '.join(bases)} (default plf+)")
     residual.add_argument(
         "--effects",
@@ -124,6 +133,7 @@ def cmd_residual(args: argparse.Namespace, console: Console) -> int:
             dummy_arm=args.dummy_arm,
             learned=args.learned,
             raw_paths=_raw_paths(args.raw),
+            trust_signal_map=args.trust_signal_map,
         )
     before, after = run.closure.before, run.closure.after
     table = Table(title=f"Validation errors, {args.base.upper()} before and after ({len(run.inputs.validate)} points)")

@@ -8,6 +8,7 @@ fifth joint's columns is another robot's data. Both are refused before anything 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +40,8 @@ class ResidualInputs:
     validate: StationaryDataset
     train_history: PointHistory | None = None
     validate_history: PointHistory | None = None
+    #: What the report must say of a file whose signal map failed and was trusted (``--trust-signal-map``).
+    signal_map_notes: tuple[str, ...] = ()
 
     @property
     def has_direction(self) -> bool:
@@ -155,6 +158,7 @@ def load_pair(
     validate_path: Path | str,
     reduction: ReductionSettings | None = None,
     raw_paths: tuple[Path | str | None, Path | str | None] | None = None,
+    judge: Callable[[StationaryDataset | RawLog], str | None] | None = None,
 ) -> ResidualInputs:
     """Load and check the training and validation files of an analysis, with the joints' paths.
 
@@ -162,11 +166,21 @@ def load_pair(
     file that is itself a raw log is its own path; else the ``NAME.raw.*`` file beside its
     dataset when there is one; else the points in order. An explicit raw log always wins.
 
+    ``judge``: the signal map's check of each file as read (its raw log when it is one): raises
+    when the map fails, returns what the report must say of a trusted file (None: nothing).
+
     Raises:
-        DataError: see :func:`read_residual_file`, :func:`check_pair` and :func:`load_history`.
+        DataError: see :func:`read_residual_file`, :func:`check_pair` and :func:`load_history`;
+            ``judge``'s SignalMapError.
     """
     train, train_raw = read_residual_file(train_path, reduction)
     validate, validate_raw = read_residual_file(validate_path, reduction)
+    notes: list[str] = []
+    if judge is not None:
+        for points, raw in ((train, train_raw), (validate, validate_raw)):
+            note = judge(raw if raw is not None else points)
+            if note is not None:
+                notes.append(note)
     pair = check_pair(train, validate)
     given = raw_paths or (None, None)
     return ResidualInputs(
@@ -174,4 +188,5 @@ def load_pair(
         pair.validate,
         _history(pair.train, train_path, train_raw, given[0]),
         _history(pair.validate, validate_path, validate_raw, given[1]),
+        tuple(notes),
     )

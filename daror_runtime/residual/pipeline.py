@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from daror_runtime.data.schema import RawLog, StationaryDataset
+from daror_runtime.data.signal_map import require_signal_map
 from daror_runtime.errors import DataError, UsageError
 from daror_runtime.residual.data import ResidualInputs, load_pair
 from daror_runtime.residual.diagnosis import Closure, Diagnosis, closure, diagnose
@@ -66,8 +68,13 @@ def run_residual(
     settings: DiagnosisSettings | None = None,
     learned: bool = False,
     raw_paths: tuple[Path | str | None, Path | str | None] | None = None,
+    trust_signal_map: bool | None = None,
 ) -> ResidualRun:
     """The whole analysis; every check runs before anything is fitted or written.
+
+    ``trust_signal_map``: each file's signal map is judged from physics (issue 27) and a failed one
+    refused (False), or accepted and said so in the report (True); None: not judged (a caller that
+    made the data itself).
 
     ``raw_paths``: the raw logs of the training and validation runs (the hysteresis family's
     signal); None for either: the ``NAME.raw.*`` file beside its dataset, else the points in order.
@@ -77,15 +84,23 @@ def run_residual(
 
     Raises:
         ExtraNotInstalledError: ``learned`` without the extra ``nn``.
-        DataError: a file that does not match, a pair that does not belong together, or a
-            direction effect asked for on data without ``dir``.
+        DataError: a file that does not match, a pair that does not belong together, a
+            direction effect asked for on data without ``dir``, or (SignalMapError) a file whose
+            columns are not what their names say.
         UsageError: an unknown base kind or family.
         IdentifiabilityError: the training data cannot identify the base model.
     """
     base_model(base_kind, description, dummy_arm)  # refuses an unknown base before reading data
     if learned:
         require_neural_extra()
-    inputs = load_pair(train_path, validate_path, raw_paths=raw_paths)
+    judge = None
+    if trust_signal_map is not None:
+        trust = trust_signal_map
+
+        def judge(data: StationaryDataset | RawLog) -> str | None:
+            return require_signal_map(data, description, dummy_arm, trust).trust_note()
+
+    inputs = load_pair(train_path, validate_path, raw_paths=raw_paths, judge=judge)
     settings = settings or DiagnosisSettings()
     if families is not None:
         if not inputs.has_direction:
@@ -108,5 +123,7 @@ def run_residual(
     result = closure(diagnosis, validate)
     model = augmented_model(diagnosis.final_fit, travel_rad=diagnosis.travel_rad)
     remainder = learn_remainder(model, train, validate, description) if learned else None
-    files = write_report(out_dir, diagnosis, result, model, train, validate, train_path, remainder, choice)
+    files = write_report(
+        out_dir, diagnosis, result, model, train, validate, train_path, remainder, choice, inputs.signal_map_notes
+    )
     return ResidualRun(inputs, diagnosis, result, model, files, remainder, choice)

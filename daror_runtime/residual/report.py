@@ -515,10 +515,13 @@ def write_report(
     train_path: Path | str | None = None,
     learned: LearnedRemainder | None = None,
     travel: TravelChoice | None = None,
+    signal_map_notes: tuple[str, ...] = (),
 ) -> dict[str, Path]:
     """Write every file of the report into ``out_dir``; returns their paths by name.
 
     ``travel``: the direction offset weighed against the hysteresis (:mod:`.travel`), when it was.
+    ``signal_map_notes``: what to say of data whose signal map failed and was trusted (the model
+    files' ``training.signal_map`` and ``summary.json``'s ``signal_map``; absent when empty).
 
     The files are written into a temporary folder beside ``out_dir`` and moved in only when all
     of them exist (``summary.json`` last): a failure leaves ``out_dir`` as it was. An earlier
@@ -534,7 +537,9 @@ def write_report(
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
-        optional = _write_files(staging, diagnosis, result, model, train, validate, train_path, learned, travel)
+        optional = _write_files(
+            staging, diagnosis, result, model, train, validate, train_path, learned, travel, signal_map_notes
+        )
         names = (*optional, *REPORT_FILES)
         out.mkdir(exist_ok=True)
         for name in OPTIONAL_FILES:
@@ -557,6 +562,7 @@ def _write_files(
     train_path: Path | str | None,
     learned: LearnedRemainder | None,
     travel: TravelChoice | None = None,
+    signal_map_notes: tuple[str, ...] = (),
 ) -> tuple[str, ...]:
     """Write the report's files into ``out``; the names of the :data:`OPTIONAL_FILES` written."""
     optional: list[str] = []
@@ -574,6 +580,8 @@ def _write_files(
         plot_hysteresis(model, train, validate, out / HYSTERESIS_PLOT_FILE)
         optional.append(HYSTERESIS_PLOT_FILE)
     summary = training_summary(train, train_path)
+    if signal_map_notes:
+        summary = summary.model_copy(update={"signal_map": "; ".join(signal_map_notes)})
     document = model_document(model, summary)
     write_text_atomic(paths["model"], json.dumps(document, indent=2, allow_nan=False) + "\n")
     if learned is not None and learned.model is not None:
@@ -590,7 +598,10 @@ def _write_files(
         paths["report"], report_markdown(diagnosis, result, train, validate, plots, learned, hysteresis_plot)
     )
     # The summary last: its presence says the whole report is there.
-    write_text_atomic(paths["summary"], _json(summary_document(diagnosis, result, learned)))
+    summary_json = summary_document(diagnosis, result, learned)
+    if signal_map_notes:
+        summary_json["signal_map"] = list(signal_map_notes)
+    write_text_atomic(paths["summary"], _json(summary_json))
     return tuple(optional)
 
 

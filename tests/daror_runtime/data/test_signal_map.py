@@ -232,3 +232,24 @@ def test_fit_and_evaluate_refuse_the_thesis_s_mistake_unless_trusted_and_then_sa
     assert "signal_map" not in json.loads(clean_model.read_text(encoding="utf-8"))["training"]
     assert main(["evaluate", str(clean_model), "--data", str(raw_file), "--json", str(clean_table)]) == 0
     assert "signal_map" not in json.loads(clean_table.read_text(encoding="utf-8"))
+
+
+@pytest.mark.slow
+def test_residual_refuses_the_thesis_s_mistake_unless_trusted_and_then_its_report_says_so(
+    raw_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    wrong = _renamed(raw_file, tmp_path / "thesis.npz", _every_joint((("q", "theta"), ("tau", "tau_cmd"))))
+    validate = raw_file.parent / "run.npz"  # the run's stationary points, under their right names
+    out = tmp_path / "residual"
+    argv = ["residual", "--train", str(wrong), "--validate", str(validate), "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert f"{wrong}: the signal map looks wrong: spring relation fails" in err[0]
+    assert not out.exists()
+    assert main([*argv, "--trust-signal-map"]) == 0
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert len(summary["signal_map"]) == 1  # the training file only: the validation file's map held
+    assert summary["signal_map"][0].startswith(f"accepted with --trust-signal-map although {wrong}")
+    model = json.loads((out / "model.json").read_text(encoding="utf-8"))
+    assert model["training"]["signal_map"] == summary["signal_map"][0]
