@@ -9,7 +9,16 @@ from pathlib import Path
 import structlog
 from rich.console import Console
 
-from daror_runtime.cli.common import Commands, UsageError, bind, output_dir, output_file, positive_int, progress
+from daror_runtime.cli.common import (
+    TRUST_SIGNAL_MAP_HELP,
+    Commands,
+    UsageError,
+    bind,
+    output_dir,
+    output_file,
+    positive_int,
+    progress,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -25,6 +34,7 @@ def register(commands: Commands) -> None:
     hp.add_argument(
         "--train", type=Path, required=True, metavar="FILE", help="training data: stationary dataset or raw log"
     )
+    hp.add_argument("--trust-signal-map", action="store_true", help=TRUST_SIGNAL_MAP_HELP)
     hp.add_argument(
         "--out",
         type=Path,
@@ -56,7 +66,7 @@ def register(commands: Commands) -> None:
 def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
     """The hyper-parameter search of PENN and NNN (docs/hpsearch.md): every check first, then the run, then the files."""
     from daror_runtime.bench import machine
-    from daror_runtime.data.load import load_stationary
+    from daror_runtime.data.load import load_stationary_checked
     from daror_runtime.models.registry import ExtraNotInstalledError
     from daror_runtime.util.outputs import output_lock
     from hal.robot import load_description
@@ -91,7 +101,10 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
     if out.is_dir():
         for name in OUTPUT_NAMES:
             output_file(out / name, args.train)
-    data = load_stationary(args.train)
+    data, signal_map = load_stationary_checked(
+        args.train, load_description(None), trust_signal_map=args.trust_signal_map
+    )
+    note = signal_map.trust_note()
     check_data(grid, data)
     cache = args.cache_dir if args.cache_dir is not None else default_cache_dir()
     try:
@@ -130,8 +143,8 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
             if model in grid.models
         }
         with console.status(f"fitting the best {' and '.join(m.upper() for m in best)} as daror fit does"):
-            winners = fit_winners(best, grid, data, args.train, out, load_description(None))
-        paths = write_outputs(run, out, machine(), winners)
+            winners = fit_winners(best, grid, data, args.train, out, load_description(None), note)
+        paths = write_outputs(run, out, machine(), winners, note)
     n = len(run.rows)
     console.print(
         f"{n} networks ({len(run.results)} shapes) in {run.wall_s:.1f} s, {n / run.wall_s:.2f} networks/s; "

@@ -9,7 +9,16 @@ from typing import Any
 import structlog
 from rich.console import Console
 
-from daror_runtime.cli.common import Commands, UsageError, bind, non_negative_int, output_dir, output_file, progress
+from daror_runtime.cli.common import (
+    TRUST_SIGNAL_MAP_HELP,
+    Commands,
+    UsageError,
+    bind,
+    non_negative_int,
+    output_dir,
+    output_file,
+    progress,
+)
 
 log = structlog.get_logger(__name__)
 
@@ -31,6 +40,7 @@ def register(commands: Commands) -> None:
         "--validate", type=Path, required=True, metavar="FILE", help="validation set: stationary dataset or raw log"
     )
     efficiency.add_argument("--kind", default="plf+", help=f"fitted model kind: {', '.join(fitted)} (default plf+)")
+    efficiency.add_argument("--trust-signal-map", action="store_true", help=TRUST_SIGNAL_MAP_HELP)
     efficiency.add_argument(
         "--sizes",
         metavar="N,N,...",
@@ -66,7 +76,7 @@ def register(commands: Commands) -> None:
 
 def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int:
     """Validation RMSE (Nm) against the number of training points (Sec. 5.3.1), written to ``--out``."""
-    from daror_runtime.data.load import load_stationary
+    from daror_runtime.data.load import load_stationary_checked
     from daror_runtime.studies.data_efficiency import check_kind, parse_sizes, run_data_efficiency
     from daror_runtime.studies.data_efficiency_report import (
         output_paths,
@@ -84,8 +94,9 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
         if Path(args.out).is_dir():
             output_file(path, args.train, args.validate)
     description = load_description()
-    train = load_stationary(args.train)
-    validate = load_stationary(args.validate)
+    train, train_map = load_stationary_checked(args.train, description, trust_signal_map=args.trust_signal_map)
+    validate, validate_map = load_stationary_checked(args.validate, description, trust_signal_map=args.trust_signal_map)
+    notes = tuple(note for note in (train_map.trust_note(), validate_map.trust_note()) if note is not None)
     log.info("data-efficiency study requested", kind=kind, train=str(args.train), validate=str(args.validate))
     with progress(console, f"[bold]{kind}[/bold] data efficiency", "{task.completed:.0f} fits") as bar:
         task = bar.add_task("study", total=None)
@@ -100,7 +111,7 @@ def cmd_study_data_efficiency(args: argparse.Namespace, console: Console) -> int
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )
     with output_lock(args.out):
-        paths = write_outputs(result, args.out)
+        paths = write_outputs(result, args.out, notes)
     console.print(summary_table(result))
     console.print(f"  full-data fit ({result.train_points} points): validation RMSE {result.full_data_rmse:.4g} Nm")
     if result.enough_points is None:

@@ -177,8 +177,13 @@ def check_out_dir(out_dir: Path | str) -> None:
         raise OutputPathError(f"{folder}: is a file; expected a folder")
 
 
-def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Path, Path, Path]:
+def write_outputs(
+    result: DataEfficiencyResult, out_dir: Path | str, signal_map_notes: tuple[str, ...] = ()
+) -> tuple[Path, Path, Path]:
     """Write ``data_efficiency.json``, ``.png`` and ``.md`` into ``out_dir`` (created if missing).
+
+    ``signal_map_notes``: what to say of data whose signal map failed and was trusted
+    (``--trust-signal-map``): the JSON's ``signal_map`` and a line of the Markdown; nothing when empty.
 
     Returns:
         The paths written: JSON, PNG, Markdown.
@@ -189,7 +194,10 @@ def write_outputs(result: DataEfficiencyResult, out_dir: Path | str) -> tuple[Pa
     folder = Path(out_dir)
     check_out_dir(folder)
     # Render everything before touching the disk: a rendering error must not leave a partial set.
-    document = json.dumps(result.to_dict(), indent=2, allow_nan=False) + "\n"
+    contents = result.to_dict()
+    if signal_map_notes:
+        contents["signal_map"] = list(signal_map_notes)
+    document = json.dumps(contents, indent=2, allow_nan=False) + "\n"
     png = render_png(result)
-    markdown = render_markdown(result)
+    markdown = render_markdown(result) + "".join(f"\n**Signal map:** {note}\n" for note in signal_map_notes)
     return write_study_files(folder, output_paths(folder), document, png, markdown)

@@ -336,9 +336,18 @@ def _interrupt_held() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any], winners: Sequence[Winner] = ()) -> list[Path]:
+def write_outputs(
+    run: SearchRun,
+    out_dir: Path,
+    machine: dict[str, Any],
+    winners: Sequence[Winner] = (),
+    signal_map_note: str | None = None,
+) -> list[Path]:
     """Write the winners' model files and :data:`REPORT_NAMES` into ``out_dir`` (created if missing), all or none;
     the paths written, in order (summary.json last).
+
+    ``signal_map_note``: the training file's signal map failed and was trusted: ``summary.json``'s
+    ``signal_map`` says so (absent otherwise).
 
     Raises:
         OutputWriteError: the folder cannot be written (exit code 2); nothing was written.
@@ -355,7 +364,13 @@ def write_outputs(run: SearchRun, out_dir: Path, machine: dict[str, Any], winner
         "networks.csv": networks_csv(run),
         "ranking.csv": ranking_csv(ranked),
         "ranking.md": render_markdown(run, ranked, machine, winners),
-        "summary.json": json.dumps(summary_document(run, ranked, machine, winners), indent=2, allow_nan=False) + "\n",
+        "summary.json": json.dumps(
+            summary_document(run, ranked, machine, winners)
+            | ({"signal_map": signal_map_note} if signal_map_note is not None else {}),
+            indent=2,
+            allow_nan=False,
+        )
+        + "\n",
     }
     created = not out_dir.exists()
     paths = [out_dir / name for name in _file_names(winners)]

@@ -168,8 +168,12 @@ def fit_winners(
     train: Path | str,
     out_dir: Path,
     description: RobotDescription,
+    signal_map_note: str | None = None,
 ) -> list[Winner]:
     """Fit each model's winner as its ``daror fit`` line does; the files are not written (``report.write_outputs``).
+
+    ``signal_map_note``: the training file's signal map failed and the user trusted it
+    (``--trust-signal-map``): each winner's file says so and its line carries the flag.
 
     Args:
         best: each model's best network (``penn``, ``nnn``), in the order to report them.
@@ -188,11 +192,16 @@ def fit_winners(
         options, differences = fit_options(row, grid)
         differences += _settings_differences(model, options, grid)
         argv = tuple(fit_arguments(model, row, grid, train, out_dir / file_name))
+        if signal_map_note is not None:
+            argv = (*argv, "--trust-signal-map")
         try:
             result: FitResult = fit_model(model, data, description, options_for(model, options))
         except TrainingDivergedError as exc:
             winners.append(Winner(model, row, argv, None, None, tuple(differences), str(exc)))
             continue
-        document = model_document(result.model, training_summary(data, train), result.report)
+        summary = training_summary(data, train)
+        if signal_map_note is not None:
+            summary = summary.model_copy(update={"signal_map": signal_map_note})
+        document = model_document(result.model, summary, result.report)
         winners.append(Winner(model, row, argv, file_name, document, tuple(differences)))
     return winners

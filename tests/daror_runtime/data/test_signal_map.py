@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from daror_runtime.cli import main
-from daror_runtime.data.load import load_dataset
+from daror_runtime.data.load import load_dataset, write_dataset
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.signal_map import SignalMapError, check_signal_map
 from hal.robot import RobotDescription, load_description
@@ -253,3 +253,26 @@ def test_residual_refuses_the_thesis_s_mistake_unless_trusted_and_then_its_repor
     assert summary["signal_map"][0].startswith(f"accepted with --trust-signal-map although {wrong}")
     model = json.loads((out / "model.json").read_text(encoding="utf-8"))
     assert model["training"]["signal_map"] == summary["signal_map"][0]
+
+
+@pytest.mark.slow
+def test_the_data_efficiency_study_refuses_a_mix_up_unless_trusted_and_then_says_so(
+    tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]
+) -> None:
+    train, validate = (_stationary(description, "exo_dummy_arm", t) for t in ("training", "validation"))
+    swapped = tmp_path / "swapped.csv"  # joints 1 and 2 exchanged in every column
+    write_dataset(swapped, replace(train, q_rad=train.q_rad[:, [1, 0, 2, 3]], tau_nm=train.tau_nm[:, [1, 0, 2, 3]]))
+    clean = tmp_path / "validate.csv"
+    write_dataset(clean, validate)
+    out = tmp_path / "study"
+    argv = ["study", "data-efficiency", "--train", str(swapped), "--validate", str(clean), "--out", str(out)]
+    assert main([*argv, "--sizes", "40,80", "--draws", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "most likely joints 1 and 2 exchanged" in err[0]
+    assert not out.exists()
+    assert main([*argv, "--sizes", "40,80", "--draws", "2", "--trust-signal-map"]) == 0
+    document = json.loads((out / "data_efficiency.json").read_text(encoding="utf-8"))
+    assert len(document["signal_map"]) == 1
+    assert "most likely joints 1 and 2 exchanged" in document["signal_map"][0]
+    assert document["signal_map"][0] in (out / "data_efficiency.md").read_text(encoding="utf-8")

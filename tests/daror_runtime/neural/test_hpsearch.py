@@ -819,3 +819,34 @@ def test_the_workers_end_when_the_command_is_killed(command: tuple[subprocess.Po
     assert _wait_until(lambda: all(_gone(pid) for pid in workers), 5)
     assert not out.exists()
     assert len(list(out.parent.glob("daror-hpsearch-*"))) == 1  # the data file, left behind (documented)
+
+
+@pytest.mark.slow
+def test_a_training_file_with_two_joints_exchanged_is_refused_unless_trusted_and_then_every_file_says_so(
+    folder: Path,
+    tmp_path: Path,
+    dataset_b: tuple[StationaryDataset, StationaryDataset],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Issue 27: the search judges its training file's signal map (docs/data.md) before it trains anything."""
+    train = dataset_b[0]
+    swapped = tmp_path / "swapped.csv"
+    write_dataset(swapped, replace(train, q_rad=train.q_rad[:, [1, 0, 2, 3]], tau_nm=train.tau_nm[:, [1, 0, 2, 3]]))
+    out = tmp_path / "search"
+    argv = [
+        "hpsearch", "--train", str(swapped), "--out", str(out), "--grid", str(folder / "tiny.yaml"),
+        "--cache-dir", str(folder / "cache"), "--workers", "1",
+    ]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "most likely joints 1 and 2 exchanged" in err[0]
+    assert not out.exists()
+    assert main([*argv, "--trust-signal-map"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["signal_map"].startswith(f"accepted with --trust-signal-map although {swapped}")
+    for winner in summary["winners"].values():
+        _, contents = load_model(out / winner["file"])
+        assert contents.training is not None
+        assert contents.training.signal_map == summary["signal_map"]
+        assert winner["argv"][-1] == "--trust-signal-map"  # its fit line is refused without it
