@@ -497,13 +497,18 @@ def load_stationary(path: Path | str, reduction: ReductionSettings | None = None
 
 
 def load_stationary_checked(
-    path: Path | str, description: RobotDescription, dummy_arm: bool = False, trust_signal_map: bool = False
+    path: Path | str,
+    description: RobotDescription,
+    dummy_arm: bool = False,
+    trust_signal_map: bool = False,
+    remedy: str = "--trust-signal-map accepts the file anyway",
 ) -> tuple[StationaryDataset, SignalMapReport]:
     """:func:`load_stationary` with the file's signal map judged from physics first (issue 27).
 
     A raw log is judged on its own samples (the springs, the command, the velocity, the A Priori
     torque), then reduced; a stationary dataset on its points (the A Priori torque). ``dummy_arm``:
     the Dummy Arm was installed. ``trust_signal_map``: a failed map is accepted (the report says so).
+    ``remedy``: what a refusal tells the user to do (a caller without the flag names its own rule).
 
     Raises:
         DataError: the file does not match, or a raw log holds no stationary points.
@@ -514,7 +519,7 @@ def load_stationary_checked(
     data = load_dataset(path)
     # the file's own contract first (a log with no stationary point says so), then its physics
     points = reduce_to_stationary(data) if isinstance(data, RawLog) else data
-    return points, require_signal_map(data, description, dummy_arm=dummy_arm, trust=trust_signal_map)
+    return points, require_signal_map(data, description, dummy_arm=dummy_arm, trust=trust_signal_map, remedy=remedy)
 
 
 def write_dataset(path: Path | str, data: StationaryDataset | RawLog) -> None:

@@ -479,21 +479,26 @@ def explain_refused_groups(
 
 
 def require_signal_map(
-    data: RawLog | StationaryDataset, description: RobotDescription, dummy_arm: bool = False, trust: bool = False
+    data: RawLog | StationaryDataset,
+    description: RobotDescription,
+    dummy_arm: bool = False,
+    trust: bool = False,
+    remedy: str = "--trust-signal-map accepts the file anyway",
 ) -> SignalMapReport:
     """:func:`check_signal_map`, refused when a relation fails unless the user trusts the file.
 
     ``trust`` (``--trust-signal-map``): a failed map is accepted, logged, and the report marked
     trusted, so the command writes :meth:`SignalMapReport.trust_note` into what it writes.
+    ``remedy``: what the refusal tells the user to do (a caller without the flag says its own).
 
     Raises:
         SignalMapError: a relation fails and ``trust`` is False (one line: the joints, the relations,
-            the likely mix-up, and the flag that accepts the file anyway).
+            the likely mix-up, and ``remedy``).
     """
     report = check_signal_map(data, description, dummy_arm)
     if report.passed:
         return report
     if not trust:
-        raise SignalMapError(f"{report.failure_line()}; --trust-signal-map accepts the file anyway")
+        raise SignalMapError(f"{report.failure_line()}; {remedy}")
     log.warning("signal map trusted by the user", source=report.source, failure=report.failure_line())
     return replace(report, trusted=True)

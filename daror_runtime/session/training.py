@@ -117,18 +117,25 @@ class ModelCandidate:
 def read_model_candidate(path: Path, validation_path: Path, description: RobotDescription) -> ModelCandidate:
     """Read a model file fitted for this robot and its validation data; refuse what cannot be validated.
 
+    The validation file's signal map is judged from physics (issue 27, docs/data.md) and a failed
+    one refused: the session's gate has no ``--trust-signal-map`` (a model validated on columns that
+    are not what their names say was not validated).
+
     Raises:
         ModelFileError: the model file is missing, unreadable, corrupted, or fitted for another geometry.
-        DataError: the validation file is missing or malformed.
+        DataError: the validation file is missing or malformed, or (SignalMapError) its columns are
+            not what their names say.
         NotHeldOutError: the validation file is the one the model was trained on.
         DataError: the raw log beside the validation file (a hysteresis model's path) is not this run's.
     """
-    from daror_runtime.data.load import load_stationary
+    from daror_runtime.data.load import load_stationary_checked
 
     model, document = load_model(path)
     if document.robot.geometry != description.geometry:
         raise ModelFileError(f"{path}: the model was fitted for another robot geometry than this session's")
-    validation = load_stationary(validation_path)
+    validation, _ = load_stationary_checked(
+        validation_path, description, remedy="a session validates a model only on data whose columns are what they say"
+    )
     training = document.training
     if training is not None and training.sha256 is not None and training.sha256 == file_sha256(validation_path):
         raise NotHeldOutError(

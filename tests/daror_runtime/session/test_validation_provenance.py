@@ -32,6 +32,7 @@ from daror_runtime.data.provenance import (
     write_provenance,
 )
 from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.data.signal_map import SignalMapError
 from daror_runtime.errors import DataError
 from daror_runtime.models.files import load_model, save_model
 from daror_runtime.models.neural import Network, NetworkSpec, NnnModel
@@ -40,7 +41,7 @@ from daror_runtime.session.settings import SessionSettings
 from daror_runtime.testing import session_core
 from hal.sim.scenario import load_scenario
 from hal.sim.static_dataset import generate_stationary
-from tests.conftest import Models
+from tests.conftest import Models, recorded_by_an_earlier_session
 from tests.daror_runtime.session.test_session_safety import Session
 
 SCENARIO = load_scenario("exo_dummy_arm")
@@ -243,3 +244,24 @@ def test_the_gate_says_how_many_validation_points_the_model_extrapolates_to(sess
     assert text is not None
     assert text.startswith(f"{int(outside.sum())} of {len(validation)} validation points outside the model's")
     assert text in render_status(session.runtime.snapshot(), [], [])
+
+
+def test_validation_data_whose_columns_are_not_what_their_names_say_is_refused_naming_the_mix_up(
+    session: Session, models: Models, tmp_path: Path
+) -> None:
+    """Issue 27: the gate judges the validation file's signal map, and has no trust flag."""
+    points = generate_stationary(SCENARIO, "validation")
+    swapped = tmp_path / "swapped_validation.csv"  # joints 1 and 2 exchanged in every column
+    order = [1, 0, 2, 3]
+    write_dataset(
+        swapped, StationaryDataset(points.q_rad[:, order], points.tau_nm[:, order], points.direction[:, order])
+    )
+    recorded_by_an_earlier_session(swapped, SCENARIO, "validation")  # this pilot's: only the columns are wrong
+    with pytest.raises(SignalMapError) as refusal:  # refused when named, as a malformed file is
+        session.runtime.select_model(models.good, swapped)
+    reason = str(refusal.value)
+    assert "the signal map looks wrong" in reason
+    assert "most likely joints 1 and 2 exchanged" in reason
+    assert reason.endswith("a session validates a model only on data whose columns are what they say")
+    assert not session_core(session.runtime).jobs.pending
+    assert session_core(session.runtime).modes.compensation.model is None
