@@ -468,7 +468,7 @@ def _mix_up_of_refused(table: Table) -> str | None:
     if "q_rad" not in names or "tau_nm" not in names:
         return None
     groups = {field: table.matrix(group) for field, group in names.items()}
-    if not all(np.isfinite(values).all() for values in groups.values()):
+    if groups["q_rad"].shape[0] < 3 or not all(np.isfinite(values).all() for values in groups.values()):
         return None
     t_s = table.matrix(("t",))[:, 0] if "t" in table.columns and "dq_rad_s" in names else None
     if t_s is not None and not (np.isfinite(t_s).all() and np.all(np.diff(t_s) > 0)):

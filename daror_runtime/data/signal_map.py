@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import structlog
@@ -126,7 +126,6 @@ class SignalMapReport:
     kind: str  # "raw log" or "stationary"
     relations: tuple[Relation, ...]
     mix_up: str | None = None
-    trusted: bool = field(default=False)  # the user accepted the file anyway (--trust-signal-map)
 
     @property
     def passed(self) -> bool:
@@ -487,8 +486,8 @@ def require_signal_map(
 ) -> SignalMapReport:
     """:func:`check_signal_map`, refused when a relation fails unless the user trusts the file.
 
-    ``trust`` (``--trust-signal-map``): a failed map is accepted, logged, and the report marked
-    trusted, so the command writes :meth:`SignalMapReport.trust_note` into what it writes.
+    ``trust`` (``--trust-signal-map``): a failed map is accepted and logged; the command writes
+    :meth:`SignalMapReport.trust_note` into what it writes.
     ``remedy``: what the refusal tells the user to do (a caller without the flag says its own).
 
     Raises:
@@ -501,4 +500,4 @@ def require_signal_map(
     if not trust:
         raise SignalMapError(f"{report.failure_line()}; {remedy}")
     log.warning("signal map trusted by the user", source=report.source, failure=report.failure_line())
-    return replace(report, trusted=True)
+    return report
