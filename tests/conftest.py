@@ -138,6 +138,7 @@ LONG_FILES_S = {
     "test_hpsearch.py": 29,
     "test_protocol_design.py": 28,
     "test_console_operator.py": 25,
+    "test_demo_session.py": 25,
     "test_neural.py": 24,
     "test_residual_learned.py": 19,
     "test_session_safety.py": 15,

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import structlog
 from rich.console import Console
 from rich.table import Table
@@ -51,6 +52,8 @@ log = structlog.get_logger(__name__)
 #: The kinds the demo fits and compares with the thesis's tables: a choice of the demo, checked
 #: against the model registry by the tests (each registered, and in THESIS_TABLE_III).
 DEMO_KINDS = ("ap", "plf", "plf+")
+#: The simulated plant of the demo's session: the Dummy Arm (dataset B), whose truth gives the floor.
+DEMO_SCENARIO = "exo_dummy_arm"
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,7 @@ def _session_tables(session: SessionReport) -> tuple[Table, str]:
     return table, "\n".join(md)
 
 
-def _close_the_loop(session: SessionReport, out: Path, console: Console) -> str:
+def _close_the_loop(session: SessionReport, out: Path, console: Console, scenario: str) -> tuple[str, dict[str, Any]]:
     """Part 3: the residual analysis on the session's identification data; its Markdown summary."""
     from daror_runtime.residual.pipeline import run_residual
 
@@ -186,7 +189,58 @@ def _close_the_loop(session: SessionReport, out: Path, console: Console) -> str:
     console.print(
         f"  RMSE {before.rmse_nm:.3f} -> {after.rmse_nm:.3f} Nm; report: {out / 'residual_session' / 'report.md'}"
     )
-    return "\n".join(lines)
+    floor = _floor_of_the_session(run, scenario)
+    for line in floor.lines:
+        console.print(f"  {line}")
+    lines += ["", *floor.lines]
+    return "\n".join(lines), floor.document
+
+
+@dataclass(frozen=True)
+class SessionFloor:
+    """The demo's closure against the noise floor of its own runs (D109): what it prints and keeps."""
+
+    lines: list[str]
+    document: dict[str, Any]
+
+
+def _floor_of_the_session(run: Any, scenario_name: str) -> SessionFloor:
+    """The session's closure against the floor of the same runs: the plant's true hysteresis taken out (D109, D204)."""
+    from daror_runtime.residual.floor import floor_of_the_same_runs
+    from daror_runtime.residual.pipeline import unknown_hysteresis_state
+
+    sensors = load_scenario(scenario_name).sensors
+    inputs = run.inputs
+    unknown = None
+    if inputs.validate_history is not None and run.travel is not None and run.travel.hysteresis:
+        unknown = unknown_hysteresis_state(run.diagnosis, inputs.validate_history, run.travel.travel_rad)
+    floor = floor_of_the_same_runs(
+        inputs, np.asarray(sensors.direction_error_nm), float(sensors.direction_play_rad), load_description(),
+        unknown,
+    )  # fmt: skip
+    after, floor_nm = run.closure.after.rmse_nm, floor.after.rmse_nm
+    lines = [
+        f"Closure against the floor of the session's own runs (PLF+ with the plant's true hysteresis taken out, "
+        f"D109): {after:.4f} Nm against {floor_nm:.4f} Nm, {after / floor_nm:.2f}x."
+    ]
+    document: dict[str, Any] = {"rmse_after": after, "floor": floor_nm, "ratio": after / floor_nm}
+    known, known_floor = run.closure.undetermined, floor.undetermined
+    if known is not None and known.after is not None and known_floor is not None and known_floor.after is not None:
+        kept = len(inputs.validate) - known.n_points
+        ratio = known.after.rmse_nm / known_floor.after.rmse_nm
+        lines.append(
+            f"Without the {known.n_points} validation point(s) whose hysteresis state no log determines "
+            f"(t = {', '.join(f'{t:.1f}' for t in known.t_s)} s: the run begins at rest there), on the other {kept}: "
+            f"{known.after.rmse_nm:.4f} Nm against {known_floor.after.rmse_nm:.4f} Nm, {ratio:.2f}x."
+        )
+        document["determined"] = {
+            "n_points": kept,
+            "left_out_t_s": list(known.t_s),
+            "rmse_after": known.after.rmse_nm,
+            "floor": known_floor.after.rmse_nm,
+            "ratio": ratio,
+        }
+    return SessionFloor(lines, document)
 
 
 def run_demo(out: Path, console: Console) -> dict[str, Any]:
@@ -196,7 +250,7 @@ def run_demo(out: Path, console: Console) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     log.info("demo started", out=str(out))
     console.print("[bold]DAROR-01: a full session on the simulated plant, start to compensation[/bold]")
-    session = rehearse(out / "session", Console(quiet=True))
+    session = rehearse(out / "session", Console(quiet=True), DEMO_SCENARIO)
     session_table, session_md = _session_tables(session)
     console.print(session_table)
     console.print("[bold]DAROR-01 modelling pipeline on the simulated plant[/bold]")
@@ -205,12 +259,13 @@ def run_demo(out: Path, console: Console) -> dict[str, Any]:
     console.print(table)
     cvf = cvf_models(runs[1].models)
     console.print(cvf_table(cvf, "Closed-path energy test, dataset B models (thesis Table IV)"))
-    residual_md = _close_the_loop(session, out, console)
+    residual_md, floor = _close_the_loop(session, out, console, DEMO_SCENARIO)
     summary = {
         "datasets": {run.label: {"scenario": run.scenario, **evaluation_document(run.evaluations)} for run in runs},
         "cvf_B": cvf_document(cvf),
         "session": session.document(),
         "residual_session": json.loads((out / "residual_session" / "summary.json").read_text()),
+        "residual_session_floor": floor,
     }
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     report = [

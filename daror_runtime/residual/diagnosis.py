@@ -229,12 +229,34 @@ def diagnose(
 
 
 @dataclass(frozen=True)
+class UndeterminedPoints:
+    """Validation points whose hysteresis state their run's log does not determine, and the closure without them.
+
+    ``index``: the points' positions in the validation data; ``joints``: the joints (1-4) whose
+    state is unknown at one of them; ``before``/``after``: the base and the augmented model on the
+    other points (None when no other point is left).
+    """
+
+    index: np.ndarray
+    t_s: tuple[float, ...]
+    joints: tuple[int, ...]
+    before: ErrorMetrics | None
+    after: ErrorMetrics | None
+
+    @property
+    def n_points(self) -> int:
+        return int(self.index.size)
+
+
+@dataclass(frozen=True)
 class Closure:
     """Before/after errors on the validation data, and each effect's share of the gain."""
 
     before: ErrorMetrics
     after: ErrorMetrics
     rmse_after_each_nm: list[float]  # validation RMSE after each found effect, in order
+    #: validation points no model can get right for want of their hysteresis state (None: none)
+    undetermined: UndeterminedPoints | None = None
 
     def rmse_gain_nm(self, index: int) -> float:
         """Fall of the validation RMSE (Nm) when effect ``index`` was added."""
@@ -242,9 +264,28 @@ class Closure:
         return previous - self.rmse_after_each_nm[index]
 
 
-def closure(diagnosis: Diagnosis, validate: StationaryDataset) -> Closure:
-    """Errors of the base and the augmented model on ``validate`` (Eq. 4.31-4.32)."""
-    before = error_metrics(validate.tau_nm, diagnosis.base_fit.predict(validate))
-    after = error_metrics(validate.tau_nm, diagnosis.final_fit.predict(validate))
+def closure(diagnosis: Diagnosis, validate: StationaryDataset, unknown_state: np.ndarray | None = None) -> Closure:
+    """Errors of the base and the augmented model on ``validate`` (Eq. 4.31-4.32).
+
+    ``unknown_state``: (points, joints) True where a point's hysteresis state is not determined by
+    its log (:meth:`~daror_runtime.residual.hysteresis.PointHistory.undetermined`), on the joints
+    whose hysteresis was found; the closure is then also given without those points.
+    """
+    base = diagnosis.base_fit.predict(validate)
+    final = diagnosis.final_fit.predict(validate)
+    before = error_metrics(validate.tau_nm, base)
+    after = error_metrics(validate.tau_nm, final)
     each = [error_metrics(validate.tau_nm, f.fit.predict(validate)).rmse_nm for f in diagnosis.found]
-    return Closure(before, after, each)
+    undetermined = None
+    if unknown_state is not None and unknown_state.any():
+        left_out = unknown_state.any(axis=1)
+        kept = ~left_out
+        times = validate.t_s[left_out] if validate.t_s is not None else np.full(int(left_out.sum()), np.nan)
+        undetermined = UndeterminedPoints(
+            np.flatnonzero(left_out),
+            tuple(float(t) for t in times),
+            tuple(int(j) + 1 for j in np.flatnonzero(unknown_state.any(axis=0))),
+            error_metrics(validate.tau_nm[kept], base[kept]) if kept.any() else None,
+            error_metrics(validate.tau_nm[kept], final[kept]) if kept.any() else None,
+        )
+    return Closure(before, after, each, undetermined)

@@ -123,6 +123,31 @@ def _play_sums(q_rad: np.ndarray, inverse_travel: np.ndarray, initial: np.ndarra
     return sums
 
 
+@njit(cache=True)
+def _first_determined(q_rad: np.ndarray, inverse_travel: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Per joint, the first sample whose state no longer depends on the state before the path (``samples``: none).
+
+    The operator run from both extreme initial states at once, in :func:`_play`'s arithmetic: once
+    one of them clips, the two meet exactly and move as one from then on.
+    """
+    samples, joints = q_rad.shape
+    first = np.full(joints, samples)
+    for j in range(joints):
+        low = -1.0
+        high = 1.0
+        previous = q_rad[0, j] if samples > 0 else 0.0
+        gain = inverse_travel[j]
+        for k in range(samples):
+            q = q_rad[k, j]
+            low = min(max(low + (q - previous) * gain, -1.0), 1.0)
+            high = min(max(high + (q - previous) * gain, -1.0), 1.0)
+            previous = q
+            if low == high:
+                first[j] = k
+                break
+    return first
+
+
 def _play_arguments(
     q_rad: FloatArray, travel_rad: FloatArray | float, initial: FloatArray | float
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -210,6 +235,23 @@ class PointHistory:
         lo = np.clip(self.point_index - self.half_window, 0, samples)
         hi = np.clip(self.point_index + self.half_window + 1, 0, samples)
         return (sums[hi] - sums[lo]) / (hi - lo)[:, None]
+
+    def undetermined(self, travel_rad: FloatArray | float) -> np.ndarray:
+        """(points, joints) True where the point's state depends on the state before the path began.
+
+        The path settles the state only once the joint has moved far enough one way after its
+        start (a travel constant or two): a run that begins at rest at its first stop holds
+        nothing that says which way the joint moved last, so no model can know the state there
+        (:meth:`states` takes it as halfway, 0), and even one that lacks nothing errs by up to
+        the hysteresis's amplitude at that point.
+
+        Raises:
+            UsageError: see :func:`play_states`.
+        """
+        q, inverse_travel, _ = _play_arguments(self.path_q_rad, travel_rad, 0.0)
+        first = _first_determined(q, inverse_travel)
+        window_start = np.clip(self.point_index - self.half_window, 0, None)
+        return window_start[:, None] < first[None, :]
 
     def subset(self, index: np.ndarray | slice) -> PointHistory:
         """The history of the points selected by ``index`` (the path is shared)."""

@@ -5,19 +5,22 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from daror_runtime.data.schema import RawLog, StationaryDataset
 from daror_runtime.data.signal_map import require_signal_map
 from daror_runtime.errors import DataError, UsageError
 from daror_runtime.residual.data import ResidualInputs, load_pair
 from daror_runtime.residual.diagnosis import Closure, Diagnosis, closure, diagnose
 from daror_runtime.residual.effects import FAMILIES, family
-from daror_runtime.residual.evidence import DiagnosisSettings
+from daror_runtime.residual.evidence import DiagnosisSettings, residual_structure
+from daror_runtime.residual.hysteresis import PointHistory
 from daror_runtime.residual.learned import LearnedRemainder, learn_remainder, require_neural_extra
 from daror_runtime.residual.model import AugmentedModel, augmented_model
 from daror_runtime.residual.report import write_report
 from daror_runtime.residual.structure import base_model
 from daror_runtime.residual.travel import TravelChoice, choose_direction_signal, with_signal
-from hal.robot import RobotDescription
+from hal.robot import N_JOINTS, FloatArray, RobotDescription
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,41 @@ def parse_families(text: str | None) -> tuple[str, ...] | None:
     if len(set(names)) != len(names):
         raise UsageError(f"--effects {text!r}: a family is named twice")
     return names
+
+
+def unknown_hysteresis_state(diagnosis: Diagnosis, history: PointHistory, travel_rad: FloatArray) -> np.ndarray | None:
+    """(points, joints) True where a point's hysteresis state is not in its log, on the joints whose hysteresis was found."""
+    joints = [f.effect.joint - 1 for f in diagnosis.found if f.effect.family == "hysteresis" and f.effect.joint]
+    if not joints:
+        return None
+    unknown = np.zeros((len(history.point_index), N_JOINTS), dtype=bool)
+    unknown[:, joints] = history.undetermined(travel_rad)[:, joints]
+    return unknown
+
+
+def structure_on_known_states(
+    diagnosis: Diagnosis, train: StationaryDataset, history: PointHistory, travel_rad: FloatArray
+) -> Diagnosis:
+    """The structure left in the residual judged without the training points whose hysteresis state no log determines.
+
+    A run's first stop can come before its joints have moved far enough to settle the state: its
+    points share one error no model can avoid (a model that lacks nothing has it too), which the
+    remaining-structure tests would call structure (the neighbours' lag-1 autocorrelation). They
+    stay in the fit; only the verdict on what remains leaves them out, and a note says so.
+    """
+    unknown = unknown_hysteresis_state(diagnosis, history, travel_rad)
+    if unknown is None:
+        return diagnosis
+    kept = ~unknown.any(axis=1)
+    left_out = int(len(kept) - kept.sum())
+    if left_out == 0 or kept.sum() < 3:
+        return diagnosis
+    correlates = residual_structure(diagnosis.final_fit.residual_nm[kept], train.subset(kept), diagnosis.settings)
+    note = (
+        f"{left_out} training point(s) whose hysteresis state no log determines (before the joints had moved far "
+        "enough after the run began) were left out of the remaining-structure tests"
+    )
+    return replace(diagnosis, correlates=correlates, notes=[*diagnosis.notes, note])
 
 
 def run_residual(
@@ -112,7 +150,7 @@ def run_residual(
                 )
         settings = replace(settings, families=families)
     diagnosis = diagnose(inputs.train, description, base_kind, settings, dummy_arm)
-    train, validate, choice = inputs.train, inputs.validate, None
+    train, validate, choice, unknown_state = inputs.train, inputs.validate, None, None
     histories = (inputs.train_history, inputs.validate_history)
     if "hysteresis" in settings.families and histories[0] is not None and histories[1] is not None:
         choice = choose_direction_signal(diagnosis, train, histories[0], description, settings, dummy_arm)
@@ -120,7 +158,9 @@ def run_residual(
             diagnosis = choice.diagnosis
             train = with_signal(train, histories[0], choice.travel_rad)
             validate = with_signal(validate, histories[1], choice.travel_rad)
-    result = closure(diagnosis, validate)
+            unknown_state = unknown_hysteresis_state(diagnosis, histories[1], choice.travel_rad)
+            diagnosis = structure_on_known_states(diagnosis, train, histories[0], choice.travel_rad)
+    result = closure(diagnosis, validate, unknown_state)
     model = augmented_model(diagnosis.final_fit, travel_rad=diagnosis.travel_rad)
     remainder = learn_remainder(model, train, validate, description) if learned else None
     files = write_report(

@@ -62,7 +62,8 @@ SUMMARY_KEYS = (
 def summary_document(diagnosis: Diagnosis, result: Closure, learned: LearnedRemainder | None = None) -> dict[str, Any]:
     """``DIR/summary.json`` as docs/residual.md specifies; all RMSE figures on the validation file.
 
-    The key ``learned`` follows :data:`SUMMARY_KEYS` only when the learned step ran.
+    The key ``learned`` follows :data:`SUMMARY_KEYS` only when the learned step ran, and
+    ``undetermined_state`` only when validation points have a hysteresis state no log determines.
     """
     document: dict[str, Any] = {
         "base_model": diagnosis.base_kind,
@@ -85,6 +86,15 @@ def summary_document(diagnosis: Diagnosis, result: Closure, learned: LearnedRema
     }
     if learned is not None:
         document["learned"] = learned.to_dict()
+    unknown = result.undetermined
+    if unknown is not None:
+        document["undetermined_state"] = {
+            "n_points": unknown.n_points,
+            "t_s": list(unknown.t_s),
+            "joints": list(unknown.joints),
+            "rmse_before": unknown.before.rmse_nm if unknown.before is not None else None,
+            "rmse_after": unknown.after.rmse_nm if unknown.after is not None else None,
+        }
     return document
 
 
@@ -154,6 +164,28 @@ def _metrics_table(before: ErrorMetrics, after: ErrorMetrics) -> list[str]:
         f"| nRMSE (Eq. 4.32) | {before.nrmse:.4f} | {after.nrmse:.4f} | {_change(before.nrmse, after.nrmse)} |"
     )
     return lines
+
+
+def _undetermined_lines(result: Closure, n_points: int) -> list[str]:
+    """What the report says of validation points whose hysteresis state no log determines (nothing when none)."""
+    unknown = result.undetermined
+    if unknown is None:
+        return []
+    times = ", ".join(f"{t:.1f}" for t in unknown.t_s[:5]) + (", ..." if unknown.n_points > 5 else "")
+    lines = [
+        f"**{unknown.n_points} of {n_points} validation points {'has' if unknown.n_points == 1 else 'have'} a "
+        f"hysteresis state their run's log does not determine** (t = {times} s; joint(s) {', '.join(map(str, unknown.joints))}): the log holds no motion of "
+        "those joints before the point far enough to settle it (a run that begins at rest at its first stop), "
+        "so the state is taken as halfway and even a model that lacks nothing errs there by up to the "
+        "hysteresis's amplitude. A limit of the data, not of the model.",
+    ]
+    if unknown.before is not None and unknown.after is not None:
+        kept = n_points - unknown.n_points
+        lines[0] += (
+            f" On the other {kept} points: RMSE {unknown.before.rmse_nm:.4f} -> {unknown.after.rmse_nm:.4f} Nm "
+            f"(per joint after: {', '.join(f'{v:.4f}' for v in unknown.after.rmse_per_joint_nm)})."
+        )
+    return [*lines, ""]
 
 
 def _change(before: float, after: float) -> str:
@@ -233,6 +265,7 @@ def report_markdown(
         "",
         *_metrics_table(result.before, result.after),
         "",
+        *_undetermined_lines(result, len(validate)),
         "## Effects found",
         "",
     ]

@@ -14,7 +14,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 import yaml
 from rich.console import Console
@@ -25,7 +24,6 @@ from daror_runtime.console.grammar import COMMANDS, check_lines
 from daror_runtime.console.guide import unguided_steps_cover_every_guard
 from daror_runtime.console.run import read_script, run_piped, run_script
 from daror_runtime.console.world import SimWorld
-from daror_runtime.demo.rehearsal import rehearse
 from daror_runtime.fsm.spec import DEFAULT_SPEC_PATH
 from daror_runtime.logs import configure_logging
 from daror_runtime.runtime import RequestRefusedError, Runtime
@@ -436,16 +434,6 @@ def test_run_script_counts_the_lines_it_ran(tmp_path: Path, lines: Lines) -> Non
 
 def test_every_guard_a_spec_may_name_has_a_next_step() -> None:
     assert unguided_steps_cover_every_guard() == []
-
-
-@pytest.mark.slow
-def test_the_rehearsal_of_the_demo_ends_in_compensation_with_the_arm_carried(tmp_path: Path) -> None:
-    report = rehearse(tmp_path / "session", Console(file=io.StringIO()))
-    assert report.final_state == "compensation"
-    holding, unsupported = np.array(report.holding_torque_nm), np.array(report.unsupported_torque_nm)
-    assert np.all(holding > 0.5)
-    assert np.all(unsupported < 0.1 * holding), (unsupported, holding)
-    assert json.loads((tmp_path / "session" / "session.json").read_text(encoding="utf-8"))["ended"]["confirmed"]
 
 
 def test_the_status_says_what_the_a_priori_model_leaves_out(lines: Lines) -> None:

@@ -51,6 +51,29 @@ def test_after_a_move_longer_than_the_travel_it_is_the_sign_of_that_move(path: n
     assert play_states(ended, travel)[-1] == pytest.approx(np.sign(move))
 
 
+@given(paths, travels)
+def test_a_point_is_undetermined_exactly_where_the_state_before_the_path_still_matters(
+    path: np.ndarray, travel: float
+) -> None:
+    """D204: the operator run from -1 and from +1 disagrees at a point if and only if it is marked undetermined."""
+    q = np.cumsum(path, axis=0)
+    history = PointHistory.from_points(StationaryDataset(q, np.zeros_like(q)))
+    disagree = play_states(q, travel, -1.0) != play_states(q, travel, 1.0)
+    assert np.array_equal(history.undetermined(travel), disagree)
+
+
+def test_a_run_that_begins_at_rest_at_its_first_point_leaves_that_point_s_state_unknown() -> None:
+    """The demo session's validation run (D204): still at the first stop, then a move of 3 travels settles it."""
+    travel = 0.005
+    ramp = np.linspace(0.0, 0.015, 300)[:, None] * np.ones((1, 4))
+    q = np.concatenate([np.zeros((300, 4)), ramp, np.full((300, 4), 0.015)])  # 1 kHz: still, 15 mrad up, still
+    raw = RawLog(np.arange(900) * 0.001, q, np.zeros_like(q), np.zeros_like(q))
+    points = StationaryDataset(q[[150, 850]], np.zeros((2, 4)), t_s=np.array([0.15, 0.85]))
+    unknown = PointHistory.from_raw(raw, points).undetermined(travel)
+    assert unknown[0].all()  # nothing moved before it: up or down last, nobody can say
+    assert not unknown[1].any()  # 15 mrad one way: +1 whatever the state was
+
+
 def test_a_reversal_shorter_than_the_travel_only_partly_flips_it() -> None:
     """An overshoot that settles back 1 mrad after a long move: the sign of the last motion says -1, the state +0.6."""
     q = np.array([[0.0], [0.1], [0.099]])  # up 100 mrad, back 1 mrad

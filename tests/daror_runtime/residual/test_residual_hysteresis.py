@@ -17,7 +17,6 @@ sign stays the answer.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -37,6 +36,7 @@ from daror_runtime.models.linear import APModel
 from daror_runtime.residual.data import load_pair
 from daror_runtime.residual.diagnosis import closure, diagnose
 from daror_runtime.residual.evidence import DiagnosisSettings
+from daror_runtime.residual.floor import floor_of_the_same_runs
 from daror_runtime.residual.hysteresis import PointHistory
 from daror_runtime.residual.model import AugmentedModel
 from daror_runtime.residual.travel import choose_direction_signal
@@ -132,16 +132,9 @@ def _floor(scenario: str, folder: Path, planned: Planned) -> float:
 
 def _floor_of_the_same_runs(train: Path, validate: Path, amplitudes: tuple[float, ...], travel: float) -> float:
     """PLF+ alone on these runs with the plant's true hysteresis, through the measured path, taken out."""
-    inputs = load_pair(train, validate)
-    assert inputs.train_history is not None
-    assert inputs.validate_history is not None
-    truth = np.asarray(amplitudes)
-    without = [
-        dataclasses.replace(data, tau_nm=data.tau_nm - truth * history.states(travel))
-        for data, history in ((inputs.train, inputs.train_history), (inputs.validate, inputs.validate_history))
-    ]
-    plain = diagnose(without[0], load_description(), settings=DiagnosisSettings(families=()))
-    return closure(plain, without[1]).after.rmse_nm
+    return floor_of_the_same_runs(
+        load_pair(train, validate), np.asarray(amplitudes), travel, load_description()
+    ).after.rmse_nm
 
 
 PLANTS = [
