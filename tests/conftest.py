@@ -139,6 +139,7 @@ LONG_FILES_S = {
     "test_protocol_design.py": 28,
     "test_console_operator.py": 25,
     "test_demo_session.py": 25,
+    "test_signal_map.py": 25,
     "test_neural.py": 24,
     "test_residual_learned.py": 19,
     "test_session_safety.py": 15,

@@ -74,8 +74,12 @@ DEFLECTION_OUTLIER_SHARE = 1e-3
 #: tau against tau_cmd: gain (the simulator's runs: 0.9-0.97) and correlation.
 COMMAND_GAIN_RANGE = (0.5, 1.5)
 COMMAND_MIN_CORRELATION = 0.5
-#: Below this spread of tau_cmd (Nm) the command relation is not judged.
-COMMAND_MIN_SPREAD_NM = 0.2
+#: Below this spread (Nm, standard deviation) of tau or of tau_cmd the command relation is not
+#: judged: the command moves the motor, and the drive train's friction and the rotor's inertia (0.2-0.4
+#: Nm of Coulomb friction on the DAROR-01) stand between it and the spring, so a joint that carries
+#: little torque shows the relation poorly. Measured on the bare robot's elbow (exo, tau's spread
+#: 0.22 Nm against tau_cmd's 0.5): gain 0.16-0.19, correlation 0.36-0.44, refused at 0.2 (D205).
+COMMAND_MIN_SPREAD_NM = 0.5
 #: dq against the derivative of q: correlation (the simulator's runs: 0.91-0.97), judged only when
 #: the joint moved (spread of the derivative, rad/s).
 VELOCITY_MIN_CORRELATION = 0.5
@@ -219,8 +223,15 @@ def _deflection(joint: int, deflection: FloatArray, travel_rad: float) -> Relati
 
 
 def _command(joint: int, tau: FloatArray, tau_cmd: FloatArray) -> Relation:
-    if float(tau_cmd.std()) < COMMAND_MIN_SPREAD_NM:
-        return Relation(joint, "command", None, f"tau_cmd barely changed ({float(tau_cmd.std()):.3g} Nm)")
+    spread_tau, spread_cmd = float(tau.std()), float(tau_cmd.std())
+    if min(spread_tau, spread_cmd) < COMMAND_MIN_SPREAD_NM:
+        return Relation(
+            joint,
+            "command",
+            None,
+            f"too little torque to judge against the drive train's friction (spread: tau {spread_tau:.3g} Nm, "
+            f"tau_cmd {spread_cmd:.3g} Nm)",
+        )
     gain, _ = _gain_and_r2(tau_cmd, tau)
     r = _correlation(tau_cmd, tau)
     held = COMMAND_GAIN_RANGE[0] <= gain <= COMMAND_GAIN_RANGE[1] and r >= COMMAND_MIN_CORRELATION
