@@ -72,12 +72,12 @@ def cmd_hpsearch(args: argparse.Namespace, console: Console) -> int:
     from hal.robot import load_description
 
     try:
+        from daror_runtime.neural.compile_cache import default_cache_dir
         from daror_runtime.neural.hpsearch.executors import require_ray
         from daror_runtime.neural.hpsearch.grid import grid_from_argument
         from daror_runtime.neural.hpsearch.report import OUTPUT_NAMES, ranking, write_outputs
         from daror_runtime.neural.hpsearch.search import check_data, run_search
         from daror_runtime.neural.hpsearch.winner import fit_winners
-        from daror_runtime.neural.hpsearch.work import default_cache_dir
     except ImportError as exc:
         if (exc.name or "").split(".")[0] not in _NN_MODULES:
             raise

@@ -20,6 +20,7 @@ from daror_runtime.errors import DarorError
 from daror_runtime.models.base import FitReport, FitResult
 from daror_runtime.models.metrics import error_metrics
 from daror_runtime.models.neural import MAX_WIDTH, NeuralModel, NnnModel, PennModel
+from daror_runtime.neural.compile_cache import use_compilation_cache
 from daror_runtime.neural.ensemble import mean_network
 from daror_runtime.neural.presets import Preset, init_seeds, preset, residual_preset, with_options
 from daror_runtime.neural.training import NetworkResult, train_group
@@ -110,6 +111,7 @@ def fit_network(
         ModelOptionError: options that make no network.
     """
     start = time.perf_counter()
+    use_compilation_cache()  # a later process with the same network loads its programs instead of compiling
     chosen = resolve(model, options, residual)
     seed = 0 if options.seed is None else options.seed
     seeds = init_seeds(seed, chosen.inits)

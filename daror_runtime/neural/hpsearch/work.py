@@ -32,13 +32,12 @@ import signal
 import sys
 import threading
 from dataclasses import dataclass
-from pathlib import Path
 
-import jax
 import numpy as np
 
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.neural import NetworkSpec, network_torque_batch
+from daror_runtime.neural.compile_cache import use_compilation_cache
 from daror_runtime.neural.fit import COLLAPSE_FRACTION
 from daror_runtime.neural.training import NetworkResult, PreparedData, TrainingSettings, prepare_data, train_group
 
@@ -48,7 +47,6 @@ __all__ = [
     "UnitResult",
     "WorkUnit",
     "WorkerSetup",
-    "default_cache_dir",
     "prepare_worker",
     "start_local_worker",
     "train_unit",
@@ -60,12 +58,6 @@ __all__ = [
 #: reduction split over another number of threads rounds differently (the numbers would depend on
 #: the machine's load and the worker count; docs/hpsearch.md).
 ONE_XLA_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
-
-
-def default_cache_dir() -> Path:
-    """JAX's persistent compilation cache of the search: ``$XDG_CACHE_HOME/daror/jax`` (``~/.cache/daror/jax``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "daror" / "jax"
 
 
 @dataclass(frozen=True)
@@ -99,9 +91,7 @@ def prepare_worker(setup: WorkerSetup) -> None:
             flags = os.environ.get("XLA_FLAGS", "").split()
             os.environ["XLA_FLAGS"] = " ".join(flags + [f for f in ONE_XLA_THREAD if f not in flags])
         if setup.cache_dir is not None:
-            jax.config.update("jax_compilation_cache_dir", setup.cache_dir)
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-            jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+            use_compilation_cache(setup.cache_dir)
         _prepared.append(setup)
 
 
