@@ -283,6 +283,15 @@ class Outcome:
         """The output's last ``lines`` lines."""
         return "\n".join(self.output.splitlines()[-lines:])
 
+    @property
+    def only_skipped(self) -> bool:
+        """True when every test of the run was skipped (pytest's summary names nothing but skips)."""
+        summary = self.output.strip().splitlines()[-1] if self.output.strip() else ""
+        return (
+            self.code == 0
+            and re.fullmatch(r"=*\s*\d+ skipped(, \d+ deselected)? in [\d.]+s( \(.*\))?\s*=*", summary) is not None
+        )
+
 
 class Zygote:
     """The zygote process (tests/mutation_zygote.py): third-party imports once, a forked ``pytest.main`` per run."""
@@ -349,6 +358,10 @@ def test_the_hazards_test_fails_without_its_mitigation(row: Row, tmp_path: Path,
     copy = copy_tree(tmp_path / "copy")
     mutate(row, copy)
     done = zygote.run(copy, row.tests)
+    if done.only_skipped:
+        # A real-time test skips when the machine lacks its margin now (docs/testing.md): the
+        # mitigation is then judged neither way, and saying "caught" or "missed" would be luck.
+        pytest.skip(f"{row.id}: not judged now: its test skipped in the mutated tree ({done.tail(1)})")
     assert done.code == 1, (
         f"{row.id}: with the mitigation removed ({row.removes}) the tests exited {done.code}, "
         f"not 1 (a test failed): {' '.join(row.tests)}\n{done.tail()}"
@@ -480,3 +493,18 @@ def test_the_docs_table_and_the_yaml_agree() -> None:
             function = name.split("[", 1)[0]
             if function:
                 assert re.search(rf"def {re.escape(function)}\b", (ROOT / path).read_text(encoding="utf-8")), test
+
+
+@pytest.mark.parametrize(
+    ("code", "output", "only_skipped"),
+    [
+        (0, "s                                                 [100%]\n1 skipped in 0.25s\n", True),
+        (0, "ss\n2 skipped, 3 deselected in 1.02s\n", True),
+        (0, ".s\n1 passed, 1 skipped in 0.31s\n", False),  # a test ran and passed: the mutation was missed
+        (1, "Fs\n1 failed, 1 skipped in 0.40s\n", False),
+        (0, "", False),
+    ],
+)
+def test_a_run_that_only_skipped_is_told_from_one_that_passed(code: int, output: str, only_skipped: bool) -> None:
+    """A real-time test that skipped for want of margin leaves its row unjudged, never "caught" (H31 under load)."""
+    assert Outcome(code, output).only_skipped is only_skipped
