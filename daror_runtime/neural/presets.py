@@ -6,11 +6,11 @@ how many initialisations to try and how to train them. The registry's options
 (:func:`with_options`); ``--thesis`` picks the thesis's preset as the starting point.
 
 * **Default PENN** (D206): 2 x 32 tanh on the joint angles ``q``, the scaled loss with
-  ``lambda = 1e-6``, 100 Adam steps then 1,000 L-BFGS iterations (memory 30), one initialisation,
+  ``lambda = 1e-6``, 100 Adam steps then 850 L-BFGS iterations (memory 30), one initialisation,
   4 folds (the last held out), final fit. Why: docs/models.md, "Generalising between paths". On
   low-noise data with training and validation on different paths, the former default (sin/cos
   inputs, 200 L-BFGS iterations, 2 initialisations) validated at 7.7x PLF+; ``q`` inputs and the
-  longer L-BFGS bring it to 1.5-1.7x, and no worse on datasets A and B. One initialisation: the MVL
+  longer L-BFGS bring it to 1.6-1.8x, and no worse on datasets A and B. One initialisation: the MVL
   hardly predicts which of two validates better, and each costs two networks' training (its fold
   network and its final fit). 2 x 32 tanh and not the prototype's 2 x 64 softplus: tanh converges
   in a few hundred full-batch steps where softplus needs thousands.
@@ -77,11 +77,11 @@ class Preset:
 
 
 _DEFAULT_SETTINGS = TrainingSettings()
-#: The default PENN's and NNN's training (D206): L-BFGS run five times longer, with three times the
+#: The default PENN's and NNN's training (D206): L-BFGS run four times longer, with three times the
 #: memory. On low-noise data (a tenth of dataset B's sensor noise and direction error, training and
 #: validation on different paths) 300 steps left the PENN at twice PLF+'s training error and 7.7x its
 #: validation error; dataset B's 0.42 Nm of direction error had hidden that the fit stopped short.
-_NETWORK_SETTINGS = TrainingSettings(lbfgs_steps=1000, lbfgs_memory=30)
+_NETWORK_SETTINGS = TrainingSettings(lbfgs_steps=850, lbfgs_memory=30)
 
 PRESETS: dict[tuple[str, bool], Preset] = {
     ("penn", False): Preset(
