@@ -33,15 +33,13 @@ THESIS = "q and theta exchanged, and tau and tau_cmd exchanged"
 
 @pytest.fixture(scope="module")
 def raw_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The raw log of a closed-loop identification run (validation trajectory, Dummy Arm installed)."""
+    """The raw log of a closed-loop identification run (validation trajectory through every fifth
+    waypoint, enough elbow angles for PLF+ to be fitted to it; the Dummy Arm installed)."""
     folder = tmp_path_factory.mktemp("signal_map")
     out = folder / "run.npz"
-    assert (
-        main(
-            ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--trajectory", "validation", "--out", str(out)]
-        )
-        == 0
-    )
+    waypoints = _shipped_waypoints_every(5, folder)
+    command = ["identify", "--scenario", "exo_dummy_arm", "--dummy-arm", "--trajectory", "validation"]
+    assert main([*command, "--waypoints", str(waypoints), "--out", str(out)]) == 0
     return folder / "run.raw.npz"
 
 
@@ -166,21 +164,26 @@ RAW_LOG_SCENARIOS = (
 )
 
 
-@pytest.fixture(scope="module")
-def every_tenth_waypoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The shipped waypoints 1, 11, ..., 81: a validation run of 92 s of robot time (~0.5 CPU-s)."""
+def _shipped_waypoints_every(step: int, folder: Path) -> Path:
+    """The shipped waypoints 1, 1 + step, ...: a shorter protocol of the same workspace (a waypoint file)."""
     shipped = yaml.safe_load((ROOT / "daror_runtime/identification/waypoints.yaml").read_text(encoding="utf-8"))
-    waypoints = shipped["waypoints"][::10]
+    waypoints = shipped["waypoints"][::step]
     n = len(waypoints)
-    path = tmp_path_factory.mktemp("waypoints") / "every_tenth.yaml"
+    path = folder / f"every_{step}.yaml"
     document = {
-        "description": "every tenth shipped waypoint",
+        "description": f"every {step}th shipped waypoint",
         "waypoints": waypoints,
         "training_order": list(range(1, n + 1)),
         "validation_order": [1, *range(n, 1, -1)],
     }
     path.write_text(yaml.safe_dump(document), encoding="utf-8")
     return path
+
+
+@pytest.fixture(scope="module")
+def every_tenth_waypoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped waypoints 1, 11, ..., 81: a validation run of 92 s of robot time (~0.5 CPU-s)."""
+    return _shipped_waypoints_every(10, tmp_path_factory.mktemp("waypoints"))
 
 
 @pytest.mark.slow
