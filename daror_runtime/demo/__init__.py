@@ -207,16 +207,12 @@ class SessionFloor:
 def _floor_of_the_session(run: Any, scenario_name: str) -> SessionFloor:
     """The session's closure against the floor of the same runs: the plant's true hysteresis taken out (D109, D204)."""
     from daror_runtime.residual.floor import floor_of_the_same_runs
-    from daror_runtime.residual.pipeline import unknown_hysteresis_state
 
     sensors = load_scenario(scenario_name).sensors
     inputs = run.inputs
-    unknown = None
-    if inputs.validate_history is not None and run.travel is not None and run.travel.hysteresis:
-        unknown = unknown_hysteresis_state(run.diagnosis, inputs.validate_history, run.travel.travel_rad)
     floor = floor_of_the_same_runs(
         inputs, np.asarray(sensors.direction_error_nm), float(sensors.direction_play_rad), load_description(),
-        unknown,
+        run.unknown_state,
     )  # fmt: skip
     after, floor_nm = run.closure.after.rmse_nm, floor.after.rmse_nm
     lines = [

@@ -32,6 +32,9 @@ class ResidualRun:
     files: dict[str, Path]
     learned: LearnedRemainder | None = None
     travel: TravelChoice | None = None  # the direction offset against the hysteresis, when tested
+    #: (points, joints) of the validation data: True where a found hysteresis's state is not in the
+    #: log (:func:`unknown_hysteresis_state`); None when no hysteresis was found
+    unknown_state: np.ndarray | None = None
 
 
 #: ``--effects none``: test no family (the base model alone, e.g. before ``--learned``).
@@ -166,4 +169,4 @@ def run_residual(
     files = write_report(
         out_dir, diagnosis, result, model, train, validate, train_path, remainder, choice, inputs.signal_map_notes
     )
-    return ResidualRun(inputs, diagnosis, result, model, files, remainder, choice)
+    return ResidualRun(inputs, diagnosis, result, model, files, remainder, choice, unknown_state)
