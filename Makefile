@@ -30,32 +30,45 @@ KERNELS = scratch=$$(mktemp -d) && printf 'wait 0.1\nquit\n' > $$scratch/opens.t
 
 # The project and its dependencies into the venv: with uv where it can be installed (the same
 # resolution and wheels as pip, downloaded in parallel and compiled to bytecode over both cores:
-# 33 s against pip's 55 s for everything, D193), with pip otherwise (or when uv fails).
-# PACKAGE is set per target below (a comma in an argument of `call` would split it).
+# 33 s against pip's 55 s for everything, D193), with pip otherwise (or when uv fails). The recipe
+# sets the shell's `package` (a comma in an argument of `call` would split it) and `pins`
+# (constraints, or nothing).
 INSTALL = { $(BIN)/python -m pip install --quiet --disable-pip-version-check uv > /dev/null 2>&1 \
-	&& $(BIN)/uv pip install --quiet --python $(BIN)/python --compile-bytecode -e $(PACKAGE); } \
-	|| $(BIN)/python -m pip install --quiet --disable-pip-version-check -e $(PACKAGE)
+	&& $(BIN)/uv pip install --quiet --python $(BIN)/python --compile-bytecode $$pins -e "$$package"; } \
+	|| $(BIN)/python -m pip install --quiet --disable-pip-version-check $$pins -e "$$package"
+EXTRAS = .[nn,can,dev,ray,web]
+PINS = $(VENV)/pins.txt
 
 # pytest with its rewritten test modules cached (tests/**/__pycache__) whatever the shell says of
 # bytecode: rewriting the asserts of the 108 test modules is half of a collection's 10 s of CPU, paid
-# again by every later pytest (the real-time tier, the mutation run's rows) without the cache (D193).
+# again by every later pytest (the mutation run's rows, `make check` after `make test`) without the cache (D193).
 PYTEST = PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 
 # The runtime alone (what `make demo` needs).
-$(VENV)/.installed-base: PACKAGE = .
 $(VENV)/.installed-base: pyproject.toml | $(BIN)/python
-	$(INSTALL)
+	package=.; pins=; $(INSTALL)
 	$(KERNELS)
 	touch $@
 
 bytecode: $(VENV)/.installed-base
 	$(BYTECODE)
 
-# Everything, optional extras included (what `make test` and `make bench` need).
-$(VENV)/.installed-all: PACKAGE = '.[nn,can,dev,ray,web]'
+# Everything, optional extras included (what `make test` and `make bench` need). The runtime first,
+# then the extras installed while the kernels compile (they need only the runtime; ~12 s saved of a
+# fresh clone's `make test`, D207): the extras' install is held to the versions already installed
+# (`pins`), so nothing the compiling processes import is replaced under them. Extras that need
+# other versions of those packages (a conflict the pins refuse) are installed after the kernels,
+# unconstrained, and the kernels compiled again.
 $(VENV)/.installed-all: pyproject.toml | $(BIN)/python
-	$(INSTALL)
-	$(KERNELS)
+	package=.; pins=; $(INSTALL)
+	$(BIN)/python -m pip freeze --exclude-editable > $(PINS)
+	{ $(KERNELS); } & kernels=$$!; \
+	package='$(EXTRAS)'; pins='-c $(PINS)'; { $(INSTALL); } > $(VENV)/pinned-install.log 2>&1; installed=$$?; \
+	wait $$kernels || exit 1; \
+	if [ $$installed -ne 0 ]; then \
+		echo "make: the extras need other versions of installed packages: installing them, then the kernels again"; \
+		package='$(EXTRAS)'; pins=; $(INSTALL) && $(KERNELS); \
+	fi
 	touch $@ $(VENV)/.installed-base
 
 demo: $(VENV)/.installed-base bytecode
@@ -77,16 +90,16 @@ $(VENV)/.chromium: | $(BIN)/python
 		|| echo "make: chromium could not be installed; the web console's browser test will be skipped"; }
 	touch $@
 
-# The whole suite (CI): everything over both cores (whole files per worker, the longest first:
-# tests/conftest.py; xdist would otherwise reorder the files by their number of tests, D202), then alone the tests that need wall-clock time (marker realtime), each measuring
-# the machine's margin before it runs (docs/testing.md); it collects only the files the first run's
-# collection found real-time tests in (tests/conftest.py, D201). Both print their slowest tests: CI's
-# log says where the time went.
+# The whole suite (CI), over both cores in one run: whole files per worker, the longest first
+# (tests/conftest.py; xdist would otherwise reorder them by their number of tests, D202), and the
+# tests that need wall-clock time (marker realtime) as one unit handed out first: one worker runs
+# them one after another, each measuring the machine's margin before it runs (docs/testing.md),
+# while the other runs the longest file, so at most one busy process of the suite is beside them
+# (D208). The slowest tests are printed: CI's log says where the time went.
 test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(PYTEST) -n 2 --dist loadfile --no-loadscope-reorder -m "not realtime" --durations=25
-	$(PYTEST) -m realtime --realtime-files-from-cache --durations=10
+	$(PYTEST) -n 2 --dist loadgroup --no-loadscope-reorder --durations=30
 
 # The fast tier, a developer's loop: everything but the slow, subprocess, browser, mutation and
 # real-time tests.

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -149,63 +153,100 @@ LONG_FILES_S = {
 }
 
 
-#: Where a run that collected the whole suite keeps the files that hold real-time tests (pytest's
-#: cache, ``.pytest_cache``): ``make test``'s real-time tier, run right after, collects only those.
-REALTIME_FILES_KEY = "daror/realtime_files"
+#: The work unit of every test marked ``realtime`` (``make test``: one worker runs them one after
+#: another, first, while the other worker runs the longest file; D208).
+REALTIME_GROUP = "realtime"
+#: Where xdist's workers write the ids of the tests marked ``realtime`` for the controller's
+#: scheduler (a key of ``workerinput``; the controller only ever sees test ids, never marks).
+REALTIME_IDS_KEY = "daror_realtime_ids"
+_REALTIME_IDS_PATH = pytest.StashKey[Path]()
 
 
-def pytest_addoption(parser: pytest.Parser) -> None:
-    parser.addoption(
-        "--realtime-files-from-cache",
-        action="store_true",
-        help="collect only the files that held a realtime test in the last whole-suite collection "
-        "(make test's real-time tier; everything when no such collection is cached)",
-    )
-
-
-def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
-    """With ``--realtime-files-from-cache``: a test file that held no real-time test is not even imported.
-
-    Collecting the whole suite to deselect all but 29 tests was 6 s of the serial real-time tier;
-    its seven files take 2.3 s. The list comes from the parallel tier's collection in the same
-    ``make test`` (:func:`pytest_collection_modifyitems`), never from an older run of a part.
-    """
-    if not config.getoption("realtime_files_from_cache") or not collection_path.name.startswith("test_"):
-        return None
-    assert config.cache is not None
-    files = config.cache.get(REALTIME_FILES_KEY, None)
-    if files is None:
-        return None
-    return str(collection_path.relative_to(config.rootpath)) not in files
-
-
-def _whole_suite(config: pytest.Config) -> bool:
-    """True when this run collected every test file (the configured test paths, no last-failed filter)."""
-    return (
-        config.args_source == pytest.Config.ArgsSource.TESTPATHS
-        and not config.getoption("lf", False)
-        and not config.getoption("realtime_files_from_cache")
-    )
+def _is_realtime(item: pytest.Item) -> bool:
+    return item.get_closest_marker("realtime") is not None
 
 
 @pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects: every item, real-time ones included
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The longest files first (stable within a file and among the others); remember the real-time files.
+    """The real-time tests first, then the longest files first (stable within a file and among the others).
 
-    ``make test`` hands whole files to its two workers (``--dist loadfile``: a module's fixtures are
-    built once); starting with the longest keeps one worker from finishing alone with a long file
-    left. Every worker collects the same order (it depends on file names only). A whole-suite
-    collection also stores which files hold a test marked ``realtime`` (:data:`REALTIME_FILES_KEY`).
+    ``make test`` hands whole files to its two workers (:class:`FilesAndTheRealTimeGroup`: a
+    module's fixtures are built once); starting with the longest keeps one worker from finishing
+    alone with a long file left. The tests marked ``realtime`` are one unit, handed out first: one
+    worker runs them one after another while the other runs one file, so they share the machine
+    with one busy process of the suite at most, and each measures its margin first
+    (:func:`_real_time_margin`). Every worker collects the same order (it depends on file names and
+    marks only); on a worker, the real-time tests' ids are written where the controller's
+    scheduler reads them.
     """
     first_index: dict[str, int] = {}
     for index, item in enumerate(items):
         first_index.setdefault(item.path.name, index)
-    items.sort(key=lambda item: (-LONG_FILES_S.get(item.path.name, 0), first_index[item.path.name]))
-    if _whole_suite(config) and config.cache is not None:
-        realtime = {
-            str(item.path.relative_to(config.rootpath)) for item in items if item.get_closest_marker("realtime")
-        }
-        config.cache.set(REALTIME_FILES_KEY, sorted(realtime))
+
+    def place(item: pytest.Item) -> tuple[bool, int, int]:
+        return not _is_realtime(item), -LONG_FILES_S.get(item.path.name, 0), first_index[item.path.name]
+
+    items.sort(key=place)
+    target = getattr(config, "workerinput", {}).get(REALTIME_IDS_KEY)
+    if target is not None:
+        written = Path(f"{target}.{os.getpid()}")
+        written.write_text(json.dumps([item.nodeid for item in items if _is_realtime(item)]), encoding="utf-8")
+        written.replace(target)  # both workers write the same list; each whole
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    """Controller side, as xdist starts a worker: where it writes the real-time tests' ids (one file per run)."""
+    config = node.config
+    if _REALTIME_IDS_PATH not in config.stash:
+        config.stash[_REALTIME_IDS_PATH] = Path(tempfile.mkdtemp(prefix="daror-xdist-")) / "realtime.json"
+    node.workerinput[REALTIME_IDS_KEY] = str(config.stash[_REALTIME_IDS_PATH])
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    path = config.stash.get(_REALTIME_IDS_PATH, None)
+    if path is not None:
+        shutil.rmtree(path.parent, ignore_errors=True)
+
+
+try:
+    from xdist.scheduler import LoadScopeScheduling
+except ImportError:  # pragma: no cover - the dev extra has xdist; a row of the mutation run loads no plug-in
+    LoadScopeScheduling = None
+
+
+if LoadScopeScheduling is not None:
+
+    class FilesAndTheRealTimeGroup(LoadScopeScheduling):  # type: ignore[misc,valid-type]
+        """Whole files as the unit (``loadfile``'s), and every test marked ``realtime`` in one unit of its own.
+
+        xdist's own ``loadgroup`` cannot do it here: it marks a group in the test's id, which
+        pytest 9 no longer lets a plug-in change. The workers write the real-time tests' ids
+        instead (:func:`pytest_collection_modifyitems`), before they report their collection,
+        so every id is known when the controller splits the work.
+        """
+
+        def __init__(self, config: pytest.Config, log: Any = None, realtime_ids: Path | None = None) -> None:
+            super().__init__(config, log)
+            self._realtime_ids_path = realtime_ids
+            self._realtime_ids: frozenset[str] | None = None
+
+        def _split_scope(self, nodeid: str) -> str:
+            if self._realtime_ids is None:
+                path = self._realtime_ids_path
+                ids = json.loads(path.read_text(encoding="utf-8")) if path is not None and path.exists() else []
+                self._realtime_ids = frozenset(ids)
+            if nodeid in self._realtime_ids:
+                return REALTIME_GROUP
+            return nodeid.split("::", 1)[0]
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` schedules by :class:`FilesAndTheRealTimeGroup` (``make test``); other modes are xdist's."""
+    if LoadScopeScheduling is None or config.getvalue("dist") != "loadgroup":
+        return None
+    return FilesAndTheRealTimeGroup(config, log, config.stash.get(_REALTIME_IDS_PATH, None))
 
 
 #: A real-time test runs only while this process gets at least this share of a core when it asks for one.
@@ -233,8 +274,9 @@ def _real_time_margin(request: pytest.FixtureRequest) -> None:
 
     It measures the machine's margin first: when other processes keep the cores so busy that this
     one gets less than :data:`REALTIME_CPU_SHARE` of a core, the test is skipped with the figure and
-    the load instead of failing by luck. ``make test`` runs these tests alone, after the parallel
-    tier, so the suite itself never loads the machine under them.
+    the load instead of failing by luck. ``make test`` runs them one after another on one worker,
+    beside one file's tests on the other: the suite itself never puts more than one busy process
+    beside them (D208).
     """
     if request.node.get_closest_marker("realtime") is None:
         return

@@ -162,7 +162,7 @@ def _param(row: Row) -> object:
 
     Such a test measures the machine's margin first and is skipped without it (tests/conftest.py);
     a skip in the row's run would make the row fail for the machine's load, not the mutation. Marked,
-    the row runs in the real-time tier, alone, where the margin is there.
+    the row runs with the real-time tests, one after another on one worker (D208), where the margin is there.
     """
     marks = [pytest.mark.realtime] if any(needs_real_time(test) for test in row.tests) else []
     return pytest.param(row, id=row.id, marks=marks)
@@ -406,7 +406,7 @@ def test_a_mutation_of_the_copy_is_what_its_tests_run(tmp_path: Path, zygote: Zy
 CONTROL_SAMPLE = ("H1", "H6", "H8", "H14", "H33")
 #: Their tests.
 CONTROL_TESTS = sorted({t for row in MUTATIONS if row.hazard in CONTROL_SAMPLE for t in row.tests})
-#: In the real-time tier when a sampled test needs real time (as a row is: :func:`_param`).
+#: With the real-time tests when a sampled test needs real time (as a row is: :func:`_param`).
 CONTROL_MARKS = [pytest.mark.realtime] if any(needs_real_time(t) for t in CONTROL_TESTS) else []
 
 

@@ -583,7 +583,10 @@ class CanMaster:
         # timeouts count the time waited here, 0.5 ms a pass; on hardware the master's clock runs by itself.
         virtual = self._pump is not None
         while self.sdo.busy:
-            for cob_id, data in self.sdo.frames_due(self._now() + waited if virtual else self._now()):
+            # A drive silent for one timeout gets nothing more: the start-up fails then, not after a
+            # timeout per queued transfer (38 of them on the DAROR-01: 19 s at the default 500 ms).
+            now = self._now() + waited if virtual else self._now()
+            for cob_id, data in self.sdo.frames_due(now, abandon_silent=True):
                 self._send(cob_id, data)
             if self._pump is not None:
                 self._pump()

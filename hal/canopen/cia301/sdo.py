@@ -259,11 +259,16 @@ class SdoClient:
             return 0
         return sum(1 for node_id, queue in self._queues.items() if queue and node_id not in self._in_flight)
 
-    def frames_due(self, now_s: float, limit: int | None = None) -> list[tuple[int, bytes]]:
+    def frames_due(
+        self, now_s: float, limit: int | None = None, abandon_silent: bool = False
+    ) -> list[tuple[int, bytes]]:
         """Time out what waited too long; start the next transfer of idle nodes: ``(COB-ID, data)`` to send.
 
         ``limit``: start at most this many (None: one per idle node). The nodes take turns: the one
-        that started last goes to the back, so a limit never starves a node.
+        that started last goes to the back, so a limit never starves a node. ``abandon_silent``: a
+        node whose transfer timed out is sent nothing more of what is queued for it; those
+        transfers are skipped, as a transfer whose ``needs`` failed is (a start-up, which fails on
+        the timed-out transfer, then fails after one timeout, not one per queued transfer).
         """
         if self.idle():  # nearly every cycle: nothing to do
             return []
@@ -272,6 +277,9 @@ class SdoClient:
                 transfer.done = True
                 transfer.error = f"{transfer.target}: no SDO response within {self.timeout_s * 1e3:.0f} ms"
                 del self._in_flight[node_id]
+                if abandon_silent:
+                    for queued in self._queues.pop(node_id, ()):
+                        queued.done = queued.skipped = True
         frames: list[tuple[int, bytes]] = []
         for node_id, queue in list(self._queues.items()):
             if limit is not None and len(frames) >= limit:

@@ -408,6 +408,37 @@ def test_a_transfer_times_out_against_the_clock_it_is_given() -> None:
     assert "no SDO response within 500 ms" in following.error
 
 
+def test_abandon_silent_fails_a_silent_node_s_queue_at_its_first_timeout_and_no_other_node_s() -> None:
+    """The start-up's mode: a node that did not answer is sent nothing more; the others go on."""
+    client = SdoClient(timeout_s=0.5)
+    silent = [client.read(4, 0x1000, 0, "device type"), *(client.write(4, 0x1017, 0, b"\x64\x00") for _ in range(3))]
+    other = [client.read(5, 0x1000, 0, "device type"), client.read(5, 0x1018, 1, "vendor id")]
+    assert sorted(client.frames_due(0.0, abandon_silent=True)) == [
+        (0x604, upload_request(0x1000, 0)),
+        (0x605, upload_request(0x1000, 0)),
+    ]
+    assert client.on_response(5, bytes([0x43, 0x00, 0x10, 0x00, 0x92, 0x01, 0x02, 0x00])) is other[0]
+    assert client.frames_due(0.1, abandon_silent=True) == [(0x605, upload_request(0x1018, 1))]
+    due = client.frames_due(0.5 + 1e-6, abandon_silent=True)
+    assert due == []  # node 5's read is still in flight; node 4 gets nothing more
+    assert silent[0].error == "node 4 0x1000:0 (device type): no SDO response within 500 ms"
+    for queued in silent[1:]:
+        assert queued.done
+        assert queued.skipped  # as a transfer whose needs failed: never sent, no error of its own
+        assert queued.sent_at_s is None
+        assert queued.error is None
+        assert not queued.succeeded
+    assert not other[1].done  # the answering node keeps its turn
+    assert client.busy
+    # Without it (the tick's transfers) the next queued transfer still goes after a timeout.
+    plain = SdoClient(timeout_s=0.5)
+    plain.read(4, 0x1000, 0)
+    after = plain.write(4, 0x1017, 0, b"\x64\x00")
+    plain.frames_due(0.0)
+    assert plain.frames_due(0.5 + 1e-6) == [(0x604, download_request(0x1017, 0, b"\x64\x00"))]
+    assert not after.done
+
+
 @pytest.mark.parametrize(
     ("code", "meaning"),
     [
