@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -268,22 +269,45 @@ def cpu_share_now(probe_s: float = REALTIME_PROBE_S) -> float:
     return (time.thread_time() - cpu_began) / (time.perf_counter() - wall_began)
 
 
+#: The scheduling priority (nice value) a real-time test asks for where the system allows it (root,
+#: or CAP_SYS_NICE): what the runtime's own loop asks for is real-time scheduling (daror_runtime/realtime.py).
+REALTIME_NICE = -10
+
+
+def _priority_for(realtime: bool) -> None:
+    """This thread's nice value for the coming test: :data:`REALTIME_NICE` for a real-time one where allowed, else 0.
+
+    Only a nice value this suite set (0 or :data:`REALTIME_NICE`) is changed: ``nice make test``
+    keeps the caller's. The threads and processes the test starts inherit it.
+    """
+    current = os.getpriority(os.PRIO_PROCESS, 0)
+    target = REALTIME_NICE if realtime else 0
+    if current == target or current not in (0, REALTIME_NICE):
+        return
+    with contextlib.suppress(PermissionError):  # not allowed to raise it: the margin decides alone
+        os.setpriority(os.PRIO_PROCESS, 0, target)
+
+
 @pytest.fixture(autouse=True)
 def _real_time_margin(request: pytest.FixtureRequest) -> None:
     """A test marked ``realtime`` needs wall-clock time (threads paced by the clock, a pseudo-terminal).
 
-    It measures the machine's margin first: when other processes keep the cores so busy that this
-    one gets less than :data:`REALTIME_CPU_SHARE` of a core, the test is skipped with the figure and
-    the load instead of failing by luck. ``make test`` runs them one after another on one worker,
-    beside one file's tests on the other: the suite itself never puts more than one busy process
-    beside them (D208).
+    It asks for a higher scheduling priority where the system allows it (:data:`REALTIME_NICE`;
+    the next test that is not real-time gives it back), then measures the machine's margin: when
+    other processes keep the cores so busy that this one gets less than
+    :data:`REALTIME_CPU_SHARE` of a core, the test is skipped with the figure and the load instead
+    of failing by luck. ``make test`` runs them one after another on one worker, beside one file's
+    tests on the other: the suite itself never puts more than one busy process beside them (D208).
     """
-    if request.node.get_closest_marker("realtime") is None:
+    realtime = request.node.get_closest_marker("realtime") is not None
+    _priority_for(realtime)
+    if not realtime:
         return
     share = cpu_share_now()
     if share < REALTIME_CPU_SHARE:
         load_1min = os.getloadavg()[0]
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
         pytest.skip(
-            f"this machine cannot give real time now: this process gets {share:.0%} of a core "
+            f"this machine cannot give real time now: this process gets {share:.0%} of a core at nice {nice} "
             f"(margin {REALTIME_CPU_SHARE:.0%}), 1-min load {load_1min:.1f}"
         )

@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -121,3 +122,25 @@ def test_make_test_s_scheduling_runs_the_real_time_tests_together_first_and_keep
     realtime_worker = next(iter(workers["realtime"]))
     on_that_worker = [kind for worker, _, kind in sorted(notes, key=lambda n: n[1]) if worker == realtime_worker]
     assert on_that_worker[:2] == ["realtime", "realtime"]  # the group first, its two tests one after another
+
+
+def test_a_real_time_test_asks_for_priority_where_allowed_and_the_next_test_gives_it_back() -> None:
+    """On its own thread (a Linux nice value is per thread): the suite's 0 and REALTIME_NICE only, never a caller's."""
+    seen: list[int] = []
+
+    def steps() -> None:
+        allowed = os.geteuid() == 0  # raising a priority needs root or CAP_SYS_NICE; lowering it never does
+        conftest._priority_for(True)
+        seen.append(os.getpriority(os.PRIO_PROCESS, 0))
+        conftest._priority_for(False)
+        seen.append(os.getpriority(os.PRIO_PROCESS, 0))
+        os.setpriority(os.PRIO_PROCESS, 0, 5)  # `nice -n 5 make test`
+        conftest._priority_for(True)
+        seen.append(os.getpriority(os.PRIO_PROCESS, 0))
+        seen.append(int(allowed))
+
+    thread = threading.Thread(target=steps)
+    thread.start()
+    thread.join()
+    raised = conftest.REALTIME_NICE if seen[3] else 0
+    assert seen[:3] == [raised, 0, 5]
