@@ -205,6 +205,7 @@ def pytest_configure_node(node: Any) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
+    """Controller side, at the end of the run: the folder of the real-time tests' ids goes (nothing is left in /tmp)."""
     path = config.stash.get(_REALTIME_IDS_PATH, None)
     if path is not None:
         shutil.rmtree(path.parent, ignore_errors=True)
