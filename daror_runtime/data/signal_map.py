@@ -63,8 +63,20 @@ N_JOINTS = 4
 #: The spring relation's gain (tau against k (theta - q)) must lie in this range: the description's
 #: k within 30 % (the simulator's runs give 0.98-1.01; a mix-up of q and theta gives about -1).
 SPRING_GAIN_RANGE = (0.7, 1.3)
-#: ... and explain at least this share of the torque's variance (R^2; the simulator's runs: 0.90-0.99).
+#: ... and explain at least this share of the torque's variance (R^2; the simulator's runs: 0.90-0.99),
+#: unless what it leaves unexplained is within :data:`UNMODELLED_TORQUE_NM`.
 SPRING_MIN_R2 = 0.5
+#: Torque (Nm, RMS) that the right columns may leave unexplained by a relation: the direction-dependent
+#: error across the spring (a hysteresis of up to 0.75 Nm on the simulated DAROR-01's joint 2, of the
+#: order the thesis's Sec. 6.3 suspects), a pilot's arm the design masses do not know. Where a joint's
+#: torque barely changes, that alone spoils the fit's share: a session's short protocol (7 waypoints)
+#: left joint 2's spring relation at R^2 0.43 with 0.73 Nm unexplained and its A Priori relation at a
+#: correlation of 0.57, both clean (D209). A fit that leaves at most this much is not a mix-up; and
+#: where the torque a relation predicts spreads less than this, the unmodelled torque biases its gain
+#: as well (the bare robot's joint 2: gains 1.28-1.36 on k (theta - q) and 0.60-0.64 on tau_cmd, at
+#: spreads of 0.5-0.7 Nm), so only the gain's sign is judged there: the mix-ups it must catch turn
+#: the sign (q and theta exchanged give about -1).
+UNMODELLED_TORQUE_NM = 1.0
 #: Below this spread of k (theta - q) (Nm, standard deviation) the spring's gain is not judged: its
 #: mean is compared instead, within :data:`SPRING_MEAN_TOLERANCE_NM` or 30 %.
 SPRING_MIN_SPREAD_NM = 0.2
@@ -190,6 +202,11 @@ def _gain_and_r2(x: FloatArray, y: FloatArray) -> tuple[float, float]:
     return gain, r2
 
 
+def _unexplained_nm(x: FloatArray, y: FloatArray, gain: float) -> float:
+    """RMS (in ``y``'s unit) of what ``y = gain x + c`` leaves of ``y``."""
+    return float(np.std((y - y.mean()) - gain * (x - x.mean())))
+
+
 def _correlation(x: FloatArray, y: FloatArray) -> float:
     xc, yc = x - x.mean(), y - y.mean()
     denominator = float(np.sqrt((xc @ xc) * (yc @ yc)))
@@ -206,8 +223,15 @@ def _spring(joint: int, tau: FloatArray, deflection: FloatArray, k: float) -> Re
             joint, "spring", held, f"mean tau {mean_tau:.3g} Nm, k (theta - q) {mean_predicted:.3g} Nm (little spread)"
         )
     gain, r2 = _gain_and_r2(predicted, tau)
-    held = SPRING_GAIN_RANGE[0] <= gain <= SPRING_GAIN_RANGE[1] and r2 >= SPRING_MIN_R2
-    return Relation(joint, "spring", held, f"tau = {gain:.3g} k (theta - q) + c, R^2 {r2:.3f} (k {k:g} Nm/rad)", r2)
+    figure = f"tau = {gain:.3g} k (theta - q) + c, R^2 {r2:.3f} (k {k:g} Nm/rad)"
+    if float(predicted.std()) < UNMODELLED_TORQUE_NM:
+        return Relation(joint, "spring", gain > 0.0, f"{figure}; little spread: its sign judged", r2)
+    unexplained = _unexplained_nm(predicted, tau, gain)
+    fits = r2 >= SPRING_MIN_R2 or unexplained <= UNMODELLED_TORQUE_NM
+    held = SPRING_GAIN_RANGE[0] <= gain <= SPRING_GAIN_RANGE[1] and fits
+    if r2 < SPRING_MIN_R2:
+        figure += f", {unexplained:.2g} Nm unexplained"
+    return Relation(joint, "spring", held, figure, r2)
 
 
 def _deflection(joint: int, deflection: FloatArray, travel_rad: float) -> Relation:
@@ -234,8 +258,11 @@ def _command(joint: int, tau: FloatArray, tau_cmd: FloatArray) -> Relation:
         )
     gain, _ = _gain_and_r2(tau_cmd, tau)
     r = _correlation(tau_cmd, tau)
+    figure = f"tau = {gain:.3g} tau_cmd + c, correlation {r:.3f}"
+    if min(spread_tau, spread_cmd) < UNMODELLED_TORQUE_NM:
+        return Relation(joint, "command", gain > 0.0, f"{figure}; little spread: its sign judged", r)
     held = COMMAND_GAIN_RANGE[0] <= gain <= COMMAND_GAIN_RANGE[1] and r >= COMMAND_MIN_CORRELATION
-    return Relation(joint, "command", held, f"tau = {gain:.3g} tau_cmd + c, correlation {r:.3f}", r)
+    return Relation(joint, "command", held, figure, r)
 
 
 def _velocity(joint: int, t_s: FloatArray, q: FloatArray, dq: FloatArray) -> Relation:
@@ -289,8 +316,16 @@ def _priori_relations(
             continue
         gain, _ = _gain_and_r2(x, y)
         r = _correlation(x, y)
-        held = PRIORI_GAIN_RANGE[0] <= gain <= PRIORI_GAIN_RANGE[1] and r >= PRIORI_MIN_CORRELATION
-        relations.append(Relation(j + 1, "a priori", held, f"tau = {gain:.3g} A Priori + c, correlation {r:.3f}", r))
+        figure = f"tau = {gain:.3g} A Priori + c, correlation {r:.3f}"
+        in_range = PRIORI_GAIN_RANGE[0] <= gain <= PRIORI_GAIN_RANGE[1]
+        unexplained = _unexplained_nm(x, y, gain)
+        if in_range and r < PRIORI_MIN_CORRELATION and unexplained <= UNMODELLED_TORQUE_NM:
+            # what tells two joints apart is the correlation, and a torque that barely changes cannot show it
+            figure += f", {unexplained:.2g} Nm unexplained: too little change to tell the joints apart"
+            relations.append(Relation(j + 1, "a priori", None, figure, r))
+            continue
+        held = in_range and r >= PRIORI_MIN_CORRELATION
+        relations.append(Relation(j + 1, "a priori", held, figure, r))
     return relations
 
 

@@ -10,7 +10,9 @@ the parts a session runs at different times:
   checked); a started recorder. The tick then only switches to it. With ``protocol_file`` or
   ``protocol_budget_s`` the training run is a designed protocol (:func:`designed_training`).
 * :func:`finish_run` (a job, after the tick saw the trajectory end): close the recording, reduce
-  it to stationary points, write the dataset and the raw log beside it, atomically.
+  it to stationary points, write the dataset and the raw log beside it, atomically, and judge their
+  signal map from physics (issue 27): a recording whose columns are not what their names say (the
+  drives' readings mapped to the wrong joints or signals) is kept as evidence and never trained on.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+from daror_runtime.data.signal_map import SignalMapError
 from daror_runtime.errors import InputError
 from daror_runtime.identification.design import DesignSettings, design_protocol
 from daror_runtime.identification.protocol import IdentificationRun, finish_recording, plan_run
@@ -45,6 +48,10 @@ MIN_SESSION_WAYPOINTS = 4
 
 class IdentificationRequestError(InputError):
     """An identification run cannot start (no waypoint inside the pilot's limits, a run already going, ...)."""
+
+
+class RecordingSignalMapError(SignalMapError):
+    """A session's own recording fails the signal-map check: kept as evidence, not used for a model."""
 
 
 def session_waypoints(
@@ -193,31 +200,70 @@ class RunSummary:
     points: int
     tracking_rms_rad: FloatArray
     tracking_max_rad: FloatArray
+    #: The signal-map check's failure line (None: the map held): the files are evidence, not training data.
+    signal_map_failure: str | None = None
+
+    def require_signal_map(self) -> None:
+        """Refuse the run's data for a model if its signal map failed.
+
+        Raises:
+            RecordingSignalMapError: one line: the file, the joints and relations that failed, the
+                likely mix-up, and that the files are kept but not used.
+        """
+        if self.signal_map_failure is not None:
+            raise RecordingSignalMapError(
+                f"{self.signal_map_failure}; kept as evidence, not used for a model: check how the drives' "
+                "readings are mapped to the joints (the robot file's node ids, the encoders' signs and PDO mapping)"
+            )
 
 
-def finish_run(run: IdentificationRun) -> RunSummary:
-    """Turn the run's recording into data and write the dataset and raw log, atomically (a job, outside the tick).
+def finish_run(run: IdentificationRun, description: RobotDescription, dummy_arm: bool) -> RunSummary:
+    """Turn the run's recording into data, write the dataset and raw log atomically, judge their signal map (a job).
+
+    The files are written whatever the signal map's verdict (a recording is evidence); the verdict
+    is in :attr:`RunSummary.signal_map_failure`, and :meth:`RunSummary.require_signal_map` refuses
+    them for a model. The raw log is judged on every relation (springs, deflection, command,
+    velocity, A Priori), the stationary points on the A Priori torque (``dummy_arm``: the Dummy Arm
+    is installed); 0.05-0.2 s on a session's run.
 
     Raises:
         ProtocolAbortedError: no stop of the trajectory held still, or the recorder dropped rows.
         DataError: the recording cannot be read back.
     """
     from daror_runtime.data.load import RAW_LOG_SUFFIX, raw_log_path, write_dataset
+    from daror_runtime.data.signal_map import check_raw_log_map, check_stationary_map
 
     data = finish_recording(run)
     raw_path = raw_log_path(run.dataset_path, RAW_LOG_SUFFIX)
     write_dataset(raw_path, data.raw)
     write_dataset(run.dataset_path, data.stationary)
     run.recorder.path.unlink(missing_ok=True)
+    failure = None
+    for report in (
+        check_raw_log_map(dataclasses.replace(data.raw, source=str(raw_path)), description),
+        check_stationary_map(
+            dataclasses.replace(data.stationary, source=str(run.dataset_path)), description, dummy_arm
+        ),
+    ):
+        if not report.passed:
+            failure = report.failure_line()
+            break
     log.info(
         "identification saved",
         kind=run.kind,
         dataset=str(run.dataset_path),
         points=len(data.stationary),
         tracking_rms_mrad=[round(v * 1e3, 2) for v in data.tracking_rms_rad],
+        signal_map="consistent" if failure is None else "WRONG",
     )
     return RunSummary(
-        run.kind, run.dataset_path, raw_path, len(data.stationary), data.tracking_rms_rad, data.tracking_max_rad
+        run.kind,
+        run.dataset_path,
+        raw_path,
+        len(data.stationary),
+        data.tracking_rms_rad,
+        data.tracking_max_rad,
+        failure,
     )
 
 

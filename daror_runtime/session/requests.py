@@ -29,7 +29,13 @@ from daror_runtime.models.compare import cvf_models
 from daror_runtime.models.registry import kind_entry, kind_names
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import AnnouncementKind
-from daror_runtime.session.identification import abandon_run, finish_run, prepare_run, session_waypoints
+from daror_runtime.session.identification import (
+    RecordingSignalMapError,
+    abandon_run,
+    finish_run,
+    prepare_run,
+    session_waypoints,
+)
 from daror_runtime.session.provenance import (
     ValidationOrigin,
     record_provenance,
@@ -362,12 +368,14 @@ def _collect(core: SessionCore, run: IdentificationRun) -> Response:
 
     def job() -> None:
         try:
-            data = finish_run(run)
+            data = finish_run(run, core.description, core.settings.dummy_arm)
             for recorded in (data.dataset_path, data.raw_path):
                 record_provenance(core, recorded, data.kind)  # whose data: what validates a model on it
+            data.require_signal_map()  # columns that are not what they say are never trained on (issue 27)
         except DarorError as exc:
             core.progress.last_error = f"identification {run.kind}: {exc}"
-            log.error("identification data not saved", kind=run.kind, reason=str(exc))
+            refused = isinstance(exc, RecordingSignalMapError)  # written as evidence, refused as data
+            log.error(f"identification data {'refused' if refused else 'not saved'}", kind=run.kind, reason=str(exc))
             raise
         finally:
             core.collecting = False

@@ -333,3 +333,90 @@ def test_the_data_efficiency_study_refuses_a_mix_up_unless_trusted_and_then_says
     assert len(document["signal_map"]) == 1
     assert "most likely joints 1 and 2 exchanged" in document["signal_map"][0]
     assert document["signal_map"][0] in (out / "data_efficiency.md").read_text(encoding="utf-8")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mixed_up", [False, True], ids=["clean", "q-theta-exchanged"])
+def test_a_session_s_own_recording_with_a_wrong_map_is_kept_as_evidence_and_never_trained_on(
+    raw_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mixed_up: bool
+) -> None:
+    """The drives' readings mapped to the wrong signals (here each joint's two encoders exchanged,
+    as a wrong PDO mapping or a swapped cable would) make a recording the session would train on; it
+    is judged as it is saved, kept, and refused for a model, with the mix-up named to the operator."""
+    from types import SimpleNamespace
+
+    from daror_runtime.identification.protocol import RunData
+    from daror_runtime.runtime import Runtime
+    from daror_runtime.session import identification, requests
+    from daror_runtime.session.events import AnnouncementKind
+    from daror_runtime.session.settings import SessionSettings
+    from daror_runtime.testing import session_core
+    from hal.sim.backend import SimHal
+
+    raw = load_dataset(raw_file)
+    assert isinstance(raw, RawLog)
+    assert raw.theta_rad is not None
+    if mixed_up:
+        raw = replace(raw, q_rad=raw.theta_rad, theta_rad=raw.q_rad)
+    stationary = load_dataset(raw_file.parent / "run.npz")
+    assert isinstance(stationary, StationaryDataset)
+    recorded = RunData(raw, stationary, np.zeros(4), np.zeros(4))
+    monkeypatch.setattr(identification, "finish_recording", lambda run: recorded)
+
+    runtime = Runtime(SimHal("exo_dummy_arm"), tmp_path / "session", settings=SessionSettings(dummy_arm=True))
+    runtime.open()
+    try:
+        core = session_core(runtime)
+        dataset = tmp_path / "session" / "identification_training.csv"
+        run = SimpleNamespace(kind="training", dataset_path=dataset, recorder=SimpleNamespace(path=tmp_path / "rec"))
+        requests._collect(core, run)  # type: ignore[arg-type]  # what the tick boundary does when a run ends
+        core.jobs.run_pending()
+        runtime.runner.run_ticks(2)  # the job's outcome is applied at a tick boundary
+        said = [(a.kind, a.text) for a in core.announcements.drain()]
+    finally:
+        runtime.close()
+    # the files are written either way: a recording is evidence
+    assert dataset.is_file()
+    assert (tmp_path / "session" / "identification_training.raw.npz").is_file()
+    if not mixed_up:
+        assert core.progress.last_error is None
+        assert core.signals.identification_saved == {"training": dataset}
+        return
+    assert "training" not in core.signals.identification_saved  # nothing to train on: train is refused
+    error = core.progress.last_error
+    assert error is not None
+    assert error.startswith(f"identification training: {tmp_path / 'session' / 'identification_training.raw.npz'}: ")
+    assert "the signal map looks wrong: spring relation fails on joints 1, 2, 3, 4" in error
+    assert "most likely q and theta exchanged" in error
+    assert "kept as evidence, not used for a model" in error
+    assert any(
+        kind is AnnouncementKind.JOB_FAILED
+        and text.startswith("save identification training failed: ")
+        and "q and theta exchanged" in text
+        for kind, text in said
+    ), said
+
+
+@pytest.mark.slow
+def test_a_joint_carrying_little_torque_in_a_short_run_is_judged_on_its_sign_not_refused(tmp_path: Path) -> None:
+    """The bare robot's joint 2 through every 12th waypoint (a session's short protocol): its torque
+    spreads 0.5-0.8 Nm, the size of the direction error across its spring (0.75 Nm), which leaves
+    R^2 0.2 and biases the gains (1.3 on the spring, 0.6 on the command). Refused before D209; the
+    same run with q and theta exchanged is still refused on every joint's sign."""
+    out = tmp_path / "short.npz"
+    waypoints = _shipped_waypoints_every(12, tmp_path)
+    argv = ["identify", "--scenario", "exo", "--trajectory", "validation", "--waypoints", str(waypoints)]
+    assert main([*argv, "--out", str(out)]) == 0
+    raw = load_dataset(tmp_path / "short.raw.npz")
+    assert isinstance(raw, RawLog)
+    assert raw.theta_rad is not None
+    report = check_signal_map(raw, load_description())
+    assert report.passed, report.lines()
+    joint_2 = {r.name: r for r in report.relations if r.joint == 2}
+    assert joint_2["spring"].held
+    assert "little spread: its sign judged" in joint_2["spring"].figure
+    assert joint_2["command"].held
+    assert "little spread: its sign judged" in joint_2["command"].figure
+    exchanged = check_signal_map(replace(raw, q_rad=raw.theta_rad, theta_rad=raw.q_rad), load_description())
+    assert {(r.joint, r.name) for r in exchanged.failures} >= {(j, "spring") for j in range(1, 5)}
+    assert exchanged.mix_up == "q and theta exchanged (the gearbox angle read as the joint angle)"
