@@ -36,7 +36,7 @@ KERNELS = scratch=$$(mktemp -d) && printf 'wait 0.1\nquit\n' > $$scratch/opens.t
 INSTALL = { $(BIN)/python -m pip install --quiet --disable-pip-version-check uv > /dev/null 2>&1 \
 	&& $(BIN)/uv pip install --quiet --python $(BIN)/python --compile-bytecode $$pins -e "$$package"; } \
 	|| $(BIN)/python -m pip install --quiet --disable-pip-version-check $$pins -e "$$package"
-EXTRAS = .[nn,can,dev,ray,web]
+EXTRAS = .[nn,can,dev,ray,web,postgres]
 PINS = $(VENV)/pins.txt
 
 # pytest with its rewritten test modules cached (tests/**/__pycache__) whatever the shell says of
@@ -82,6 +82,15 @@ $(VENV)/.system-packages: | $(BIN)/python
 		|| echo "make: can-utils could not be installed; the log2asc test will be skipped"; }
 	touch $@
 
+# PostgreSQL's server programs (the records' tests start a private cluster with them on a Unix
+# socket, tests/postgres_server.py; Debian's own service is not used), installed only when initdb is
+# missing; without them the PostgreSQL half of those tests is skipped with the reason.
+$(VENV)/.postgresql: | $(BIN)/python
+	@{ command -v initdb >/dev/null 2>&1 || ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; } || { \
+		(apt-get update -qq && apt-get install -y -qq postgresql) >/dev/null 2>&1 \
+		|| echo "make: postgresql could not be installed; the records' PostgreSQL tests will be skipped"; }
+	touch $@
+
 # Chromium and its driver (the web console's browser test, tests/daror_runtime/console/test_web_console.py), installed
 # only when /usr/bin/chromium or /usr/bin/chromedriver is missing; without them that test is skipped.
 $(VENV)/.chromium: | $(BIN)/python
@@ -96,7 +105,7 @@ $(VENV)/.chromium: | $(BIN)/python
 # them one after another, each measuring the machine's margin before it runs (docs/testing.md),
 # while the other runs the longest file, so at most one busy process of the suite is beside them
 # (D208). The slowest tests are printed: CI's log says where the time went.
-test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium bytecode
+test: $(VENV)/.installed-all $(VENV)/.system-packages $(VENV)/.chromium $(VENV)/.postgresql bytecode
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(PYTEST) -n 2 --dist loadgroup --no-loadscope-reorder --durations=30

@@ -46,6 +46,8 @@ from daror_runtime.runner import LoopRunner
 from daror_runtime.session import requests
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import Announcement, AnnouncementKind
+from daror_runtime.session.history import utc_now
+from daror_runtime.session.provenance import session_pilot, session_robot
 from daror_runtime.session.settings import SessionSettings
 from daror_runtime.session.snapshot import snapshot
 from daror_runtime.session.status import RuntimeStatus
@@ -107,6 +109,7 @@ class Runtime:
     ) -> None:
         self._core = SessionCore(hal, session_dir, spec, settings, clock, session_id)
         self.ended: TorqueOff | None = None
+        self.ended_utc: str | None = None  # the wall-clock time the session ended (UTC)
         self._opened = False
         self._runner = LoopRunner(self._core.loop, self._core.clock, self._service, self._display_failed)
 
@@ -237,6 +240,7 @@ class Runtime:
                 drives = tuple(d.name.lower() for d in sample.drives)
                 confirmed = DriveState.ENABLED not in sample.drives
         self.ended = TorqueOff(reason, state, t_s, confirmed, drives, None if error is None else str(error))
+        self.ended_utc = utc_now()
         log.warning(
             "session stopped: torque off",
             reason=reason,
@@ -428,4 +432,11 @@ class Runtime:
         document = self.status()
         document["failures"] = [f"{name}: {exc}" for name, exc in core.jobs.failures]
         document["ended"] = None if self.ended is None else dataclasses.asdict(self.ended)
+        # for the lab's records (daror_runtime/records): whose session, on what, when, what it did
+        document["pilot"] = session_pilot(core)
+        document["robot"] = session_robot(core)
+        document["backend"] = core.hal.kind
+        document["simulated"] = core.hal.world is not None
+        document["history"] = core.history.as_dict()
+        document["ended_utc"] = None if self.ended is None else self.ended_utc
         write_text_atomic(core.session_dir / "session.json", json.dumps(document, indent=2, default=str) + "\n")

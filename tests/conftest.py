@@ -46,6 +46,11 @@ settings.register_profile("dev", max_examples=50, deadline=None)
 settings.register_profile("explore", max_examples=1000, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
+# A console session records itself into the lab's records when it ends (issue 28: daror.db beside
+# its folder). The suite's hundreds of sessions record nothing unless a test asks: the records' own
+# tests pass --db or clear this, and the README transcript runs as its reader would (without it).
+os.environ.setdefault("DAROR_DB", "none")
+
 
 def as_dataset(points: StationarySet, source: str = "<simulated>") -> StationaryDataset:
     """The measured part of a simulated set, as the runtime's dataset type."""

@@ -73,7 +73,7 @@ def _argv(line: str) -> list[str]:
 def _run(line: str, folder: Path, stdin: str = "") -> Ran:
     run = subprocess.run(
         _argv(line), cwd=folder, input=stdin, capture_output=True, text=True, timeout=900, check=False,
-        env={**os.environ, "COLUMNS": "200"},
+        env={**{k: v for k, v in os.environ.items() if k != "DAROR_DB"}, "COLUMNS": "200"},  # the reader's default records
     )  # fmt: skip
     return Ran(line, run.returncode, run.stdout + run.stderr)
 
@@ -140,6 +140,12 @@ CHECKS: dict[str, Callable[[Ran, Path], None]] = {
         (d / "hil1" / "can.log.gz").is_file() or pytest.fail("no bus log"),
         json.loads((d / "hil1" / "hil.json").read_text(encoding="utf-8"))["faults"] or pytest.fail("no fault"),
     ),
+    # the bare `daror console` above recorded itself into daror.db beside its folder (sessions/)
+    "daror pilots list": lambda r, d: (
+        "P-007" in r.output or pytest.fail("the pilot added is not listed"),
+        "sim-exo_dummy_arm (simulated)" in r.output or pytest.fail("the console session's pilot is not listed"),
+    ),
+    "daror sessions list": lambda r, d: "1 session(s)" in r.output or pytest.fail(r.output),
     "daror console --web": lambda r, d: (
         r.returncode == 130 or pytest.fail(f"Ctrl-C: exit {r.returncode}"),
         "?token=" in r.output or "--no-token" in r.line or pytest.fail("no token in the printed address"),

@@ -41,6 +41,7 @@ COMMAND_MODULES = (
     "bench",  # bench
     "rt_check",  # rt-check
     "can",  # can scan|check|zero|tare
+    "records",  # pilots add|list|show, sessions list|add, db upgrade
 )
 
 

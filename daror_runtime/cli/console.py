@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import structlog
 from rich.console import Console
 
 from daror_runtime.cli.common import (
@@ -25,6 +26,8 @@ from daror_runtime.cli.common import (
 )
 from daror_runtime.errors import DarorError
 from daror_runtime.logs import configure_logging
+
+log = structlog.get_logger(__name__)
 
 #: Said after the web console's address when it asks no token (``--no-token``, loopback only).
 _NO_TOKEN_NOTE = " (no token: any program on this computer can drive the robot)"
@@ -51,6 +54,12 @@ def _declare_flags(con: CommandParser) -> None:
     con.add_argument("--settings", type=Path, help="session settings YAML (default: the built-in settings)")
     con.add_argument("--spec", type=Path, help="FSM spec (default: fsm_spec.yaml of the repository)")
     con.add_argument("--out", type=Path, help="session directory (default sessions/DATE-TIME)")
+    con.add_argument(
+        "--db",
+        metavar="URL",
+        help="the lab's records, where the session is recorded when it ends: sqlite:///PATH or "
+        "postgresql://USER@HOST/NAME, or none (default: $DAROR_DB, else daror.db beside the session directory)",
+    )
     con.add_argument("--realtime", action="store_true", help="the same as --clock realtime")
     con.add_argument(
         "--clock",
@@ -200,4 +209,45 @@ def run_console_session(
         if web is not None:
             web.stop()
 
-    return run_session(runtime, console, body, stop_web)  # SIGINT, SIGTERM, SIGHUP: torque off, 128 + signal
+    try:
+        return run_session(runtime, console, body, stop_web)  # SIGINT, SIGTERM, SIGHUP: torque off, 128 + signal
+    finally:  # the session has ended (torque off, session.json written): the lab's records learn of it
+        record_the_session(console, getattr(args, "db", None), out)
+
+
+def record_the_session(console: Console, db: str | None, directory: Path) -> None:
+    """Record the ended session in ``directory`` into the lab's records; a line says where, or why not.
+
+    A database that cannot take it (unreachable, another schema) does not undo the session: the
+    line names the command that records it later (``daror sessions add DIR``).
+    """
+    from daror_runtime.records.store import database_url
+
+    url = database_url(db, directory.resolve().parent)
+    if url is None:
+        return
+    from daror_runtime.errors import DataError
+    from daror_runtime.records.index import record_session
+    from daror_runtime.records.store import RecordsError, describe_url, open_store
+
+    try:
+        store = open_store(url)
+        try:
+            recorded = record_session(store, directory)
+        finally:
+            store.close()
+    except (RecordsError, DataError) as exc:
+        log.error("session not recorded", db=describe_url(url), reason=str(exc))
+        console.print(
+            f"records: the session was not recorded: {exc}; record it later: daror sessions add {directory}",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
+        return
+    console.print(
+        f"records: session {recorded.session_id} of pilot {recorded.pilot} in {describe_url(url)}",
+        soft_wrap=True,
+        markup=False,
+        highlight=False,
+    )

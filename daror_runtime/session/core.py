@@ -38,6 +38,7 @@ from daror_runtime.safety.lowering import plan_lowering
 from daror_runtime.safety.monitor import SafetyMonitor
 from daror_runtime.session.controllers import ModeControllers, build_mode_controllers
 from daror_runtime.session.events import AnnouncementKind, Announcements
+from daror_runtime.session.history import SessionHistory
 from daror_runtime.session.identification import abandon_run
 from daror_runtime.session.jobs import Jobs
 from daror_runtime.session.rom import RomEnvelope
@@ -178,6 +179,8 @@ class SessionCore:
         self.faults_announced = 0  # fault occurrences announced so far
         self.lowering_planned_for: float | None = None  # the reaction (its start time) a lowering was planned for
         self.announced_reaction: tuple[object, object, str] | None = None  # (plan, phase, note) last announced
+        self.history = SessionHistory()  # for the lab's records (session.json)
+        self.history.reached(self.supervisor.state_name)
         self.supervisor.listeners.append(self.state_changed)
 
     def support_model(self, state: StateSpec) -> CompensationModel | None:
@@ -294,6 +297,7 @@ class SessionCore:
         self.faults_announced = monitor.occurrences
         for fault in list(monitor.recent)[-min(new, len(monitor.recent)) :]:
             self.announcements.announce(AnnouncementKind.FAULT, f"{fault.kind.value}: {fault.message}", fault.t_s)
+            self.history.fault(f"{fault.kind.value}: {fault.message}")
 
     def state_changed(self, state: Any, outcome: Any) -> None:
         """In the tick (a transition): announce it, stop what belonged to the state left; never blocks."""
@@ -301,6 +305,7 @@ class SessionCore:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): the fault's reaction commands the arm"
         else:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
+        self.history.reached(state.name)
         t_s = self.t_s()
         if t_s is None and self.monitor.recent:  # a tick whose reading failed: the time of the fault it raised
             t_s = self.monitor.recent[-1].t_s

@@ -136,6 +136,7 @@ def set_support(core: SessionCore, level: float) -> Ticket:
             core.modes.compensation.support_level = level
         except ControlSettingError as exc:
             return core.refuse(f"support {level}", str(exc))
+        core.history.support(level)
         log.info("support level set", level=level, state=supervisor.state_name, t_s=core.t_s())
         return Response(f"support {level}", True, supervisor.state_name)
 

@@ -1,0 +1,1 @@
+"""Alembic's migrations of the records' schema (``daror db upgrade``); one file per revision in ``versions``."""
