@@ -30,6 +30,7 @@ import structlog
 _configured = False
 _json_handles: list[TextIO] = []
 _session_id: str | None = None
+_pilot: str | None = None  # the session's pilot's code (the audit trail says whose session)
 
 
 def _level(name: str) -> int:
@@ -97,9 +98,17 @@ def set_session_id(session_id: str | None) -> None:
     _session_id = session_id
 
 
+def set_session_pilot(pilot: str | None) -> None:
+    """Tag every event from now on (all threads) with the session's ``pilot`` code (None: stop tagging)."""
+    global _pilot
+    _pilot = pilot
+
+
 def _add_session_id(logger: Any, method: str, event_dict: dict[str, Any]) -> dict[str, Any]:
     if _session_id is not None:
         event_dict.setdefault("session_id", _session_id)
+    if _pilot is not None:
+        event_dict.setdefault("pilot", _pilot)
     return event_dict
 
 

@@ -41,7 +41,7 @@ from daror_runtime.fsm.machine import Event, Outcome
 from daror_runtime.fsm.signals import Checklist, SelectedModel
 from daror_runtime.fsm.spec import FsmSpec, StateSpec
 from daror_runtime.fsm.supervisor import Response, Ticket
-from daror_runtime.logs import flush_logs, set_session_id
+from daror_runtime.logs import flush_logs, set_session_id, set_session_pilot
 from daror_runtime.runner import LoopRunner
 from daror_runtime.session import requests
 from daror_runtime.session.core import RequestRefusedError, SessionCore
@@ -195,6 +195,7 @@ class Runtime:
         core = self._core
         core.session_dir.mkdir(parents=True, exist_ok=True)
         set_session_id(core.session_id)
+        set_session_pilot(session_pilot(core))
         core.hal.open()
         core.loop.start()
         self._opened = True
@@ -268,6 +269,7 @@ class Runtime:
         log.info("session closed", state=core.supervisor.state_name, transitions=core.supervisor.transitions)
         flush_logs()
         set_session_id(None)
+        set_session_pilot(None)
 
     def __enter__(self) -> Runtime:
         self.open()
@@ -342,6 +344,10 @@ class Runtime:
     def confirm(self, checklist: Checklist | str) -> Ticket:
         """The operator confirms a checklist of the current state (settings, installation, safety_experience)."""
         return requests.confirm(self._core, checklist)
+
+    def name_pilot(self, code: str) -> Ticket:
+        """Name the session's pilot by his code (:func:`daror_runtime.session.requests.name_pilot`)."""
+        return requests.name_pilot(self._core, code)
 
     def set_support(self, level: float) -> Ticket:
         """Set the compensation support level in [0, 1] (the delivered level ramps to it)."""

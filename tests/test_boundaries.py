@@ -480,6 +480,7 @@ CONSOLE_MAY_IMPORT = {
     "daror_runtime.fsm.supervisor",  # Ticket and Response, what a request returns
     "daror_runtime.errors",
     "daror_runtime.fsm.signals",  # the checklists' names
+    "daror_runtime.records.codes",  # what a pilot's code is (the grammar's pilot CODE)
     "daror_runtime.fsm.guards",  # the guards' descriptions (the guide)
     "daror_runtime.fsm.spec",  # the states' names and modes (the grammar)
     "daror_runtime.fsm.diagram",  # the spec's diagram, laid out for the web console
@@ -525,7 +526,7 @@ FACADE = {
     # lifecycle; who drives the loop (lock-step ticks or its own thread: daror_runtime/runner.py)
     "open", "shutdown", "close", "runner", "busy", "jobs_pending", "at_rest", "arm_held", "wait",
     # the operator's requests
-    "request", "advance", "revert", "reset", "acknowledge", "confirm", "set_support", "rom_start",
+    "request", "advance", "revert", "reset", "acknowledge", "confirm", "name_pilot", "set_support", "rom_start",
     "rom_stop", "set_isb_limits", "identify", "stop_identification", "train", "select_model",
     "lower_arm", "release_arm",  # a fault's reaction holds the arm (docs/safety.md)
     # what the operator sees
@@ -543,7 +544,7 @@ def test_the_runtime_exposes_only_its_facade(tmp_path: Path) -> None:
     runtime = Runtime(open_hal(SimHalConfig()), tmp_path / "session")
     public_instance = {n for n in vars(runtime) if not n.startswith("_")}
     assert public_class == FACADE
-    assert public_instance == {"ended"}  # how the session ended (None while it runs)
+    assert public_instance == {"ended", "ended_utc"}  # how and when the session ended (None while it runs)
 
 
 def test_the_tick_side_trajectory_never_imports_its_planner() -> None:

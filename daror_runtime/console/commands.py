@@ -104,6 +104,7 @@ class ConsoleSession:
             "lower": lambda a: self._answer(runtime.lower_arm()),
             "release": lambda a: self._answer(runtime.release_arm()),
             "confirm": lambda a: self._answer(runtime.confirm(a[0])),
+            "pilot": lambda a: self._answer(runtime.name_pilot(a[0])),
             "support": lambda a: self._answer(runtime.set_support(a[0])),
             "rom": self._rom,
             "identify": self._identify,

@@ -13,6 +13,7 @@ Lines are split like a shell's; ``#`` starts a comment.
 from __future__ import annotations
 
 import math
+import re
 import shlex
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from typing import Any
 from daror_runtime.errors import InputError, UsageError
 from daror_runtime.fsm.signals import Checklist
 from daror_runtime.models.registry import kind_names
+from daror_runtime.records.codes import PILOT_CODE_PATTERN
 from hal.files import DATA_MAX_BYTES, MODEL_MAX_BYTES, YAML_MAX_BYTES, regular_file
 from hal.isb import load_isb_limits
 from hal.robot import RobotDescription
@@ -147,6 +149,15 @@ def _quit(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 def _confirm(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     _arity("confirm CHECKLIST", args, 1)
     return (_one_of("confirm CHECKLIST", args[0], (c.value for c in Checklist)),)
+
+
+def _pilot(args: list[str], context: ParseContext) -> tuple[Any, ...]:
+    _arity("pilot CODE", args, 1)
+    if re.match(PILOT_CODE_PATTERN, args[0]) is None:
+        raise CommandError(
+            f"pilot CODE: {args[0]!r} is not a code; expected letters, digits, '_', '.', '-' (at most 32), e.g. P-007"
+        )
+    return (args[0],)
 
 
 def _support(args: list[str], context: ParseContext) -> tuple[Any, ...]:
@@ -350,6 +361,16 @@ COMMANDS: tuple[CommandSpec, ...] = (
         "e-stop), a_priori_model (the A Priori model may support this pilot until a validated model exists).",
     ),
     CommandSpec(
+        "pilot",
+        "pilot CODE",
+        "name the session's pilot by his code (in settings, before the state is left)",
+        GROUPS[0],
+        _pilot,
+        "A code from the lab's records (daror pilots add CODE), never a name. On a real robot settings is not left "
+        "until the pilot is named; a simulated robot's pilot is its scenario's unless named. Every file, the audit "
+        "trail and the records carry the code.",
+    ),
+    CommandSpec(
         "support",
         "support LEVEL",
         "set the compensation support level, 0 to 1 (it ramps there)",
@@ -532,6 +553,7 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "lower": None,
         "release": None,
         "confirm": checklists,
+        "pilot": None,
         "support": None,
         "rom": {"start": None, "stop": None, "load": None},
         "identify": {"training": None, "validation": None, "stop": None},

@@ -178,6 +178,9 @@ STEPS: dict[str, StepFor] = {
     "settings_confirmed": lambda s, w: Step(
         "review the session settings, then confirm them", ("settings", "confirm settings")
     ),
+    "pilot_named": lambda s, w: Step(
+        "name the pilot: type pilot CODE with his code in the lab's records (never his name)"
+    ),
     "installation_confirmed": lambda s, w: Step(
         "check the straps, the shoulder's alignment and the cables, then confirm", ("confirm installation",)
     ),

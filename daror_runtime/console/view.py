@@ -59,11 +59,12 @@ def _state_lines(status: RuntimeStatus) -> list[str]:
     else:
         kind = "  (e-stop test state: a fault is met by its reaction, no FAIL)" if status.estop_test_state else ""
         state = f"state {status.number} {status.state} ({status.superstate}): {status.description}{kind}"
+    pilot = f"pilot {status.pilot}" if status.pilot is not None else "no pilot named (pilot CODE)"
     return [
         state,
-        f"  mode {status.mode}, t = {status.t_s:.3f} s, session {status.session_id}"
+        f"  mode {status.mode}, t = {status.t_s:.3f} s, session {status.session_id}, {pilot}"
         if status.t_s is not None
-        else f"  mode {status.mode}, no sample yet, session {status.session_id}",
+        else f"  mode {status.mode}, no sample yet, session {status.session_id}, {pilot}",
     ]
 
 

@@ -197,6 +197,14 @@ def _safety_experience_confirmed(s: SessionSignals) -> bool:
 # --- the pilot's limits, data and models -----------------------------------------------------
 
 
+@guard(
+    "pilot_named",
+    "the pilot is named by his code (pilot CODE, or the settings' pilot); a simulated robot's is its scenario's",
+)
+def _pilot_named(s: SessionSignals) -> bool:
+    return s.pilot is not None or not s.drives_hardware
+
+
 @guard("isb_limits_recorded", "the pilot's ISB limits are recorded")
 def _isb_limits_recorded(s: SessionSignals) -> bool:
     return s.isb_limits is not None

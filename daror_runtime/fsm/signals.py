@@ -75,6 +75,8 @@ class SessionSignals:
     estop_tested: set[EstopButton] = field(default_factory=set)
     confirmed: set[Checklist] = field(default_factory=set)
     # session
+    pilot: str | None = None  # the pilot's code (settings or `pilot CODE`); None: nobody named him
+    drives_hardware: bool = False  # the backend drives a real robot (a simulated one has its scenario's pilot)
     isb_limits: IsbLimits | None = None
     # the monitor's ISB function for a set of limits (the shoulder's kinematics), and the margin it allows
     isb_angles: Callable[[IsbLimits], Callable[[FloatArray], FloatArray]] | None = None

@@ -13,10 +13,18 @@ from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text,
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
-__all__ = ["Base", "DatasetRecord", "ModelRecord", "PilotRecord", "RangeOfMotionRecord", "SessionRecord", "UtcDateTime"]
+from daror_runtime.records.codes import PILOT_CODE_PATTERN
 
-#: A pilot's code: letters, digits, ``_ . -``; what the session settings accept (``pilot``).
-PILOT_CODE_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$"
+__all__ = [
+    "PILOT_CODE_PATTERN",
+    "Base",
+    "DatasetRecord",
+    "ModelRecord",
+    "PilotRecord",
+    "RangeOfMotionRecord",
+    "SessionRecord",
+    "UtcDateTime",
+]
 
 
 class UtcDateTime(TypeDecorator[datetime]):

@@ -151,7 +151,11 @@ class SessionCore:
 
         isb_margin_rad = float(np.deg2rad(self.settings.isb_margin_deg))
         self.signals = SessionSignals(
-            at_rest_rad_s=self.settings.at_rest_rad_s, isb_angles=isb_function, isb_margin_rad=isb_margin_rad
+            at_rest_rad_s=self.settings.at_rest_rad_s,
+            isb_angles=isb_function,
+            isb_margin_rad=isb_margin_rad,
+            pilot=self.settings.pilot,
+            drives_hardware=hal.drives_hardware,
         )
         self.supervisor = FsmSupervisor(
             self.spec,

@@ -33,9 +33,9 @@ def session_robot(core: SessionCore) -> str:
 
 
 def session_pilot(core: SessionCore) -> str | None:
-    """The pilot of this session: the settings' code, the simulated scenario's pilot, or None (nobody said)."""
-    if core.settings.pilot is not None:
-        return core.settings.pilot
+    """The pilot of this session: his code (the settings' or ``pilot CODE``), the simulated scenario's pilot, or None."""
+    if core.signals.pilot is not None:
+        return core.signals.pilot
     world = core.hal.world
     return simulated_pilot(world.scenario) if world is not None else None
 

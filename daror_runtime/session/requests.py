@@ -11,6 +11,7 @@ back through another such request.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from daror_runtime.fsm.signals import Checklist
 from daror_runtime.fsm.spec import StateSpec
 from daror_runtime.fsm.supervisor import FsmSupervisor, Response, Ticket
 from daror_runtime.identification.protocol import IdentificationRun, let_the_writer_catch_up
+from daror_runtime.logs import set_session_pilot
 from daror_runtime.models.compare import cvf_models
 from daror_runtime.models.registry import kind_entry, kind_names
 from daror_runtime.session.core import RequestRefusedError, SessionCore
@@ -142,6 +144,52 @@ def set_support(core: SessionCore, level: float) -> Ticket:
 
     log.info("request", request=f"support {level}", origin="operator", state=core.supervisor.state_name)
     return core.supervisor.post(f"support {level}", apply)
+
+
+# --- the pilot ----------------------------------------------------------------------------------
+
+
+def name_pilot(core: SessionCore, code: str) -> Ticket:
+    """Name the session's pilot by his code (``pilot CODE``): until the state that needs him is left.
+
+    The state whose advance needs ``pilot_named`` (``settings``) is the last where he may be named
+    or named again, and only while nothing of this session belongs to the pilot named before (a
+    model validated for him). Every file the session writes from then on, its audit trail and the
+    lab's records carry the code.
+
+    Raises:
+        RequestRefusedError: ``code`` is not a pilot's code (letters, digits, ``_ . -``; at most 32).
+    """
+    from daror_runtime.records.codes import PILOT_CODE_PATTERN  # the pattern only: no database here
+
+    if re.match(PILOT_CODE_PATTERN, code) is None:
+        raise RequestRefusedError(
+            f"pilot {code!r}: not a code; expected letters, digits, '_', '.', '-' (at most 32), e.g. P-007; never a name"
+        )
+    naming = next((s for s in core.spec.states if "pilot_named" in s.guards.advance), None)
+
+    def apply(supervisor: FsmSupervisor) -> Response:
+        state = supervisor.state
+        if naming is None:
+            return core.refuse(f"pilot {code}", "this session's FSM spec has no state that names the pilot")
+        if not isinstance(state, StateSpec) or state.number > naming.number:
+            return core.refuse(
+                f"pilot {code}",
+                f"the pilot is named before {naming.name} is left, not in {state.name}; reset to name another",
+            )
+        previous = core.signals.pilot
+        if core.signals.model is not None and previous != code:
+            return core.refuse(
+                f"pilot {code}",
+                f"a model was validated in this session for pilot {session_pilot(core)}; reset the session to name another",
+            )
+        core.signals.pilot = code
+        set_session_pilot(code)
+        log.info("pilot named", pilot=code, previous=previous, state=supervisor.state_name)
+        return Response(f"pilot {code}", True, supervisor.state_name)
+
+    log.info("request", request=f"pilot {code}", origin="operator", state=core.supervisor.state_name)
+    return core.supervisor.post(f"pilot {code}", apply)
 
 
 # --- the pilot's range of motion ---------------------------------------------------------------

@@ -19,6 +19,7 @@ from pydantic_core import PydanticCustomError
 from daror_runtime.errors import InputError
 from daror_runtime.identification.settings import IdentificationSettings
 from daror_runtime.models.registry import kind_names
+from daror_runtime.records.codes import PILOT_CODE_PATTERN
 from hal.isb import ISB_NAMES, IsbLimits
 from hal.robot import FloatArray
 from hal.yamlfile import Flag, Number, load_yaml_model
@@ -116,7 +117,7 @@ class SessionSettings(_Strict):
 
     pilot: str | None = Field(
         None,
-        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$",
+        pattern=PILOT_CODE_PATTERN,
         description="the pilot's code in the lab's records (e.g. P-007; a code, never a name): a model is validated "
         "only on data recorded from this pilot",
     )

@@ -16,6 +16,7 @@ from daror_runtime.fsm.machine import OPERATOR_EVENTS
 from daror_runtime.fsm.signals import ESTOP_BUTTONS, SessionSignals
 from daror_runtime.fsm.spec import StateSpec
 from daror_runtime.session.core import SessionCore
+from daror_runtime.session.provenance import session_pilot
 from daror_runtime.session.status import (
     EventGate,
     GuardState,
@@ -52,6 +53,7 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
     progress = core.progress
     return RuntimeStatus(
         session_id=core.session_id,
+        pilot=session_pilot(core),
         t_s=sample.t_s if sample is not None else None,
         state=state.name,
         number=state.number if isinstance(state, StateSpec) else None,

@@ -104,6 +104,7 @@ class RuntimeStatus:
     """A snapshot of one session (read between ticks)."""
 
     session_id: str
+    pilot: str | None  # the pilot's code, the simulated scenario's pilot, or None (nobody named him)
     t_s: float | None
     state: str
     number: int | None

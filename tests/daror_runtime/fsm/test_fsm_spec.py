@@ -159,11 +159,11 @@ def _guard_twice(text: str) -> tuple[str, list[Expect]]:
     bad = edit(
         text,
         i,
-        "advance: [settings_confirmed, no_active_faults]",
-        "advance: [settings_confirmed, no_active_faults, settings_confirmed]",
+        "advance: [settings_confirmed, pilot_named, no_active_faults]",
+        "advance: [settings_confirmed, pilot_named, no_active_faults, settings_confirmed]",
     )
     return bad, [
-        Expect(line(bad, "advance:", i), f"states.{i}.guards.advance.2", "guard 'settings_confirmed' is listed twice")
+        Expect(line(bad, "advance:", i), f"states.{i}.guards.advance.3", "guard 'settings_confirmed' is listed twice")
     ]
 
 

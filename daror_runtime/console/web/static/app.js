@@ -44,6 +44,8 @@ function render(st) {
   $("state-badge").textContent = st.state + (st.superstate ? " (" + st.superstate + ")" : "");
   $("state-badge").className = "badge " + (st.number === null ? "bad" : "ok");
   $("state-badge").dataset.state = st.state;
+  $("pilot-badge").textContent = st.pilot === null ? "no pilot named" : "pilot " + st.pilot;
+  $("pilot-badge").className = "badge " + (st.pilot === null ? "bad" : "ok");
   $("state-description").textContent = st.description + " — mode " + st.mode;
   const pressed = Object.entries(st.estop_pressed).filter(([, v]) => v).map(([k]) => k);
   $("estop-badge").textContent = pressed.length ? "E-STOP: " + pressed.join(", ") : "e-stops released (tested: " + (st.estop_tested.join(", ") || "none") + ")";
