@@ -199,6 +199,7 @@ class Runtime:
         core.hal.open()
         core.loop.start()
         self._opened = True
+        self._write_summary()  # from the start: a session killed before its first transition still has one
         log.info(
             "session started",
             hal=core.hal.kind,
@@ -420,6 +421,9 @@ class Runtime:
             core.service_reaction()
         if core.modes.identification.finished_run is not None:
             requests.collect_finished_run(core)
+        if core.summary_due:  # a transition: session.json is kept current (a crash leaves the last state)
+            core.summary_due = False
+            core.jobs.submit("write session.json", self._write_summary)
         if core.lock_step:
             requests.keep_up_with_the_recorder(core, n)
             if core.jobs.pending:
@@ -445,4 +449,5 @@ class Runtime:
         document["simulated"] = core.hal.world is not None
         document["history"] = core.history.as_dict()
         document["ended_utc"] = None if self.ended is None else self.ended_utc
+        document["updated_utc"] = utc_now()  # after a crash: the last moment the session was known alive
         write_text_atomic(core.session_dir / "session.json", json.dumps(document, indent=2, default=str) + "\n")

@@ -59,6 +59,16 @@ def register(commands: Commands) -> None:
     _db_flag(sadd)
     bind(sadd, cmd_sessions_add)
 
+    recover = session_cmds.add_parser(
+        "recover",
+        help="a session whose process died: its recordings into raw logs and datasets, session.json marked "
+        "ended by a crash, the records told",
+    )
+    recover.add_argument("directory", type=Path, help="the session's folder")
+    recover.add_argument("--pilot", metavar="CODE", help="the pilot, when the session named none")
+    _db_flag(recover)
+    bind(recover, cmd_sessions_recover)
+
     db = commands.add_parser("db", help="the records' database: bring its schema up to date")
     db_cmds = db.add_subparsers(dest="db_command", required=True, metavar="WHAT")
     upgrade = db_cmds.add_parser("upgrade", help="run the migrations up to this runtime's schema")
@@ -187,5 +197,37 @@ def cmd_sessions_add(args: argparse.Namespace, console: Console) -> int:
         f"{recorded.models} model(s), range of motion {'yes' if recorded.range_of_motion else 'no'}",
         markup=False,
         highlight=False,
+    )
+    return 0
+
+
+def cmd_sessions_recover(args: argparse.Namespace, console: Console) -> int:
+    """Recover a crashed session's folder, then record it (unless ``--db none``).
+
+    Raises:
+        RecordsError: no session.json there; the records cannot take it (what was recovered stays).
+        DataError: a recording too damaged to read.
+    """
+    from daror_runtime.records.index import record_session
+    from daror_runtime.records.recover import recover_session
+    from daror_runtime.records.store import database_url, open_store
+
+    recovered = recover_session(args.directory)
+    for line in recovered.lines:
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+    url = database_url(args.db, Path.cwd())
+    if url is None:
+        return 0
+    store = open_store(url)
+    try:
+        recorded = record_session(store, args.directory, args.pilot)
+    finally:
+        store.close()
+    console.print(
+        f"records: session {recorded.session_id} of pilot {recorded.pilot} in {store.url_shown}"
+        + (" (ended by a crash)" if not recovered.already_ended else ""),
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
     )
     return 0

@@ -33,6 +33,7 @@ from daror_runtime.fsm.supervisor import FsmSupervisor, Response
 from daror_runtime.loop import ControlLoop
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.linear import APModel
+from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.lowering import plan_lowering
 from daror_runtime.safety.monitor import SafetyMonitor
@@ -184,6 +185,7 @@ class SessionCore:
         self.lowering_planned_for: float | None = None  # the reaction (its start time) a lowering was planned for
         self.announced_reaction: tuple[object, object, str] | None = None  # (plan, phase, note) last announced
         self.history = SessionHistory()  # for the lab's records (session.json)
+        self.summary_due = False  # a transition happened: session.json is written again (a job), so a crash leaves it
         self.history.reached(self.supervisor.state_name)
         self.supervisor.listeners.append(self.state_changed)
 
@@ -299,9 +301,14 @@ class SessionCore:
         if new <= 0:
             return
         self.faults_announced = monitor.occurrences
+        state = self.supervisor.state
+        testing = isinstance(state, StateSpec) and not state.fail_on_fault  # an e-stop test state
         for fault in list(monitor.recent)[-min(new, len(monitor.recent)) :]:
             self.announcements.announce(AnnouncementKind.FAULT, f"{fault.kind.value}: {fault.message}", fault.t_s)
-            self.history.fault(f"{fault.kind.value}: {fault.message}")
+            if testing and fault.kind is FaultKind.ESTOP:
+                self.history.estop_tests += 1  # the test the state asks for, not a fault of the session
+            else:
+                self.history.fault(f"{fault.kind.value}: {fault.message}")
 
     def state_changed(self, state: Any, outcome: Any) -> None:
         """In the tick (a transition): announce it, stop what belonged to the state left; never blocks."""
@@ -310,6 +317,7 @@ class SessionCore:
         else:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
         self.history.reached(state.name)
+        self.summary_due = True
         t_s = self.t_s()
         if t_s is None and self.monitor.recent:  # a tick whose reading failed: the time of the fault it raised
             t_s = self.monitor.recent[-1].t_s

@@ -27,6 +27,7 @@ class SessionHistory:
     states_reached: list[str] = field(default_factory=list)  # in the order first reached
     faults: list[str] = field(default_factory=list)  # "kind: message", at most MAX_FAULTS
     faults_dropped: int = 0
+    estop_tests: int = 0  # e-stop presses in the states that test them (expected, not faults)
     support_levels: list[float] = field(default_factory=list)  # each support level the operator set
 
     def reached(self, state: str) -> None:
@@ -49,5 +50,6 @@ class SessionHistory:
             "states_reached": list(self.states_reached),
             "faults": list(self.faults),
             "faults_dropped": self.faults_dropped,
+            "estop_tests": self.estop_tests,
             "support_levels": list(self.support_levels),
         }
