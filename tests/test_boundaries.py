@@ -481,6 +481,10 @@ CONSOLE_MAY_IMPORT = {
     "daror_runtime.errors",
     "daror_runtime.fsm.signals",  # the checklists' names
     "daror_runtime.records.codes",  # what a pilot's code is (the grammar's pilot CODE)
+    # the lab's records, read between lines, never in the tick: a returning pilot's limits and model
+    "daror_runtime.records.index",
+    "daror_runtime.records.returning",
+    "daror_runtime.records.store",
     "daror_runtime.fsm.guards",  # the guards' descriptions (the guide)
     "daror_runtime.fsm.spec",  # the states' names and modes (the grammar)
     "daror_runtime.fsm.diagram",  # the spec's diagram, laid out for the web console

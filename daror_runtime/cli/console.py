@@ -173,7 +173,9 @@ def run_console_session(
 
     def body() -> tuple[int, str]:
         nonlocal web
-        session = make_session(runtime, console)
+        from daror_runtime.records.store import database_url
+
+        session = make_session(runtime, console, database_url(getattr(args, "db", None), out.resolve().parent))
         if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
             from daror_runtime.console.web.serve import start_web
 

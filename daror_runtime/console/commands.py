@@ -14,6 +14,7 @@ import json
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
@@ -29,6 +30,9 @@ from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.events import Announcement
 from hal.isb import UnreachablePoseError
+
+if TYPE_CHECKING:
+    from daror_runtime.records.returning import PilotHistory
 from hal.robot import RobotDescription
 
 __all__ = ["CommandError", "ConsoleSession", "QuitRequested", "ScriptCheckError", "parse_context"]
@@ -84,8 +88,10 @@ class ConsoleSession:
         world: SimWorld | None = None,
         request_timeout_s: float = 5.0,
         announcements: Callable[[], list[Announcement]] | None = None,
+        records_url: str | None = None,
     ) -> None:
         self.runtime = runtime
+        self.records_url = records_url  # the lab's records (a returning pilot's limits and model); None: none
         self.announcements = announcements if announcements is not None else runtime.drain_announcements
         self.out = out
         self.world = world
@@ -104,7 +110,7 @@ class ConsoleSession:
             "lower": lambda a: self._answer(runtime.lower_arm()),
             "release": lambda a: self._answer(runtime.release_arm()),
             "confirm": lambda a: self._answer(runtime.confirm(a[0])),
-            "pilot": lambda a: self._answer(runtime.name_pilot(a[0])),
+            "pilot": self._name_pilot,
             "support": lambda a: self._answer(runtime.set_support(a[0])),
             "rom": self._rom,
             "identify": self._identify,
@@ -165,11 +171,56 @@ class ConsoleSession:
 
     # --- operator requests ----------------------------------------------------------------
 
+    def _name_pilot(self, args: tuple) -> None:  # type: ignore[type-arg]
+        self._answer(self.runtime.name_pilot(args[0]))
+        if self.tally.response is not None and self.tally.response.accepted and self.records_url is not None:
+            for line in self._history().offer(self.runtime.settings.limits_max_age_days):
+                self.say(line)
+
+    def _history(self) -> PilotHistory:
+        """What the lab's records hold of this session's pilot (read now, outside the tick).
+
+        Raises:
+            CommandError: no records, no pilot named, or the records cannot be read (why, in one line).
+        """
+        from daror_runtime.records.returning import PilotHistory, pilot_history
+        from daror_runtime.records.store import NoRecordsError, open_store
+
+        pilot = self.runtime.snapshot().pilot
+        if self.records_url is None:
+            raise CommandError("no lab's records in this session (--db none)")
+        if pilot is None:
+            raise CommandError("no pilot named: pilot CODE first")
+        try:
+            store = open_store(self.records_url, create=False)
+        except NoRecordsError:
+            return PilotHistory(pilot_code_of(pilot), 0, None, None, None)  # no records yet: new to them
+        except DarorError as exc:
+            raise CommandError(f"the lab's records: {exc}") from None
+        try:
+            return pilot_history(store, pilot)
+        except DarorError as exc:
+            raise CommandError(f"the lab's records: {exc}") from None
+        finally:
+            store.close()
+
     def _rom(self, args: tuple) -> None:  # type: ignore[type-arg]
         if args[0] == "start":
             self._answer(self.runtime.rom_start())
         elif args[0] == "stop":
             self._answer(self.runtime.rom_stop())
+        elif args[0] == "last":
+            last = self._history().last_limits
+            if last is None:
+                raise CommandError("rom last: the records hold no range of motion of this pilot; record it (rom start)")
+            age, allowed = last.age_days(), self.runtime.settings.limits_max_age_days
+            if age > allowed:
+                raise CommandError(
+                    f"rom last: his last range of motion is {age:.0f} days old, the settings allow {allowed:g} "
+                    "(limits_max_age_days): record it anew (rom start)"
+                )
+            source = f"the lab's records: session {last.session_id}, {last.recorded_utc.date().isoformat()}"
+            self._answer(self.runtime.set_isb_limits(last.limits, source=source))
         else:
             self._answer(self.runtime.set_isb_limits(args[1], source=args[2]))
 
@@ -184,8 +235,36 @@ class ConsoleSession:
         self.say("training queued (outside the loop); 'wait until idle' waits for it")
 
     def _model(self, args: tuple) -> None:  # type: ignore[type-arg]
-        self.runtime.select_model(args[0], args[1], accept_nonconservative=args[2])
+        path = args[0]
+        if path == "last":
+            last = self._history().last_model
+            if last is None:
+                raise CommandError("model last: the records hold no validated model of this pilot; identify and train")
+            path = last.path
+            self.say(f"his last model: {path} ({last.kind}, session {last.session_id})")
+        self._check_against_the_records(path)
+        self.runtime.select_model(path, args[1], accept_nonconservative=args[2])
         self.say("model validation queued (outside the loop); 'wait until idle' waits for it")
+
+    def _check_against_the_records(self, path: object) -> None:
+        """A model file the records hold with another hash is refused (issue 28: never used for compensation)."""
+        if self.records_url is None:
+            return
+        from daror_runtime.records.returning import check_model_file
+        from daror_runtime.records.store import NoRecordsError, open_store
+
+        try:
+            store = open_store(self.records_url, create=False)
+        except NoRecordsError:
+            return  # no records yet: nothing to compare with
+        except DarorError as exc:
+            raise CommandError(f"the lab's records: {exc}") from None
+        try:
+            check_model_file(store, str(path))
+        except DarorError as exc:
+            raise CommandError(f"model: {exc}") from None
+        finally:
+            store.close()
 
     def _status(self, args: tuple) -> None:  # type: ignore[type-arg]
         status = self.runtime.snapshot()
@@ -361,3 +440,10 @@ class ConsoleSession:
         else:
             self.record_failure(f"{response.request}: refused ({response.reason})")
             self.say(f"{stamp(self._t())} {response.request}: refused ({response.reason})")
+
+
+def pilot_code_of(pilot: str) -> str:
+    """The records' code of a session's pilot (a simulated scenario's pilot is ``sim-SCENARIO``)."""
+    from daror_runtime.records.index import pilot_code
+
+    return pilot_code(pilot)[0]

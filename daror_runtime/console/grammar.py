@@ -166,8 +166,8 @@ def _support(args: list[str], context: ParseContext) -> tuple[Any, ...]:
 
 
 def _rom(args: list[str], context: ParseContext) -> tuple[Any, ...]:
-    usage = "rom start | rom stop | rom load FILE"
-    if args in (["start"], ["stop"]):
+    usage = "rom start | rom stop | rom load FILE | rom last"
+    if args in (["start"], ["stop"], ["last"]):
         return (args[0],)
     if len(args) == 2 and args[0] == "load":
         path = _readable_file("rom load FILE", args[1], YAML_MAX_BYTES)
@@ -200,7 +200,9 @@ def _model(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     nonconservative = bool(args) and args[-1] == "nonconservative"
     if nonconservative:
         args = args[:-1]
-    _arity("model FILE [VALIDATION_FILE] [nonconservative]", args, (1, 2))
+    _arity("model FILE [VALIDATION_FILE] [nonconservative] | model last [nonconservative]", args, (1, 2))
+    if args == ["last"]:  # the pilot's last model in the lab's records, re-validated on this session's run
+        return ("last", None, nonconservative)
     path = _readable_file("model FILE", args[0], MODEL_MAX_BYTES)
     from daror_runtime.models.files import load_model  # the model kinds import lazily
 
@@ -379,12 +381,14 @@ COMMANDS: tuple[CommandSpec, ...] = (
     ),
     CommandSpec(
         "rom",
-        "rom start | rom stop | rom load FILE",
-        "record the pilot's range of motion, or load it from a file",
+        "rom start | rom stop | rom load FILE | rom last",
+        "record the pilot's range of motion, load it from a file, or take his last from the lab's records",
         GROUPS[1],
         _rom,
         "rom start begins recording; move the pilot's arm through its whole comfortable range; rom stop makes "
-        "the recorded range the pilot's limits. rom load FILE reads the limits from a YAML file of ISB angles.",
+        "the recorded range the pilot's limits. rom load FILE reads the limits from a YAML file of ISB angles. "
+        "rom last takes a returning pilot's last limits from the lab's records, if they are not older than the "
+        "settings' limits_max_age_days.",
     ),
     CommandSpec(
         "identify",
@@ -405,14 +409,16 @@ COMMANDS: tuple[CommandSpec, ...] = (
     ),
     CommandSpec(
         "model",
-        "model FILE [VALIDATION_FILE] [nonconservative]",
+        "model FILE [VALIDATION_FILE] [nonconservative] | model last [nonconservative]",
         "use a model file, once it passes validation on held-out data of this pilot",
         GROUPS[1],
         _model,
         "Without VALIDATION_FILE the session's own validation run is used; a VALIDATION_FILE must be a recording "
         "of this pilot on this robot (its provenance file says so: an earlier session's run). A model that fails "
         "validation is refused and never drives the arm. A model the closed-path test finds not conservative is "
-        "refused with its energy figure; add 'nonconservative' to use it anyway.",
+        "refused with its energy figure; add 'nonconservative' to use it anyway. model last takes a returning "
+        "pilot's last validated model from the lab's records and re-validates it on this session's validation run "
+        "(identify validation first). A model file the records hold with another hash is refused.",
     ),
     CommandSpec("status", "status [json]", "what the robot is doing, and what to do next", GROUPS[2], _status),
     CommandSpec("settings", "settings", "the session settings", GROUPS[2], _no_args("settings")),
@@ -555,7 +561,7 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "confirm": checklists,
         "pilot": None,
         "support": None,
-        "rom": {"start": None, "stop": None, "load": None},
+        "rom": {"start": None, "stop": None, "load": None, "last": None},
         "identify": {"training": None, "validation": None, "stop": None},
         "train": {kind: None for kind in _session_kinds()},
         "model": None,

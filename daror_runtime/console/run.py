@@ -362,8 +362,9 @@ def world_for(runtime: Runtime) -> SimWorld | None:
     return SimWorld(world) if world is not None else None
 
 
-def make_session(runtime: Runtime, out: object | None = None) -> ConsoleSession:
+def make_session(runtime: Runtime, out: object | None = None, records_url: str | None = None) -> ConsoleSession:
+    """A console on ``runtime``; ``records_url``: the lab's records it reads a returning pilot's from (None: none)."""
     from rich.console import Console
 
     console = out if isinstance(out, Console) else Console(highlight=False)
-    return ConsoleSession(runtime, console, world_for(runtime))
+    return ConsoleSession(runtime, console, world_for(runtime), records_url=records_url)

@@ -45,6 +45,10 @@ class RecordsError(InputError):
     """The records' database cannot be used (URL, server, schema version, a record that is not there)."""
 
 
+class NoRecordsError(RecordsError):
+    """A command that only reads was pointed at a SQLite file that does not exist (no records yet)."""
+
+
 def database_url(explicit: str | None, folder: Path | str | None) -> str | None:
     """The database to record into: ``explicit``, else ``$DAROR_DB``, else ``daror.db`` in ``folder``.
 
@@ -95,7 +99,7 @@ def _engine(url: str, create: bool = True) -> Engine:
         if not path.parent.is_dir():
             raise RecordsError(f"--db {url}: folder {path.parent} does not exist")
         if not path.exists() and not create:
-            raise RecordsError(
+            raise NoRecordsError(
                 f"{path}: no records there; expected --db URL or DAROR_DB (a console session records into "
                 "daror.db beside its session folder)"
             )

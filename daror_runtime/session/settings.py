@@ -138,6 +138,13 @@ class SessionSettings(_Strict):
     at_rest_rad_s: Number = Field(0.05, gt=0.0, le=1.0, description="every joint slower than this: at rest")
     isb_margin_deg: Number = Field(5.0, ge=0.0, le=30.0, description="tolerance outside the recorded ISB limits")
     rom_min_range_deg: Number = Field(5.0, gt=0.0, le=90.0, description="a recorded ISB range must span at least this")
+    limits_max_age_days: Number = Field(
+        90.0,
+        gt=0.0,
+        le=3650.0,
+        description="a returning pilot's last range of motion from the records is offered (rom last) only if it is "
+        "at most this old, days; older limits are recorded anew (DMD progresses)",
+    )
     model_kind: SessionModelKind = Field(
         "plf+", description="the model trained in state training: a kind of the model registry a session may train"
     )

@@ -1,0 +1,105 @@
+"""Issue 28, part 3 and 6: a returning pilot is ready in minutes, with his model re-validated.
+
+A first session of pilot P-007 (the whole protocol, PLF+ trained) is recorded; his second session
+takes his last limits and his last model from the records and reaches compensation after one
+validation run, with the model re-validated on it. A model file changed since the records hold it
+is refused for compensation.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from daror_runtime.cli import main
+from daror_runtime.records.pilots import pilot_record_lines
+from daror_runtime.records.returning import pilot_history
+from daror_runtime.records.store import RecordsError, open_store
+
+ROOT = Path(__file__).resolve().parents[3]
+SCRIPTS = ROOT / "daror_runtime" / "console" / "scripts"
+SETTINGS = ROOT / "tests" / "data" / "hil_settings.yaml"  # every 12th waypoint, the Dummy Arm installed
+
+
+def first_session_script(folder: Path, code: str) -> Path:
+    """The shipped full session with the pilot named in settings."""
+    text = (SCRIPTS / "session.txt").read_text(encoding="utf-8")
+    named = text.replace("expect state settings\n", f"expect state settings\npilot {code}\nexpect accepted\n", 1)
+    assert named != text
+    path = folder / f"first_{code}.txt"
+    path.write_text(named, encoding="utf-8")
+    return path
+
+
+def returning_script(folder: Path, code: str) -> Path:
+    text = (SCRIPTS / "returning_pilot.txt").read_text(encoding="utf-8").replace("pilot P-007", f"pilot {code}")
+    path = folder / f"returning_{code}.txt"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _console(script: Path, out: Path, db: Path) -> int:
+    return main(["console", "--script", str(script), "--settings", str(SETTINGS), "--out", str(out), "--db", str(db)])
+
+
+@pytest.mark.slow
+def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    db = tmp_path / "lab.db"
+    assert _console(first_session_script(tmp_path, "P-007"), tmp_path / "s1", db) == 0
+    first_out = capsys.readouterr().out
+    assert "pilot P-007: new to the records (no earlier session)" in first_out
+    first = json.loads((tmp_path / "s1" / "session.json").read_text(encoding="utf-8"))
+    assert first["state"] == "compensation"
+    assert first["pilot"] == "P-007"
+
+    assert _console(returning_script(tmp_path, "P-007"), tmp_path / "s2", db) == 0
+    out = capsys.readouterr().out
+    assert "pilot P-007: returning, 1 earlier session(s)" in out
+    assert "his last range of motion (0 days old): rom last takes it" in out
+    assert f"his last model: {tmp_path.resolve() / 's1' / 'model_plf_plus.json'}" in out
+    second = json.loads((tmp_path / "s2" / "session.json").read_text(encoding="utf-8"))
+    assert second["state"] == "compensation"
+    assert second["faults"] == []
+    model = second["model"]
+    assert model["path"] == str(tmp_path.resolve() / "s1" / "model_plf_plus.json")  # the first session's file
+    assert model["validated"] is True
+    assert model["validation_data"] == f"this session's validation run ({second['session_id']})"
+    for angle, (lower, upper) in first["isb_limits_deg"].items():  # his limits, as the limits file keeps them (0.1 deg)
+        assert second["isb_limits_deg"][angle] == pytest.approx([lower, upper], abs=0.051)
+    assert "training" not in second["identification_saved"]  # no training run: minutes, not a quarter hour
+    assert second["t_s"] < 0.6 * first["t_s"], (second["t_s"], first["t_s"])
+    store = open_store(f"sqlite:///{db}", create=False)
+    try:
+        history = pilot_history(store, "P-007")
+        assert history.sessions == 2
+        assert history.last_model is not None
+        assert history.last_model.session_id == second["session_id"]  # the model in use, re-validated there
+        lines = pilot_record_lines(store, "P-007")
+        assert sum("in use" in line for line in lines) == 2
+    finally:
+        store.close()
+
+    # part 6: the model file changed since the records hold it is refused for compensation
+    model_file = tmp_path / "s1" / "model_plf_plus.json"
+    document = json.loads(model_file.read_text(encoding="utf-8"))
+    document["name"] = "PLF+ (edited)"
+    model_file.write_text(json.dumps(document), encoding="utf-8")
+    store = open_store(f"sqlite:///{db}", create=False)
+    try:
+        from daror_runtime.records.returning import check_model_file
+
+        with pytest.raises(RecordsError, match=r"not the file the records hold .* never used for compensation"):
+            check_model_file(store, model_file)
+    finally:
+        store.close()
+    assert _console(returning_script(tmp_path, "P-007"), tmp_path / "s3", db) == 1  # its model line fails
+    captured = capsys.readouterr()
+    assert "not the file the records hold" in captured.out + captured.err, captured.out[-2000:]
+    third = json.loads((tmp_path / "s3" / "session.json").read_text(encoding="utf-8"))
+    assert third["model"]["kind"] == "ap"  # the A Priori model the operator approved; never the edited file
+    assert third["model"]["path"] is None
+    assert third["state"] == "identification"  # never reached compensation with it
