@@ -145,7 +145,11 @@ CHECKS: dict[str, Callable[[Ran, Path], None]] = {
         "P-007" in r.output or pytest.fail("the pilot added is not listed"),
         "sim-exo_dummy_arm (simulated)" in r.output or pytest.fail("the console session's pilot is not listed"),
     ),
-    "daror sessions list": lambda r, d: "1 session(s)" in r.output or pytest.fail(r.output),
+    # ... and so did `daror console --hal can-sim` (both in sessions/, their default folder)
+    "daror sessions list": lambda r, d: (
+        "2 session(s)" in r.output or pytest.fail(r.output),
+        r.output.count("sim-exo_dummy_arm") == 2 or pytest.fail(r.output),
+    ),
     "daror console --web": lambda r, d: (
         r.returncode == 130 or pytest.fail(f"Ctrl-C: exit {r.returncode}"),
         "?token=" in r.output or "--no-token" in r.line or pytest.fail("no token in the printed address"),

@@ -40,6 +40,22 @@ def register(commands: Commands) -> None:
     listing = pilot_cmds.add_parser("list", help="every pilot: sessions, the last one, the model in use")
     _db_flag(listing)
     bind(listing, cmd_pilots_list)
+    report = pilot_cmds.add_parser(
+        "report",
+        help="one pilot's trend over his sessions: range of motion, the model's arm moments and elbow stiffness, "
+        "validation RMSE and support (report.md, report.png, report.json)",
+    )
+    report.add_argument("code", help="the pilot's code")
+    report.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder the report is written to")
+    _db_flag(report)
+    bind(report, cmd_pilots_report)
+    export = pilot_cmds.add_parser(
+        "export", help="one pilot's records and every file they index, to a new folder (CSV + files, for an archive)"
+    )
+    export.add_argument("code", help="the pilot's code")
+    export.add_argument("--out", type=Path, required=True, metavar="DIR", help="a new folder")
+    _db_flag(export)
+    bind(export, cmd_pilots_export)
     show = pilot_cmds.add_parser("show", help="one pilot's record: his sessions, ranges of motion and models")
     show.add_argument("code", help="the pilot's code")
     _db_flag(show)
@@ -230,4 +246,52 @@ def cmd_sessions_recover(args: argparse.Namespace, console: Console) -> int:
         highlight=False,
         soft_wrap=True,
     )
+    return 0
+
+
+def cmd_pilots_report(args: argparse.Namespace, console: Console) -> int:
+    """Write the pilot's trend report.
+
+    Raises:
+        RecordsError: no such pilot, or no session of his; OutputPathError: ``--out`` cannot be written.
+    """
+    from daror_runtime.cli.common import output_dir
+    from daror_runtime.records.report import write_report
+
+    out = output_dir(args.out)
+    store = _open(args)
+    try:
+        trend = write_report(store, args.code, out)
+    finally:
+        store.close()
+    console.print(
+        f"pilot {args.code}: {len(trend)} session(s); report: {out / 'report.md'} (report.png, report.json)",
+        markup=False,
+        highlight=False,
+    )
+    return 0
+
+
+def cmd_pilots_export(args: argparse.Namespace, console: Console) -> int:
+    """Export the pilot's records and files; exit 1 when a file was missing or changed (problems.txt).
+
+    Raises:
+        RecordsError: no such pilot, or ``--out`` exists.
+    """
+    from daror_runtime.cli.common import output_dir
+    from daror_runtime.records.report import export_pilot
+
+    out = output_dir(args.out)
+    store = _open(args)
+    try:
+        exported = export_pilot(store, args.code, out)
+    finally:
+        store.close()
+    console.print(f"pilot {args.code}: {exported.files} file(s) exported to {out} (MANIFEST.sha256)", markup=False)
+    if exported.problems:
+        console.print(
+            f"{len(exported.problems)} file(s) missing or changed since they were recorded: {out / 'problems.txt'}",
+            markup=False,
+        )
+        return 1
     return 0

@@ -221,6 +221,7 @@ def _record_models(orm: Any, record: SessionRecord, directory: Path, in_use: dic
         if used and in_use is not None:
             row.validated = bool(in_use.get("validated"))
             row.validation_rmse_nm = in_use.get("validation_rmse_nm")
+            row.validation_rmse_per_joint_nm = in_use.get("validation_rmse_per_joint_nm")
             row.validation_path = in_use.get("validation_data")
             row.approved_by = in_use.get("approved_by")
             conservative = in_use.get("conservative")

@@ -137,6 +137,8 @@ class ModelRecord(Base):
     training_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
     validation_path: Mapped[str | None] = mapped_column(Text, default=None)
     validation_rmse_nm: Mapped[float | None] = mapped_column(Float, default=None)
+    # per joint (Nm, 4): the elbow's rises first as his stiffness outgrows a model (migration 0002)
+    validation_rmse_per_joint_nm: Mapped[list[Any] | None] = mapped_column(JSON, default=None)
     validated: Mapped[bool] = mapped_column(default=False)
     in_use: Mapped[bool] = mapped_column(default=False)  # the model the session ended with
     approved_by: Mapped[str | None] = mapped_column(Text, default=None)

@@ -316,11 +316,11 @@ class SessionCore:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): the fault's reaction commands the arm"
         else:
             text = f"{outcome.source} -> {state.name} ({outcome.event.value}): {state.description}"
-        self.history.reached(state.name)
         self.summary_due = True
         t_s = self.t_s()
         if t_s is None and self.monitor.recent:  # a tick whose reading failed: the time of the fault it raised
             t_s = self.monitor.recent[-1].t_s
+        self.history.reached(state.name, t_s)
         self.announcements.announce(AnnouncementKind.TRANSITION, text, t_s)
         run = self.modes.identification.run
         if run is not None and state.mode != "identification":

@@ -25,14 +25,17 @@ class SessionHistory:
 
     started_utc: str = field(default_factory=utc_now)
     states_reached: list[str] = field(default_factory=list)  # in the order first reached
+    reached_at_s: dict[str, float] = field(default_factory=dict)  # robot time each was first reached, s
     faults: list[str] = field(default_factory=list)  # "kind: message", at most MAX_FAULTS
     faults_dropped: int = 0
     estop_tests: int = 0  # e-stop presses in the states that test them (expected, not faults)
     support_levels: list[float] = field(default_factory=list)  # each support level the operator set
 
-    def reached(self, state: str) -> None:
+    def reached(self, state: str, t_s: float | None = None) -> None:
         if state not in self.states_reached:
             self.states_reached.append(state)
+            if t_s is not None:
+                self.reached_at_s[state] = t_s
 
     def fault(self, text: str) -> None:
         if len(self.faults) < MAX_FAULTS:
@@ -48,6 +51,7 @@ class SessionHistory:
         return {
             "started_utc": self.started_utc,
             "states_reached": list(self.states_reached),
+            "reached_at_s": dict(self.reached_at_s),
             "faults": list(self.faults),
             "faults_dropped": self.faults_dropped,
             "estop_tests": self.estop_tests,

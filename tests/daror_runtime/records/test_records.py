@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 
 from daror_runtime.cli import main
+from daror_runtime.data.checksum import file_sha256
 from daror_runtime.data.provenance import write_provenance
 from daror_runtime.records.index import record_session
 from daror_runtime.records.pilots import add_pilot, pilot_record_lines, pilot_summaries, session_rows
@@ -292,3 +293,42 @@ def test_a_console_session_records_itself_beside_its_folder(
     # --db none: nothing recorded
     assert main(["console", "--script", str(script), "--out", str(tmp_path / "s3"), "--db", "none"]) == 0
     assert "records:" not in capsys.readouterr().out
+
+
+def test_a_pilot_s_report_and_export(
+    db_url: str, session_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    first, second = _copy(session_folder, tmp_path / "a"), _copy(session_folder, tmp_path / "b")
+    document = json.loads((second / "session.json").read_text(encoding="utf-8"))
+    document["session_id"] = "second"  # a later session of the same pilot
+    document["history"]["started_utc"] = "2030-01-01T09:00:00+00:00"
+    document["model"]["validation_rmse_nm"] = 0.9
+    document["model"]["validation_rmse_per_joint_nm"] = [0.1, 0.2, 0.3, 1.7]
+    (second / "session.json").write_text(json.dumps(document), encoding="utf-8")
+    for folder in (first, second):
+        assert main(["sessions", "add", str(folder), "--pilot", "P-007", "--db", db_url]) == 0
+    assert main(["pilots", "report", "P-007", "--out", str(tmp_path / "report"), "--db", db_url]) == 0
+    report = json.loads((tmp_path / "report" / "report.json").read_text(encoding="utf-8"))
+    sessions = report["sessions"]
+    assert [s["session_id"] for s in sessions][-1] == "second"  # oldest first
+    assert [s["validation_rmse_nm"] for s in sessions][-1] == 0.9
+    assert sessions[-1]["validation_rmse_per_joint_nm"][3] == 1.7
+    assert sessions[0]["upper_arm_moment_nm"] > 1.0  # the model's upper arm holds the Dummy Arm (m g |p|, Nm)
+    assert sessions[0]["support_levels"] == [0.6]
+    assert (tmp_path / "report" / "report.png").stat().st_size > 10_000
+    assert "| second |" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
+
+    out = tmp_path / "archive"
+    assert main(["pilots", "export", "P-007", "--out", str(out), "--db", db_url]) == 0
+    manifest = (out / "MANIFEST.sha256").read_text(encoding="utf-8").splitlines()
+    assert any(line.endswith("files/second/session.json") for line in manifest)
+    for line in manifest:
+        digest, name = line.split("  ", 1)
+        assert file_sha256(out / name) == digest
+    assert {p.name for p in out.iterdir()} >= {"sessions.csv", "models.csv", "datasets.csv", "pilot.json", "files"}
+    assert main(["pilots", "export", "P-007", "--out", str(out), "--db", db_url]) == 2  # never written over
+    capsys.readouterr()
+    (first / "identification_validation.csv").write_text("changed\n", encoding="utf-8")
+    assert main(["pilots", "export", "P-007", "--out", str(tmp_path / "archive2"), "--db", db_url]) == 1
+    problems = (tmp_path / "archive2" / "problems.txt").read_text(encoding="utf-8")
+    assert "identification_validation.csv: changed since it was recorded" in problems

@@ -40,15 +40,15 @@ def returning_script(folder: Path, code: str) -> Path:
     return path
 
 
-def _console(script: Path, out: Path, db: Path) -> int:
-    return main(["console", "--script", str(script), "--settings", str(SETTINGS), "--out", str(out), "--db", str(db)])
+def _console(script: Path, out: Path, db: str) -> int:
+    return main(["console", "--script", str(script), "--settings", str(SETTINGS), "--out", str(out), "--db", db])
 
 
 @pytest.mark.slow
 def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], db_url: str
 ) -> None:
-    db = tmp_path / "lab.db"
+    db = db_url
     assert _console(first_session_script(tmp_path, "P-007"), tmp_path / "s1", db) == 0
     first_out = capsys.readouterr().out
     assert "pilot P-007: new to the records (no earlier session)" in first_out
@@ -72,7 +72,7 @@ def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
         assert second["isb_limits_deg"][angle] == pytest.approx([lower, upper], abs=0.051)
     assert "training" not in second["identification_saved"]  # no training run: minutes, not a quarter hour
     assert second["t_s"] < 0.6 * first["t_s"], (second["t_s"], first["t_s"])
-    store = open_store(f"sqlite:///{db}", create=False)
+    store = open_store(db, create=False)
     try:
         history = pilot_history(store, "P-007")
         assert history.sessions == 2
@@ -88,7 +88,7 @@ def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
     document = json.loads(model_file.read_text(encoding="utf-8"))
     document["name"] = "PLF+ (edited)"
     model_file.write_text(json.dumps(document), encoding="utf-8")
-    store = open_store(f"sqlite:///{db}", create=False)
+    store = open_store(db, create=False)
     try:
         from daror_runtime.records.returning import check_model_file
 
