@@ -235,15 +235,23 @@ class ConsoleSession:
         self.say("training queued (outside the loop); 'wait until idle' waits for it")
 
     def _model(self, args: tuple) -> None:  # type: ignore[type-arg]
-        path = args[0]
+        path, validation = args[0], args[1]
         if path == "last":
             last = self._history().last_model
             if last is None:
                 raise CommandError("model last: the records hold no validated model of this pilot; identify and train")
             path = last.path
-            self.say(f"his last model: {path} ({last.kind}, session {last.session_id})")
+            if "validation" in self.runtime.snapshot().identification_saved:
+                where = "this session's validation run"
+            elif last.validation_file is not None:
+                # before this session has a run of its own: his last session's, where it was validated
+                # (a recording of this pilot on this robot, as the gate requires); re-validated after identify
+                validation, where = last.validation_file, f"his validation run of session {last.session_id}"
+            else:
+                raise CommandError("model last: no validation run in this session yet (identify validation first)")
+            self.say(f"his last model: {path} ({last.kind}, session {last.session_id}), validated on {where}")
         self._check_against_the_records(path)
-        self.runtime.select_model(path, args[1], accept_nonconservative=args[2])
+        self.runtime.select_model(path, validation, accept_nonconservative=args[2])
         self.say("model validation queued (outside the loop); 'wait until idle' waits for it")
 
     def _check_against_the_records(self, path: object) -> None:

@@ -41,6 +41,9 @@ class LastModel:
     kind: str
     validation_rmse_nm: float | None
     session_id: str
+    #: The stationary data of that session's validation run (where it was validated), when recorded there:
+    #: what validates it for ``operative_check`` before this session has a validation run of its own.
+    validation_file: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -108,7 +111,10 @@ def pilot_history(store: Store, named: str) -> PilotHistory:
         pilot = orm.scalars(
             select(PilotRecord)
             .where(PilotRecord.code == code)
-            .options(selectinload(PilotRecord.sessions).selectinload(SessionRecord.models))
+            .options(
+                selectinload(PilotRecord.sessions).selectinload(SessionRecord.models),
+                selectinload(PilotRecord.sessions).selectinload(SessionRecord.datasets),
+            )
         ).one_or_none()
         if pilot is None:
             return PilotHistory(code, 0, None, None, None)
@@ -126,8 +132,18 @@ def pilot_history(store: Store, named: str) -> PilotHistory:
         for session in reversed(sessions):
             used = next((m for m in session.models if m.in_use and m.validated), None)
             if used is not None:
+                runs = [
+                    Path(d.path)
+                    for d in session.datasets
+                    if (d.run or "").startswith("validation") and not d.path.endswith(".raw.npz")
+                ]
                 last_model = LastModel(
-                    Path(used.path), used.sha256, used.kind, used.validation_rmse_nm, session.session_id
+                    Path(used.path),
+                    used.sha256,
+                    used.kind,
+                    used.validation_rmse_nm,
+                    session.session_id,
+                    runs[0] if runs and runs[0].is_file() else None,
                 )
                 break
         return PilotHistory(

@@ -603,6 +603,21 @@ def post_model(
             )
         if reason is not None:
             core.progress.last_model_refused = summary
+            in_use = core.progress.last_model
+            if (
+                in_use is not None
+                and in_use.get("path") == str(selected.path)
+                and supervisor.signals.model is not None
+                and supervisor.state.mode != "compensation"
+            ):
+                # The model in use failed again, on other data of this pilot (a returning pilot's model, approved
+                # on his last session's run, then checked on this one's): its approval is withdrawn, or it would
+                # reach compensation on data it no longer fits. Not in compensation: that would step the support.
+                supervisor.signals.model = None
+                core.modes.compensation.model = None
+                core.progress.last_model = None
+                reason += "; its earlier approval in this session is withdrawn"
+                log.warning("model withdrawn", path=str(selected.path), state=supervisor.state_name, t_s=core.t_s())
             core.announcements.announce(AnnouncementKind.MODEL, f"{request}: refused: {reason}", core.t_s())
             return core.refuse(request, reason)
         if supervisor.state.mode == "compensation":

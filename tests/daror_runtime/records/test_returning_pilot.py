@@ -60,7 +60,14 @@ def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
     out = capsys.readouterr().out
     assert "pilot P-007: returning, 1 earlier session(s)" in out
     assert "his last range of motion (0 days old): rom last takes it" in out
-    assert f"his last model: {tmp_path.resolve() / 's1' / 'model_plf_plus.json'}" in out
+    model_file = tmp_path.resolve() / "s1" / "model_plf_plus.json"
+    first_id = first["session_id"]
+    # in rom_limits, for operative_check: validated on his last session's run; in identification: on this one's
+    assert (
+        f"his last model: {model_file} (plf+, session {first_id}), validated on his validation run of session {first_id}"
+        in out
+    )
+    assert f"his last model: {model_file} (plf+, session {first_id}), validated on this session's validation run" in out
     second = json.loads((tmp_path / "s2" / "session.json").read_text(encoding="utf-8"))
     assert second["state"] == "compensation"
     assert second["faults"] == []
@@ -84,7 +91,6 @@ def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
         store.close()
 
     # part 6: the model file changed since the records hold it is refused for compensation
-    model_file = tmp_path / "s1" / "model_plf_plus.json"
     document = json.loads(model_file.read_text(encoding="utf-8"))
     document["name"] = "PLF+ (edited)"
     model_file.write_text(json.dumps(document), encoding="utf-8")
@@ -100,6 +106,48 @@ def test_a_returning_pilot_reaches_compensation_with_his_model_re_validated(
     captured = capsys.readouterr()
     assert "not the file the records hold" in captured.out + captured.err, captured.out[-2000:]
     third = json.loads((tmp_path / "s3" / "session.json").read_text(encoding="utf-8"))
-    assert third["model"]["kind"] == "ap"  # the A Priori model the operator approved; never the edited file
-    assert third["model"]["path"] is None
-    assert third["state"] == "identification"  # never reached compensation with it
+    assert third["model"] is None  # the edited file never supported him
+    assert third["state"] == "rom_limits"  # refused where it was first asked for
+
+
+@pytest.mark.slow
+def test_a_returning_pilot_s_model_that_no_longer_fits_him_is_withdrawn(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """His elbow springs stiffened (x1.3); his last model, approved for operative_check on his last session's
+    run, fails on this session's run: its approval is withdrawn and compensation is not reached with it."""
+    import yaml
+
+    base = yaml.safe_load((ROOT / "hal" / "sim" / "scenarios" / "exo_dummy_arm.yaml").read_text(encoding="utf-8"))
+    arm = base["dummy_arm"]
+    scenarios = []
+    for session, scale in ((1, 1.0), (2, 1.3)):
+        for spring in arm["elbow_springs"]:
+            spring["stiffness_nm_per_rad"] = 2.84 * scale
+        path = tmp_path / f"s{session}.yaml"
+        path.write_text(yaml.safe_dump({"extends": "exo_dummy_arm", "name": "pilot_p_008", "dummy_arm": arm}))
+        scenarios.append(path)
+    settings = tmp_path / "settings.yaml"  # his first model validates at 0.42 Nm; 0.6 Nm is the lab's limit
+    settings.write_text("dummy_arm: true\nmax_validation_rmse_nm: 0.6\nidentification:\n  waypoint_stride: 12\n")
+    db = str(tmp_path / "lab.db")
+
+    def console(script: Path, out: str, scenario: Path) -> int:
+        return main(["console", "--script", str(script), "--settings", str(settings), "--scenario", str(scenario),
+                     "--out", str(tmp_path / out), "--db", db])  # fmt: skip
+
+    assert console(first_session_script(tmp_path, "P-008"), "s1", scenarios[0]) == 0
+    capsys.readouterr()
+    script = returning_script(tmp_path, "P-008")
+    text = script.read_text(encoding="utf-8")  # his range recorded anew: his arm rests elsewhere now
+    script.write_text(
+        text.replace("rom last\n", "rom start\nsim pilot sweep\nwait until still timeout 600\nrom stop\n")
+    )
+    assert console(script, "s2", scenarios[1]) == 1  # the advance out of identification is refused
+    captured = capsys.readouterr()
+    out = captured.out + captured.err
+    assert "failed validation: RMSE" in out
+    assert "its earlier approval in this session is withdrawn" in out
+    second = json.loads((tmp_path / "s2" / "session.json").read_text(encoding="utf-8"))
+    assert second["state"] == "identification"
+    assert second["model"] is None
+    assert second["model_refused"]["validation_rmse_nm"] > 0.6
