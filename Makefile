@@ -22,7 +22,7 @@ $(BIN)/python:
 # the first session and the first fit (D197).
 DAROR_QUIET = $(BIN)/daror --log-level error
 KERNELS = scratch=$$(mktemp -d) && printf 'wait 0.1\nquit\n' > $$scratch/opens.txt \
-	&& { { $(DAROR_QUIET) console --script $$scratch/opens.txt --out $$scratch/session \
+	&& { { $(DAROR_QUIET) console --script $$scratch/opens.txt --out $$scratch/session --db none \
 	&& $(DAROR_QUIET) simulate static --scenario exo_dummy_arm --trajectory validation --out $$scratch/v.csv \
 	&& $(DAROR_QUIET) fit plf+ --train $$scratch/v.csv --out $$scratch/plf_plus.json; } > /dev/null & \
 	beside=$$!; $(DAROR_QUIET) identify --scenario exo_dummy_arm --trajectory validation \

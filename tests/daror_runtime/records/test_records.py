@@ -183,7 +183,7 @@ def _record_many(url: str, root: str, writer: int, count: int, barrier: Any) -> 
 def test_two_writers_on_one_database_lose_no_record(db_url: str, tmp_path: Path) -> None:
     """Two processes (two consoles) record 15 sessions each, each pilot new to both at the same moment."""
     open_store(db_url).close()  # the schema first: two creators of one database is not the case tested
-    context = multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
     barrier = context.Barrier(2)
     writers = [context.Process(target=_record_many, args=(db_url, str(tmp_path), w, 15, barrier)) for w in range(2)]
     for w in writers:
@@ -332,3 +332,30 @@ def test_a_pilot_s_report_and_export(
     assert main(["pilots", "export", "P-007", "--out", str(tmp_path / "archive2"), "--db", db_url]) == 1
     problems = (tmp_path / "archive2" / "problems.txt").read_text(encoding="utf-8")
     assert "identification_validation.csv: changed since it was recorded" in problems
+
+
+def test_a_model_file_unlike_its_record_is_refused(db_url: str, session_folder: Path, tmp_path: Path) -> None:
+    """Issue 28, part 6 (hazard H36): a model file the records hold with another hash is never used for compensation."""
+    from daror_runtime.records.returning import check_model_file
+
+    folder = _copy(session_folder, tmp_path)
+    model = tmp_path / "model_plf_plus.json"
+    document = json.loads((folder / "session.json").read_text(encoding="utf-8"))
+    shutil.copy(document["model"]["path"], model)
+    document["model"]["path"] = str(model)  # the model in use: this folder's copy
+    (folder / "session.json").write_text(json.dumps(document), encoding="utf-8")
+    store = open_store(db_url)
+    try:
+        record_session(store, folder)
+        check_model_file(store, model)  # as recorded: accepted
+        check_model_file(store, tmp_path / "unknown.json")  # not in the records: left to the gate
+        edited = json.loads(model.read_text(encoding="utf-8"))
+        edited["name"] = "PLF+ (edited)"
+        model.write_text(json.dumps(edited), encoding="utf-8")
+        with pytest.raises(RecordsError, match=r"not the file the records hold .* never used for compensation"):
+            check_model_file(store, model)
+        model.unlink()
+        with pytest.raises(RecordsError, match="the records hold this model file, and it is gone"):
+            check_model_file(store, model)
+    finally:
+        store.close()
