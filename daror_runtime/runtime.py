@@ -199,7 +199,7 @@ class Runtime:
         core.hal.open()
         core.loop.start()
         self._opened = True
-        self._write_summary()  # from the start: a session killed before its first transition still has one
+        self._write_summary(durable=False)  # from the start: a session killed before its first transition has one
         log.info(
             "session started",
             hal=core.hal.kind,
@@ -423,7 +423,7 @@ class Runtime:
             requests.collect_finished_run(core)
         if core.summary_due:  # a transition: session.json is kept current (a crash leaves the last state)
             core.summary_due = False
-            core.jobs.submit("write session.json", self._write_summary)
+            core.jobs.submit("write session.json", lambda: self._write_summary(durable=False))
         if core.lock_step:
             requests.keep_up_with_the_recorder(core, n)
             if core.jobs.pending:
@@ -435,7 +435,9 @@ class Runtime:
             AnnouncementKind.SESSION, f"a display stopped receiving data: {exc}", self._core.t_s()
         )
 
-    def _write_summary(self) -> None:
+    def _write_summary(self, durable: bool = True) -> None:
+        """``session.json`` now; ``durable`` False after a transition (no fsync: a killed process leaves it
+        whole; the ending's write is durable)."""
         core = self._core
         if not core.session_dir.exists():
             return
@@ -450,4 +452,6 @@ class Runtime:
         document["history"] = core.history.as_dict()
         document["ended_utc"] = None if self.ended is None else self.ended_utc
         document["updated_utc"] = utc_now()  # after a crash: the last moment the session was known alive
-        write_text_atomic(core.session_dir / "session.json", json.dumps(document, indent=2, default=str) + "\n")
+        write_text_atomic(
+            core.session_dir / "session.json", json.dumps(document, indent=2, default=str) + "\n", durable=durable
+        )

@@ -26,11 +26,14 @@ os.umask(_UMASK)  # read the process umask once, at import, before any thread co
 
 
 @contextlib.contextmanager
-def atomic_path(target: Path | str, suffix: str | None = None) -> Iterator[Path]:
+def atomic_path(target: Path | str, suffix: str | None = None, durable: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success rename it to ``target``.
 
     The temporary name keeps ``target``'s extension (or ``suffix``) because some writers
-    (``numpy.savez``, ``scipy.io.savemat``) choose the format by extension.
+    (``numpy.savez``, ``scipy.io.savemat``) choose the format by extension. ``durable`` False: no
+    fsync before the rename; the file is still whole or absent after the process dies (the page
+    cache outlives it), only a power cut may lose it (a file rewritten often, whose next version
+    is written anyway).
     """
     target = Path(target)
     try:
@@ -48,8 +51,9 @@ def atomic_path(target: Path | str, suffix: str | None = None) -> Iterator[Path]
         # mkstemp creates 0600; give the file the mode a plain open() would (or the target's own).
         os.chmod(tmp, stat.S_IMODE(target.stat().st_mode) if target.exists() else 0o666 & ~_UMASK)
         yield tmp
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
+        if durable:
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
         os.replace(tmp, target)
     except OSError as exc:
         raise _write_error(target, exc) from None
@@ -68,7 +72,7 @@ def _write_error(target: Path, exc: OSError) -> DarorError:
     return DarorError(f"{target}: writing failed ({exc.strerror}); nothing was written")
 
 
-def write_text_atomic(target: Path | str, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``target`` atomically."""
-    with atomic_path(target) as tmp:
+def write_text_atomic(target: Path | str, text: str, durable: bool = True) -> None:
+    """Write ``text`` (UTF-8) to ``target`` atomically (``durable``: see :func:`atomic_path`)."""
+    with atomic_path(target, durable=durable) as tmp:
         tmp.write_text(text, encoding="utf-8")
