@@ -41,8 +41,8 @@ class LastModel:
     kind: str
     validation_rmse_nm: float | None
     session_id: str
-    #: The stationary data of that session's validation run (where it was validated), when recorded there:
-    #: what validates it for ``operative_check`` before this session has a validation run of its own.
+    #: The stationary data of his most recent validation run on disk: what validates it for
+    #: ``operative_check`` before this session has a validation run of its own.
     validation_file: Path | None = None
 
 
@@ -97,6 +97,17 @@ def _limits(row: RangeOfMotionRecord) -> IsbLimits:
     )
 
 
+def _last_validation_run(sessions: list[SessionRecord]) -> Path | None:
+    """The stationary data of the pilot's most recent validation run still on disk (a session that ended
+    before its own run, in ``operative_check`` say, leaves the one before it)."""
+    for session in reversed(sessions):
+        for data in session.datasets:
+            run = data.run or ""
+            if run.startswith("validation") and not data.path.endswith(".raw.npz") and Path(data.path).is_file():
+                return Path(data.path)
+    return None
+
+
 def pilot_history(store: Store, named: str) -> PilotHistory:
     """What the records hold of the pilot ``named`` (a code, or a simulated scenario's pilot).
 
@@ -132,18 +143,13 @@ def pilot_history(store: Store, named: str) -> PilotHistory:
         for session in reversed(sessions):
             used = next((m for m in session.models if m.in_use and m.validated), None)
             if used is not None:
-                runs = [
-                    Path(d.path)
-                    for d in session.datasets
-                    if (d.run or "").startswith("validation") and not d.path.endswith(".raw.npz")
-                ]
                 last_model = LastModel(
                     Path(used.path),
                     used.sha256,
                     used.kind,
                     used.validation_rmse_nm,
                     session.session_id,
-                    runs[0] if runs and runs[0].is_file() else None,
+                    _last_validation_run(sessions),
                 )
                 break
         return PilotHistory(

@@ -359,3 +359,29 @@ def test_a_model_file_unlike_its_record_is_refused(db_url: str, session_folder: 
             check_model_file(store, model)
     finally:
         store.close()
+
+
+def test_a_returning_pilot_s_model_is_offered_with_his_most_recent_validation_run(
+    db_url: str, session_folder: Path, tmp_path: Path
+) -> None:
+    """His last session ended before its own validation run (in operative_check): the run before it validates
+    his model for operative_check (D216)."""
+    from daror_runtime.records.returning import pilot_history
+
+    earlier, later = _copy(session_folder, tmp_path / "a"), _copy(session_folder, tmp_path / "b")
+    for name in ("identification_validation.csv", "identification_validation.csv.provenance.json"):
+        (later / name).unlink()
+    document = json.loads((later / "session.json").read_text(encoding="utf-8"))
+    document["session_id"] = "later"
+    document["history"]["started_utc"] = "2030-01-01T09:00:00+00:00"
+    (later / "session.json").write_text(json.dumps(document), encoding="utf-8")
+    store = open_store(db_url)
+    try:
+        for folder in (earlier, later):
+            record_session(store, folder, "P-007")
+        last = pilot_history(store, "P-007").last_model
+        assert last is not None
+        assert last.session_id == "later"
+        assert last.validation_file == (earlier / "identification_validation.csv").resolve()
+    finally:
+        store.close()
