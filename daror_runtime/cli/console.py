@@ -233,11 +233,8 @@ def record_the_session(console: Console, db: str | None, directory: Path) -> Non
     from daror_runtime.records.store import RecordsError, describe_url, open_store
 
     try:
-        store = open_store(url)
-        try:
+        with open_store(url) as store:
             recorded = record_session(store, directory)
-        finally:
-            store.close()
     except (RecordsError, DataError) as exc:
         log.error("session not recorded", db=describe_url(url), reason=str(exc))
         console.print(

@@ -126,11 +126,8 @@ def cmd_pilots_add(args: argparse.Namespace, console: Console) -> int:
     """
     from daror_runtime.records.pilots import add_pilot
 
-    store = _open(args, create=True)
-    try:
+    with _open(args, create=True) as store:
         pilot = add_pilot(store, args.code, args.arm, args.birth_year, args.notes)
-    finally:
-        store.close()
     console.print(f"pilot {pilot.code} added ({pilot.arm_side} arm) to {store.url_shown}", markup=False)
     return 0
 
@@ -139,11 +136,8 @@ def cmd_pilots_list(args: argparse.Namespace, console: Console) -> int:
     """Every pilot with his number of sessions, the last one and the model it ended with."""
     from daror_runtime.records.pilots import pilot_summaries
 
-    store = _open(args)
-    try:
+    with _open(args) as store:
         rows = pilot_summaries(store)
-    finally:
-        store.close()
     table = Table("pilot", "arm", "born", "sessions", "last session (UTC)", "model in use", box=None)
     for row in rows:
         table.add_row(
@@ -167,11 +161,8 @@ def cmd_pilots_show(args: argparse.Namespace, console: Console) -> int:
     """
     from daror_runtime.records.pilots import pilot_record_lines
 
-    store = _open(args)
-    try:
+    with _open(args) as store:
         lines = pilot_record_lines(store, args.code)
-    finally:
-        store.close()
     for line in lines:
         console.print(line, markup=False, highlight=False)
     return 0
@@ -181,11 +172,8 @@ def cmd_sessions_list(args: argparse.Namespace, console: Console) -> int:
     """Every session (of one pilot with ``--pilot``), oldest first."""
     from daror_runtime.records.pilots import session_rows
 
-    store = _open(args)
-    try:
+    with _open(args) as store:
         rows = session_rows(store, args.pilot)
-    finally:
-        store.close()
     table = Table("session", "pilot", "started (UTC)", "robot", "backend", "reached", "ended", "faults", box=None)
     for row in rows:
         table.add_row(*row)
@@ -202,11 +190,8 @@ def cmd_sessions_add(args: argparse.Namespace, console: Console) -> int:
     """
     from daror_runtime.records.index import record_session
 
-    store = _open(args, create=True)
-    try:
+    with _open(args, create=True) as store:
         recorded = record_session(store, args.directory, args.pilot)
-    finally:
-        store.close()
     verb = "recorded" if recorded.new else "updated"
     console.print(
         f"session {recorded.session_id} {verb} for pilot {recorded.pilot}: {recorded.datasets} data file(s), "
@@ -234,11 +219,8 @@ def cmd_sessions_recover(args: argparse.Namespace, console: Console) -> int:
     url = database_url(args.db, Path.cwd())
     if url is None:
         return 0
-    store = open_store(url)
-    try:
+    with open_store(url) as store:
         recorded = record_session(store, args.directory, args.pilot)
-    finally:
-        store.close()
     console.print(
         f"records: session {recorded.session_id} of pilot {recorded.pilot} in {store.url_shown}"
         + (" (ended by a crash)" if not recovered.already_ended else ""),
@@ -259,11 +241,8 @@ def cmd_pilots_report(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.records.report import write_report
 
     out = output_dir(args.out)
-    store = _open(args)
-    try:
+    with _open(args) as store:
         trend = write_report(store, args.code, out)
-    finally:
-        store.close()
     console.print(
         f"pilot {args.code}: {len(trend)} session(s); report: {out / 'report.md'} (report.png, report.json)",
         markup=False,
@@ -282,11 +261,8 @@ def cmd_pilots_export(args: argparse.Namespace, console: Console) -> int:
     from daror_runtime.records.report import export_pilot
 
     out = output_dir(args.out)
-    store = _open(args)
-    try:
+    with _open(args) as store:
         exported = export_pilot(store, args.code, out)
-    finally:
-        store.close()
     console.print(f"pilot {args.code}: {exported.files} file(s) exported to {out} (MANIFEST.sha256)", markup=False)
     if exported.problems:
         console.print(

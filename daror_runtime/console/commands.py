@@ -197,12 +197,11 @@ class ConsoleSession:
             return PilotHistory(pilot_code_of(pilot), 0, None, None, None)  # no records yet: new to them
         except DarorError as exc:
             raise CommandError(f"the lab's records: {exc}") from None
-        try:
-            return pilot_history(store, pilot)
-        except DarorError as exc:
-            raise CommandError(f"the lab's records: {exc}") from None
-        finally:
-            store.close()
+        with store:
+            try:
+                return pilot_history(store, pilot)
+            except DarorError as exc:
+                raise CommandError(f"the lab's records: {exc}") from None
 
     def _rom(self, args: tuple) -> None:  # type: ignore[type-arg]
         if args[0] == "start":
@@ -267,12 +266,11 @@ class ConsoleSession:
             return  # no records yet: nothing to compare with
         except DarorError as exc:
             raise CommandError(f"the lab's records: {exc}") from None
-        try:
-            check_model_file(store, str(path))
-        except DarorError as exc:
-            raise CommandError(f"model: {exc}") from None
-        finally:
-            store.close()
+        with store:
+            try:
+                check_model_file(store, str(path))
+            except DarorError as exc:
+                raise CommandError(f"model: {exc}") from None
 
     def _status(self, args: tuple) -> None:  # type: ignore[type-arg]
         status = self.runtime.snapshot()

@@ -6,11 +6,14 @@ import re
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from daror_runtime.data.checksum import file_sha256
 from daror_runtime.records.schema import PILOT_CODE_PATTERN, ModelRecord, PilotRecord, SessionRecord
 from daror_runtime.records.store import RecordsError, Store
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session
 
 #: A birth year the records accept (a pilot is a child or an adult of our time).
 BIRTH_YEAR_RANGE = (1900, 2100)
@@ -121,6 +124,35 @@ def _file_state(path: str, sha256: str | None) -> str:
     return "ok"
 
 
+def find_pilot(orm: Session, code: str) -> PilotRecord | None:
+    """The pilot under ``code`` with his sessions, their models, ranges of motion and datasets loaded; or None."""
+    from sqlalchemy import select
+    from sqlalchemy.orm import selectinload
+
+    sessions = selectinload(PilotRecord.sessions)
+    return orm.scalars(
+        select(PilotRecord)
+        .where(PilotRecord.code == code)
+        .options(
+            sessions.selectinload(SessionRecord.models),
+            sessions.selectinload(SessionRecord.ranges_of_motion),
+            sessions.selectinload(SessionRecord.datasets),
+        )
+    ).one_or_none()
+
+
+def load_pilot(orm: Session, code: str, url_shown: str) -> PilotRecord:
+    """:func:`find_pilot`, refused when he is not in the records.
+
+    Raises:
+        RecordsError: no pilot under ``code``.
+    """
+    pilot = find_pilot(orm, code)
+    if pilot is None:
+        raise RecordsError(f"pilot {code}: not in {url_shown}; expected one of: daror pilots list")
+    return pilot
+
+
 def pilot_record_lines(store: Store, code: str) -> list[str]:
     """One pilot's record in lines: who, then each session with its range of motion and models.
 
@@ -129,21 +161,8 @@ def pilot_record_lines(store: Store, code: str) -> list[str]:
     Raises:
         RecordsError: no pilot under ``code``.
     """
-    from sqlalchemy import select
-    from sqlalchemy.orm import selectinload
-
     with store.session() as orm:
-        pilot = orm.scalars(
-            select(PilotRecord)
-            .where(PilotRecord.code == code)
-            .options(
-                selectinload(PilotRecord.sessions).selectinload(SessionRecord.models),
-                selectinload(PilotRecord.sessions).selectinload(SessionRecord.ranges_of_motion),
-                selectinload(PilotRecord.sessions).selectinload(SessionRecord.datasets),
-            )
-        ).one_or_none()
-        if pilot is None:
-            raise RecordsError(f"pilot {code}: not in {store.url_shown}; expected one of: daror pilots list")
+        pilot = load_pilot(orm, code, store.url_shown)
         born = "" if pilot.birth_year is None else f", born {pilot.birth_year}"
         lines = [f"pilot {pilot.code}: {pilot.arm_side} arm{born}{' (simulated)' if pilot.simulated else ''}"]
         if pilot.notes:

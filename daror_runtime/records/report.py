@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from daror_runtime.data.checksum import file_sha256
-from daror_runtime.records.schema import PilotRecord, RangeOfMotionRecord, SessionRecord
+from daror_runtime.records.pilots import load_pilot
+from daror_runtime.records.schema import RangeOfMotionRecord
 from daror_runtime.records.store import RecordsError, Store
 from daror_runtime.util.atomic import atomic_path
 
@@ -84,24 +85,6 @@ def _rom(row: RangeOfMotionRecord | None) -> dict[str, tuple[float, float]] | No
     return {name: (getattr(row, f"{name}_lower_deg"), getattr(row, f"{name}_upper_deg")) for name in ISB_ANGLES}
 
 
-def _load_pilot(orm: Any, code: str, url_shown: str) -> PilotRecord:
-    from sqlalchemy import select
-    from sqlalchemy.orm import selectinload
-
-    pilot = orm.scalars(
-        select(PilotRecord)
-        .where(PilotRecord.code == code)
-        .options(
-            selectinload(PilotRecord.sessions).selectinload(SessionRecord.models),
-            selectinload(PilotRecord.sessions).selectinload(SessionRecord.ranges_of_motion),
-            selectinload(PilotRecord.sessions).selectinload(SessionRecord.datasets),
-        )
-    ).one_or_none()
-    if pilot is None:
-        raise RecordsError(f"pilot {code}: not in {url_shown}; expected one of: daror pilots list")
-    return pilot
-
-
 def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
     """The pilot's sessions, oldest first, as points of his trend.
 
@@ -109,7 +92,7 @@ def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
         RecordsError: no pilot under ``code``.
     """
     with store.session() as orm:
-        pilot = _load_pilot(orm, code, store.url_shown)
+        pilot = load_pilot(orm, code, store.url_shown)
         trend = []
         for s in pilot.sessions:
             rom = _rom(s.ranges_of_motion[-1] if s.ranges_of_motion else None)
@@ -285,7 +268,7 @@ def export_pilot(store: Store, code: str, out: Path | str) -> Exported:
     manifest: list[str] = []
     try:
         with store.session() as orm:
-            pilot = _load_pilot(orm, code, store.url_shown)
+            pilot = load_pilot(orm, code, store.url_shown)
             (staging / "pilot.json").write_text(json.dumps(_columns(pilot), indent=2) + "\n", encoding="utf-8")
             sessions = [_columns(s) for s in pilot.sessions]
             roms = [_columns(r) for s in pilot.sessions for r in s.ranges_of_motion]

@@ -14,7 +14,8 @@ from pathlib import Path
 
 from daror_runtime.data.checksum import file_sha256
 from daror_runtime.records.index import pilot_code
-from daror_runtime.records.schema import ModelRecord, PilotRecord, RangeOfMotionRecord, SessionRecord
+from daror_runtime.records.pilots import find_pilot
+from daror_runtime.records.schema import ModelRecord, RangeOfMotionRecord, SessionRecord
 from daror_runtime.records.store import RecordsError, Store
 from hal.isb import AngleRange, IsbLimits
 
@@ -115,18 +116,10 @@ def pilot_history(store: Store, named: str) -> PilotHistory:
         RecordsError: ``named`` is not a code.
     """
     from sqlalchemy import select
-    from sqlalchemy.orm import selectinload
 
     code, _ = pilot_code(named)
     with store.session() as orm:
-        pilot = orm.scalars(
-            select(PilotRecord)
-            .where(PilotRecord.code == code)
-            .options(
-                selectinload(PilotRecord.sessions).selectinload(SessionRecord.models),
-                selectinload(PilotRecord.sessions).selectinload(SessionRecord.datasets),
-            )
-        ).one_or_none()
+        pilot = find_pilot(orm, code)
         if pilot is None:
             return PilotHistory(code, 0, None, None, None)
         sessions = pilot.sessions

@@ -257,6 +257,12 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 def open_store(url: str, create: bool = True) -> Store:
     """Open the records at ``url``; a new or empty database is created at :data:`HEAD_REVISION`.
