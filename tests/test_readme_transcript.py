@@ -24,6 +24,8 @@ from pathlib import Path
 
 import pytest
 
+from daror_runtime.records.store import HEAD_REVISION
+
 ROOT = Path(__file__).resolve().parents[1]
 DAROR = [sys.executable, "-m", "daror_runtime.cli"]
 
@@ -149,6 +151,7 @@ CHECKS: dict[str, Callable[[Ran, Path], None]] = {
         "2 session(s)" in r.output or pytest.fail(r.output),
         r.output.count("sim-exo_dummy_arm") == 2 or pytest.fail(r.output),
     ),
+    "daror db upgrade": lambda r, d: f"schema {HEAD_REVISION} -> {HEAD_REVISION}" in r.output or pytest.fail(r.output),
     "daror console --web": lambda r, d: (
         r.returncode == 130 or pytest.fail(f"Ctrl-C: exit {r.returncode}"),
         "?token=" in r.output or "--no-token" in r.line or pytest.fail("no token in the printed address"),
