@@ -114,7 +114,9 @@ def cmd_db_upgrade(args: argparse.Namespace, console: Console) -> int:
 
     url = _url(args)
     before, after = upgrade(url)
-    console.print(f"{describe_url(url)}: schema {before or 'empty'} -> {after}", markup=False, highlight=False)
+    console.print(
+        f"{describe_url(url)}: schema {before or 'empty'} -> {after}", markup=False, highlight=False, soft_wrap=True
+    )
     return 0
 
 
@@ -128,7 +130,7 @@ def cmd_pilots_add(args: argparse.Namespace, console: Console) -> int:
 
     with _open(args, create=True) as store:
         pilot = add_pilot(store, args.code, args.arm, args.birth_year, args.notes)
-    console.print(f"pilot {pilot.code} added ({pilot.arm_side} arm) to {store.url_shown}", markup=False)
+    console.print(f"pilot {pilot.code} added ({pilot.arm_side} arm) to {store.url_shown}", markup=False, soft_wrap=True)
     return 0
 
 
@@ -149,7 +151,7 @@ def cmd_pilots_list(args: argparse.Namespace, console: Console) -> int:
             row.model or "-",
         )
     console.print(table)
-    console.print(f"{len(rows)} pilot(s) in {store.url_shown}", markup=False, highlight=False)
+    console.print(f"{len(rows)} pilot(s) in {store.url_shown}", markup=False, highlight=False, soft_wrap=True)
     return 0
 
 
@@ -164,7 +166,7 @@ def cmd_pilots_show(args: argparse.Namespace, console: Console) -> int:
     with _open(args) as store:
         lines = pilot_record_lines(store, args.code)
     for line in lines:
-        console.print(line, markup=False, highlight=False)
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
     return 0
 
 
@@ -178,7 +180,7 @@ def cmd_sessions_list(args: argparse.Namespace, console: Console) -> int:
     for row in rows:
         table.add_row(*row)
     console.print(table)
-    console.print(f"{len(rows)} session(s)", markup=False, highlight=False)
+    console.print(f"{len(rows)} session(s)", markup=False, highlight=False, soft_wrap=True)
     return 0
 
 
@@ -198,6 +200,7 @@ def cmd_sessions_add(args: argparse.Namespace, console: Console) -> int:
         f"{recorded.models} model(s), range of motion {'yes' if recorded.range_of_motion else 'no'}",
         markup=False,
         highlight=False,
+        soft_wrap=True,
     )
     return 0
 
@@ -247,6 +250,7 @@ def cmd_pilots_report(args: argparse.Namespace, console: Console) -> int:
         f"pilot {args.code}: {len(trend)} session(s); report: {out / 'report.md'} (report.png, report.json)",
         markup=False,
         highlight=False,
+        soft_wrap=True,
     )
     return 0
 
@@ -263,11 +267,14 @@ def cmd_pilots_export(args: argparse.Namespace, console: Console) -> int:
     out = output_dir(args.out)
     with _open(args) as store:
         exported = export_pilot(store, args.code, out)
-    console.print(f"pilot {args.code}: {exported.files} file(s) exported to {out} (MANIFEST.sha256)", markup=False)
+    console.print(
+        f"pilot {args.code}: {exported.files} file(s) exported to {out} (MANIFEST.sha256)", markup=False, soft_wrap=True
+    )
     if exported.problems:
         console.print(
             f"{len(exported.problems)} file(s) missing or changed since they were recorded: {out / 'problems.txt'}",
             markup=False,
+            soft_wrap=True,
         )
         return 1
     return 0
