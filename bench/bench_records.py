@@ -6,8 +6,8 @@ lighter arm, three quarters of the Dummy Arm's masses); from session to session 
 stiffen (x1.0, x1.4, x1.8: a contracture growing, as DMD does). Session 1 is the whole protocol
 (``session.txt``, PLF+ trained); sessions 2 and 3 are ``returning_pilot.txt``: his last model from
 the records, re-validated on one validation run; his range of motion is recorded anew (``rom last``
-replaced by the sweep): with stiffer elbow springs his forearm rests lower than his last range
-allows, which the monitor refuses as it must (an ISB fault in operative_check, measured). Every session is a whole
+replaced by the sweep), as a lab does when his arm changed; the e-stop test of operative_check is
+made with his forearm on the armrest (D217). Every session is a whole
 ``daror console --script`` command (process start to exit); the robot time to compensation is the
 session's own (``history.reached_at_s``). Then ``daror pilots report`` for each pilot.
 

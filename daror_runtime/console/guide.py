@@ -39,6 +39,25 @@ def _estop_test(button: str) -> StepFor:
     return step
 
 
+def _estop_test_under_support(status: RuntimeStatus, world: bool) -> Step:
+    """The e-stop test while the robot supports the arm, made with the forearm on a rest (D217).
+
+    With the torque off a limp arm falls to where its weight and his springs take it, which for a
+    pilot whose arm changed since his range was recorded may be outside that range (an ISB fault).
+    """
+    text = (
+        "test the operator's e-stop under support with the pilot's forearm on the armrest or his lap "
+        "(a limp arm falls where its weight takes it): press it, see the torque go off, release it, "
+        "take the rest away"
+    )
+    if world:
+        return Step(
+            text,
+            ("sim rest here", "sim estop operator on", "wait 0.5", "sim estop operator off", "wait 1", "sim rest off"),
+        )
+    return Step(text)
+
+
 def _estop_released(status: RuntimeStatus, world: bool) -> Step:
     pressed = [button for button, on in status.estop_pressed.items() if on]
     text = f"release the e-stop ({', '.join(pressed) or 'none is pressed now'})"
@@ -173,7 +192,7 @@ STEPS: dict[str, StepFor] = {
     "robot_at_rest": lambda s, w: Step("wait until the arm is at rest", ("wait until still",)),
     "estop_operator_tested": _estop_test("operator"),
     "estop_pilot_tested": _estop_test("pilot"),
-    "estop_tested": _estop_test("operator"),
+    "estop_tested": _estop_test_under_support,
     "estop_released": _estop_released,
     "settings_confirmed": lambda s, w: Step(
         "review the session settings, then confirm them", ("settings", "confirm settings")

@@ -151,3 +151,69 @@ def test_a_returning_pilot_s_model_that_no_longer_fits_him_is_withdrawn(
     assert second["state"] == "identification"
     assert second["model"] is None
     assert second["model_refused"]["validation_rmse_nm"] > 0.6
+
+
+def _heavier_arm(tmp_path: Path, session: int, spring_scale: float) -> Path:
+    """Pilot P-102's arm (the heavier arm of ``exo_heavy_arm``), his elbow springs x``spring_scale``."""
+    import yaml
+
+    base = yaml.safe_load((ROOT / "hal" / "sim" / "scenarios" / "exo_heavy_arm.yaml").read_text(encoding="utf-8"))
+    arm = base["dummy_arm"]
+    for spring in arm["elbow_springs"]:
+        spring["stiffness_nm_per_rad"] = round(spring["stiffness_nm_per_rad"] * spring_scale, 4)
+    path = tmp_path / f"p102_s{session}.yaml"
+    path.write_text(yaml.safe_dump({"extends": "exo_heavy_arm", "name": "pilot_p_102", "dummy_arm": arm}))
+    return path
+
+
+ESTOP_ON_THE_REST = (
+    "sim rest here\nsim estop operator on\nwait 0.3\nsim estop operator off\nwait 1\nsim rest off\nwait 1\nadvance\n"
+)
+
+
+@pytest.mark.slow
+def test_a_changed_pilot_s_e_stop_test_on_the_armrest_keeps_his_arm_in_his_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """D217: the heavier arm, his springs x1.3 since his first session, his range recorded anew. The
+    shipped script tests the e-stop in operative_check with his forearm on the armrest and reaches
+    compensation with no fault. Without the rest, the drop with the torque off takes his elbow beyond
+    his range (an ISB fault latched, the advance refused); the guide's way out (wait while the
+    reaction lowers his arm to its rest, acknowledge) leads on to compensation."""
+    db = str(tmp_path / "lab.db")
+
+    def console(script: Path, out: str, scenario: Path) -> int:
+        return main(["console", "--script", str(script), "--settings", str(SETTINGS), "--scenario", str(scenario),
+                     "--out", str(tmp_path / out), "--db", db])  # fmt: skip
+
+    assert console(first_session_script(tmp_path, "P-102"), "s1", _heavier_arm(tmp_path, 1, 1.0)) == 0
+    stiffer = _heavier_arm(tmp_path, 2, 1.3)
+    script = returning_script(tmp_path, "P-102")
+    shipped = script.read_text(encoding="utf-8").replace(
+        "rom last\n", "rom start\nsim pilot sweep\nwait until still timeout 600\nrom stop\n"
+    )
+    assert ESTOP_ON_THE_REST in shipped  # the shipped script's procedure
+    script.write_text(shipped)
+    assert console(script, "s2", stiffer) == 0
+    on_the_rest = json.loads((tmp_path / "s2" / "session.json").read_text(encoding="utf-8"))
+    assert on_the_rest["state"] == "compensation"
+    assert on_the_rest["history"]["faults"] == []  # the e-stop tests are not faults of the session
+
+    # without the rest: the drop latches an ISB fault on the elbow; the advance is refused until the
+    # reaction has lowered his arm to its rest and the operator acknowledged
+    script.write_text(
+        shipped.replace(
+            ESTOP_ON_THE_REST,
+            "sim estop operator on\nwait 0.3\nsim estop operator off\nwait 2\nadvance\nexpect refused\n"
+            "expect state operative_check\nwait 8\nack\nexpect accepted\nwait 1\nadvance\n",
+        )
+    )
+    capsys.readouterr()
+    assert console(script, "s3", stiffer) == 0
+    out = capsys.readouterr().out
+    assert "fault: isb_limit: elbow" in out
+    assert "unmet: no_active_faults" in out or "advance: refused" in out
+    dropped = json.loads((tmp_path / "s3" / "session.json").read_text(encoding="utf-8"))
+    assert dropped["state"] == "compensation"
+    assert dropped["history"]["faults"]
+    assert all(fault.startswith("isb_limit: elbow") for fault in dropped["history"]["faults"])
