@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from daror_runtime.data.checksum import file_sha256
+from daror_runtime.records.measured import ElbowToday, MeasureError, elbow_today
 from daror_runtime.records.pilots import load_pilot
-from daror_runtime.records.schema import RangeOfMotionRecord
+from daror_runtime.records.schema import ModelRecord, RangeOfMotionRecord, SessionRecord
 from daror_runtime.records.store import RecordsError, Store
 from daror_runtime.util.atomic import atomic_path
 
@@ -54,6 +55,12 @@ class SessionTrend:
     forearm_moment_nm: float | None  # |(theta4x, theta4y)|
     elbow_stiffness_nm_per_rad: float | None  # the elbow polynomial's mean slope over his elbow range
     support_levels: list[float] = field(default_factory=list)
+    #: The elbow residual's slope on this session's own validation run under the model in use (Nm/rad):
+    #: the stiffness his elbow gained since the model's data (daror_runtime.records.measured).
+    elbow_gained_nm_per_rad: float | None = None
+    #: The model's elbow stiffness plus what it gained: his elbow's stiffness today (Nm/rad).
+    elbow_stiffness_today_nm_per_rad: float | None = None
+    notes: list[str] = field(default_factory=list)  # why a measure is missing
 
 
 def _moment(parameters: dict[str, Any], link: int) -> float | None:
@@ -85,6 +92,21 @@ def _rom(row: RangeOfMotionRecord | None) -> dict[str, tuple[float, float]] | No
     return {name: (getattr(row, f"{name}_lower_deg"), getattr(row, f"{name}_upper_deg")) for name in ISB_ANGLES}
 
 
+def _elbow_today(session: SessionRecord, model: ModelRecord | None) -> ElbowToday | str:
+    """What this session's own validation run measures of his elbow under ``model``, or why nothing."""
+    if model is None:
+        return "no model in use"
+    # the stationary points, not the raw log beside them (NAME.raw.*), which the loader would reduce again
+    runs = [d for d in session.datasets if d.run == "validation" and ".raw." not in Path(d.path).name]
+    if not runs:
+        return "no validation run in this session"
+    run = runs[-1]
+    try:
+        return elbow_today(model.path, model.sha256, run.path, run.sha256)
+    except MeasureError as error:
+        return str(error)
+
+
 def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
     """The pilot's sessions, oldest first, as points of his trend.
 
@@ -98,6 +120,9 @@ def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
             rom = _rom(s.ranges_of_motion[-1] if s.ranges_of_motion else None)
             model = next((m for m in s.models if m.in_use), None)
             parameters = model.parameters if model is not None else {}
+            stiffness = _elbow_stiffness(parameters, None if rom is None else rom["elbow"])
+            today = _elbow_today(s, model)
+            gained = today.slope_nm_per_rad if isinstance(today, ElbowToday) else None
             trend.append(
                 SessionTrend(
                     session_id=s.session_id,
@@ -110,8 +135,13 @@ def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
                     validation_rmse_per_joint_nm=None if model is None else model.validation_rmse_per_joint_nm,
                     upper_arm_moment_nm=_moment(parameters, 3),
                     forearm_moment_nm=_moment(parameters, 4),
-                    elbow_stiffness_nm_per_rad=_elbow_stiffness(parameters, None if rom is None else rom["elbow"]),
+                    elbow_stiffness_nm_per_rad=stiffness,
                     support_levels=list(s.support_levels),
+                    elbow_gained_nm_per_rad=gained,
+                    elbow_stiffness_today_nm_per_rad=None
+                    if gained is None or stiffness is None
+                    else stiffness + gained,
+                    notes=[] if isinstance(today, ElbowToday) else [f"elbow today: {today}"],
                 )
             )
     return trend
@@ -126,12 +156,18 @@ def _markdown(code: str, trend: list[SessionTrend]) -> str:
         "",
         "Per session (oldest first): his range of motion (ISB angles, deg), the model in use, its",
         "validation RMSE, the first moments of the upper arm and the forearm (m g |p| in Nm: his arm's",
-        "weight as the model holds it), the elbow's stiffness (the elbow polynomial's mean slope over his",
-        "elbow range, Nm/rad), and the support levels set. The figure: report.png.",
+        "weight as the model holds it), the elbow's stiffness in the model (the elbow polynomial's mean",
+        "slope over his elbow range, Nm/rad), what his elbow gained since the model's data (the slope of",
+        "the elbow's residual against the elbow angle on the session's own validation run, Nm/rad) and",
+        "the two added: his elbow's stiffness today, as long as his arm's weight did not change. A",
+        "returning pilot's model is re-validated, not retrained: its own stiffness stays that of the",
+        "session that trained it, and today's column follows him. Then the support levels set. The",
+        "figure: report.png.",
         "",
         "| session | started (UTC) | ended | elevation | horizontal | axial | elbow | model | RMSE (Nm) | "
-        "RMSE at the elbow (Nm) | upper arm (Nm) | forearm (Nm) | elbow stiffness (Nm/rad) | support |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "RMSE at the elbow (Nm) | upper arm (Nm) | forearm (Nm) | elbow stiffness, model (Nm/rad) | "
+        "gained (Nm/rad) | elbow stiffness today (Nm/rad) | support |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for t in trend:
         rom = ["-"] * 4 if t.rom_deg is None else [f"{lo:g}..{hi:g}" for lo, hi in t.rom_deg.values()]
@@ -140,8 +176,12 @@ def _markdown(code: str, trend: list[SessionTrend]) -> str:
             f"{number(t.validation_rmse_nm)} | "
             f"{number(t.validation_rmse_per_joint_nm[3] if t.validation_rmse_per_joint_nm else None)} | "
             f"{number(t.upper_arm_moment_nm)} | {number(t.forearm_moment_nm)} | "
-            f"{number(t.elbow_stiffness_nm_per_rad, 2)} | {', '.join(f'{v:g}' for v in t.support_levels) or '-'} |"
+            f"{number(t.elbow_stiffness_nm_per_rad, 2)} | {number(t.elbow_gained_nm_per_rad, 2)} | "
+            f"{number(t.elbow_stiffness_today_nm_per_rad, 2)} | {', '.join(f'{v:g}' for v in t.support_levels) or '-'} |"
         )
+    notes = [f"- {t.session_id}: {note}" for t in trend for note in t.notes]
+    if notes:
+        lines += ["", "Measures missing:", "", *notes]
     return "\n".join(lines) + "\n\n![his trend](report.png)\n"
 
 
@@ -167,8 +207,13 @@ def _figure(code: str, trend: list[SessionTrend], path: Path) -> None:
     moment_axis.set(title="first moments of the model in use (m g |p|)", ylabel="Nm")
     moment_axis.legend(fontsize=8)
     stiffness = [np.nan if t.elbow_stiffness_nm_per_rad is None else t.elbow_stiffness_nm_per_rad for t in trend]
-    stiffness_axis.plot(x, stiffness, marker="o", color="tab:red")
+    stiffness_axis.plot(x, stiffness, marker="o", linestyle="--", color="tab:red", label="in the model in use")
+    today = [
+        np.nan if t.elbow_stiffness_today_nm_per_rad is None else t.elbow_stiffness_today_nm_per_rad for t in trend
+    ]
+    stiffness_axis.plot(x, today, marker="D", color="tab:purple", label="today (his validation run)")
     stiffness_axis.set(title="elbow stiffness (mean slope over his elbow range)", ylabel="Nm/rad")
+    stiffness_axis.legend(fontsize=8)
     rmse = [np.nan if t.validation_rmse_nm is None else t.validation_rmse_nm for t in trend]
     fit_axis.plot(x, rmse, marker="o", label="validation RMSE (Nm)")
     elbow = [np.nan if not t.validation_rmse_per_joint_nm else t.validation_rmse_per_joint_nm[3] for t in trend]

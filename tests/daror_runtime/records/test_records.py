@@ -315,6 +315,9 @@ def test_a_pilot_s_report_and_export(
     assert sessions[-1]["validation_rmse_per_joint_nm"][3] == 1.7
     assert sessions[0]["upper_arm_moment_nm"] > 1.0  # the model's upper arm holds the Dummy Arm (m g |p|, Nm)
     assert sessions[0]["support_levels"] == [0.6]
+    # the model on the data it was validated on: his elbow gained nothing since (Nm/rad)
+    assert abs(sessions[0]["elbow_gained_nm_per_rad"]) < 0.3
+    assert sessions[0]["notes"] == []
     assert (tmp_path / "report" / "report.png").stat().st_size > 10_000
     assert "| second |" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
 
@@ -332,6 +335,13 @@ def test_a_pilot_s_report_and_export(
     assert main(["pilots", "export", "P-007", "--out", str(tmp_path / "archive2"), "--db", db_url]) == 1
     problems = (tmp_path / "archive2" / "problems.txt").read_text(encoding="utf-8")
     assert "identification_validation.csv: changed since it was recorded" in problems
+    # the report measures nothing on a file that is not the one recorded, and says why
+    assert main(["pilots", "report", "P-007", "--out", str(tmp_path / "report"), "--db", db_url]) == 0
+    first_again = json.loads((tmp_path / "report" / "report.json").read_text(encoding="utf-8"))["sessions"][0]
+    assert first_again["elbow_gained_nm_per_rad"] is None
+    assert first_again["elbow_stiffness_today_nm_per_rad"] is None
+    assert "changed since it was recorded" in first_again["notes"][0]
+    assert "changed since it was recorded" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
 
 
 def test_a_model_file_unlike_its_record_is_refused(db_url: str, session_folder: Path, tmp_path: Path) -> None:

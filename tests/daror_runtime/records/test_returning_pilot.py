@@ -217,3 +217,18 @@ def test_a_changed_pilot_s_e_stop_test_on_the_armrest_keeps_his_arm_in_his_range
     assert dropped["state"] == "compensation"
     assert dropped["history"]["faults"]
     assert all(fault.startswith("isb_limit: elbow") for fault in dropped["history"]["faults"])
+
+    # his report: the model is session 1's (its stiffness unchanged), today's stiffness follows his
+    # springs: x1.3 of exo_heavy_arm's 3.6 Nm/rad is 1.08 Nm/rad more than at his first session
+    from daror_runtime.records.report import pilot_trend
+
+    with open_store(f"sqlite:///{db}", create=False) as store:
+        trend = pilot_trend(store, "P-102")
+    assert len(trend) == 3
+    assert trend[1].elbow_stiffness_nm_per_rad == trend[0].elbow_stiffness_nm_per_rad  # re-validated, not retrained
+    first, *stiffer_sessions = (t.elbow_stiffness_today_nm_per_rad for t in trend)
+    assert first is not None
+    assert abs(first - 3.6) < 0.5
+    for today in stiffer_sessions:
+        assert today is not None
+        assert today - first == pytest.approx(0.3 * 3.6, rel=0.15)
