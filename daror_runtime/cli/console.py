@@ -179,7 +179,14 @@ def run_console_session(
         if getattr(args, "web", False):  # the browser and the terminal share the runtime and its log (not hil)
             from daror_runtime.console.web.serve import start_web
 
-            web = start_web(runtime, session.world, args.host, args.port, require_token=not args.no_token)
+            web = start_web(
+                runtime,
+                session.world,
+                args.host,
+                args.port,
+                require_token=not args.no_token,
+                records_url=session.records_url,
+            )
             session.announcements = web.hub.terminal_reader()
             console.print(f"web console: {web.address}" + ("" if web.token else _NO_TOKEN_NOTE), soft_wrap=True)
         background = realtime and not typed  # the loop on its own thread: announcements printed as they come

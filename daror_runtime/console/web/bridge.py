@@ -129,7 +129,13 @@ class WebBridge:
     """
 
     def __init__(
-        self, runtime: Runtime, world: SimWorld | None, link: socket.socket, ring: RowRing, hub: AnnouncementHub
+        self,
+        runtime: Runtime,
+        world: SimWorld | None,
+        link: socket.socket,
+        ring: RowRing,
+        hub: AnnouncementHub,
+        records_url: str | None = None,
     ) -> None:
         self.runtime = runtime
         self.world = world
@@ -148,7 +154,7 @@ class WebBridge:
         out = Console(file=self._buffer, width=110, color_system=None, highlight=False, soft_wrap=True)
         # the pages' lines are answered like the terminal's; announcements reach every console
         # through the hub, so this session drains nothing itself
-        self.session = ConsoleSession(runtime, out, world, announcements=lambda: [])
+        self.session = ConsoleSession(runtime, out, world, announcements=lambda: [], records_url=records_url)
         self._lines = threading.Lock()
         self._thread = threading.Thread(target=self._serve_lines, name="daror-web-lines", daemon=True)
 

@@ -97,12 +97,15 @@ def start_web(
     port: int = DEFAULT_PORT,
     require_token: bool = True,
     token: str | None = None,
+    records_url: str | None = None,
 ) -> WebServer:
     """Serve the web console of ``runtime`` on ``host:port`` (port 0: any free port) until :meth:`WebServer.stop`.
 
     A token is required on every address (``token``, or a new random one; :attr:`WebServer.address`
     carries it); ``require_token`` False (``--no-token``) only on the loopback. The Host and Origin
     headers are checked whatever the token (:class:`~daror_runtime.console.web.access.Access`).
+    ``records_url``: the lab's records the pages' lines read a returning pilot's from (``pilot``,
+    ``rom last``, ``model last``), as the terminal's do (None: none).
     Call it before the loop starts: starting a process beside a running loop costs it a stall.
 
     Raises:
@@ -155,7 +158,7 @@ def start_web(
         ours.close()
         ring.close()
         raise
-    bridge = WebBridge(runtime, world, ours, ring, AnnouncementHub(runtime))
+    bridge = WebBridge(runtime, world, ours, ring, AnnouncementHub(runtime), records_url)
     bridge.start()
     shown = f"[{host}]" if ":" in host else host
     return WebServer(f"http://{shown}:{bound}", token, bridge, process, ring)

@@ -474,6 +474,33 @@ def test_page_lines_are_the_consoles_and_every_console_shares_the_log(tmp_path: 
         _end(runtime, server)
 
 
+def test_the_page_s_lines_read_the_lab_s_records_as_the_terminal_s_do(tmp_path: Path) -> None:
+    """Issue 28: ``pilot CODE`` typed on the page says what the records hold of him, ``rom last`` reads them."""
+    from daror_runtime.records.pilots import add_pilot
+    from daror_runtime.records.store import open_store
+
+    url = f"sqlite:///{tmp_path / 'lab.db'}"
+    with open_store(url) as store:
+        add_pilot(store, "P-007")
+    runtime = _runtime(tmp_path / "session", realtime=False)
+    runtime.runner.run_ticks(5)
+    server = start_web(runtime, SimWorld(runtime.world), port=0, records_url=url)
+    try:
+        for line in ("advance", "sim estop operator on", "sim estop operator off", "sim estop pilot on",
+                     "sim estop pilot off", "advance"):  # fmt: skip
+            assert _post(server, line)["ok"], line
+            runtime.runner.pass_time(0.3)  # time is the terminal's (lock-step here)
+        assert runtime.state_name == "settings"
+        named = _post(server, "pilot P-007")
+        assert named["ok"], named
+        assert "pilot P-007: new to the records (no earlier session)" in named["answer"]
+        last = _post(server, "rom last")
+        assert not last["ok"]
+        assert "the records hold no range of motion of this pilot" in last["answer"]
+    finally:
+        _end(runtime, server)
+
+
 def test_the_live_ring_is_bounded_and_a_late_reader_catches_up() -> None:
     """The shared ring: rows in order, the oldest dropped past the window, a reader in another mapping."""
     ring, fd = RowRing.create(capacity=50, n_joints=4)
