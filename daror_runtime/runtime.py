@@ -106,8 +106,10 @@ class Runtime:
         settings: SessionSettings | None = None,
         clock: Clock | None = None,
         session_id: str | None = None,
+        operator: str | None = None,
     ) -> None:
         self._core = SessionCore(hal, session_dir, spec, settings, clock, session_id)
+        self._operator = operator
         self.ended: TorqueOff | None = None
         self.ended_utc: str | None = None  # the wall-clock time the session ended (UTC)
         self._opened = False
@@ -118,6 +120,11 @@ class Runtime:
     @property
     def session_id(self) -> str:
         return self._core.session_id
+
+    @property
+    def operator(self) -> str | None:
+        """Who runs the session, as the lab's records keep it (``daror console --operator``; None: unknown)."""
+        return self._operator
 
     @property
     def session_dir(self) -> Path:
@@ -207,6 +214,7 @@ class Runtime:
             clock=core.clock.name,
             state=core.supervisor.state_name,
             directory=str(core.session_dir),
+            operator=self._operator,
         )
 
     def shutdown(self, reason: str) -> TorqueOff:
@@ -446,6 +454,7 @@ class Runtime:
         document["ended"] = None if self.ended is None else dataclasses.asdict(self.ended)
         # for the lab's records (daror_runtime/records): whose session, on what, when, what it did
         document["pilot"] = session_pilot(core)
+        document["operator"] = self._operator
         document["robot"] = session_robot(core)
         document["backend"] = core.hal.kind
         document["simulated"] = core.hal.world is not None

@@ -60,6 +60,12 @@ def _declare_flags(con: CommandParser) -> None:
         help="the lab's records, where the session is recorded when it ends: sqlite:///PATH or "
         "postgresql://USER@HOST/NAME, or none (default: $DAROR_DB, else daror.db beside the session directory)",
     )
+    con.add_argument(
+        "--operator",
+        metavar="NAME",
+        help="who runs the session, for the lab's records: initials or a staff code "
+        "(default: $DAROR_OPERATOR, else the login name)",
+    )
     con.add_argument("--realtime", action="store_true", help="the same as --clock realtime")
     con.add_argument(
         "--clock",
@@ -107,6 +113,7 @@ def cmd_console(args: argparse.Namespace, console: Console) -> int:
             check_no_token(args.host)
     elif args.no_token:
         raise UsageError("--no-token goes with --web (the web console's token)")
+    args.operator = session_operator(args)  # a name the records cannot keep: refused before anything is written
     spec = load_fsm_spec(args.spec)  # a bad spec: the runtime refuses to start, nothing is written
     settings = load_session_settings(args.settings)
     hal = open_hal(hal_config_from_flags(args))  # a backend not built or not installed: one line, exit 2
@@ -162,7 +169,7 @@ def run_console_session(
     from daror_runtime.runtime import Runtime
 
     realtime = not clock.virtual
-    runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock)
+    runtime = Runtime(hal, out, spec=spec, settings=settings, clock=clock, operator=session_operator(args))
     out.mkdir(parents=True, exist_ok=True)
     configure_logging(
         args.log_level or "critical",  # the console announces what the operator must see
@@ -222,6 +229,36 @@ def run_console_session(
         return run_session(runtime, console, body, stop_web)  # SIGINT, SIGTERM, SIGHUP: torque off, 128 + signal
     finally:  # the session has ended (torque off, session.json written): the lab's records learn of it
         record_the_session(console, getattr(args, "db", None), out)
+
+
+def session_operator(args: argparse.Namespace) -> str | None:
+    """Who runs the session: ``--operator``, else ``$DAROR_OPERATOR``, else the login name (None: unknown).
+
+    Raises:
+        UsageError: ``--operator`` or ``$DAROR_OPERATOR`` is not a name the records keep
+            (:data:`~daror_runtime.records.codes.OPERATOR_PATTERN`).
+    """
+    import getpass
+    import os
+    import re
+
+    from daror_runtime.records.codes import OPERATOR_PATTERN
+
+    given = getattr(args, "operator", None)
+    where = "--operator"
+    if given is None and os.environ.get("DAROR_OPERATOR"):
+        given, where = os.environ["DAROR_OPERATOR"], "$DAROR_OPERATOR"
+    if given is None:
+        try:
+            login = getpass.getuser()
+        except (KeyError, OSError):  # no user name in the environment nor the password database
+            return None
+        return login if re.match(OPERATOR_PATTERN, login) else None
+    if not re.match(OPERATOR_PATTERN, given):
+        raise UsageError(
+            f"{where} {given!r}: expected initials or a staff code (letters, digits, spaces, _ . @ -; at most 64)"
+        )
+    return given
 
 
 def record_the_session(console: Console, db: str | None, directory: Path) -> None:

@@ -176,7 +176,13 @@ def cmd_sessions_list(args: argparse.Namespace, console: Console) -> int:
 
     with _open(args) as store:
         rows = session_rows(store, args.pilot)
-    table = Table("session", "pilot", "started (UTC)", "robot", "backend", "reached", "ended", "faults", box=None)
+    from rich.table import Column
+
+    # the session and its date are what a reader looks up: never cut, the longer texts wrap instead
+    table = Table(
+        Column("session", no_wrap=True), "pilot", Column("started (UTC)", no_wrap=True), "operator", "robot",
+        "backend", "reached", "ended", "faults", box=None,
+    )  # fmt: skip
     for row in rows:
         table.add_row(*row)
     console.print(table)

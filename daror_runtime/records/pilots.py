@@ -222,6 +222,7 @@ def session_rows(store: Store, pilot: str | None = None) -> list[tuple[str, ...]
                     s.session_id,
                     s.pilot.code,
                     "-" if s.started_utc is None else s.started_utc.isoformat(timespec="minutes"),
+                    s.operator or "-",
                     s.robot,
                     s.backend,
                     s.final_state,

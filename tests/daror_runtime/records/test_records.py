@@ -274,15 +274,22 @@ def test_a_console_session_records_itself_beside_its_folder(
     monkeypatch.delenv("DAROR_DB", raising=False)
     script = tmp_path / "s.txt"
     script.write_text("wait 0.2\nquit\n", encoding="utf-8")
-    assert main(["console", "--script", str(script), "--out", str(tmp_path / "s1")]) == 0
+    monkeypatch.setenv("DAROR_OPERATOR", "from the environment")
+    assert main(["console", "--script", str(script), "--out", str(tmp_path / "s1"), "--operator", "JdV"]) == 0
     out = capsys.readouterr().out
     assert "records: session " in out
     assert f"of pilot sim-exo_dummy_arm in sqlite:///{tmp_path.resolve() / 'daror.db'}" in out
     store = open_store(f"sqlite:///{tmp_path / 'daror.db'}", create=False)
     try:
         assert [row[1] for row in session_rows(store)] == ["sim-exo_dummy_arm"]
+        assert [row[3] for row in session_rows(store)] == ["JdV"]  # who ran it: --operator before the environment
     finally:
         store.close()
+    assert json.loads((tmp_path / "s1" / "session.json").read_text(encoding="utf-8"))["operator"] == "JdV"
+    # an operator's name the records cannot keep: one line, exit 2, nothing written
+    assert main(["console", "--script", str(script), "--out", str(tmp_path / "s0"), "--operator", "a\nb"]) == 2
+    assert "--operator 'a\\nb': expected initials or a staff code" in capsys.readouterr().err
+    assert not (tmp_path / "s0").exists()
     # a database that cannot take it does not undo the session: the line says how to record it later
     assert main(["console", "--script", str(script), "--out", str(tmp_path / "s2"),
                  "--db", "postgresql+psycopg://nobody@127.0.0.1:9/none?connect_timeout=2"]) == 0  # fmt: skip
@@ -293,6 +300,9 @@ def test_a_console_session_records_itself_beside_its_folder(
     # --db none: nothing recorded
     assert main(["console", "--script", str(script), "--out", str(tmp_path / "s3"), "--db", "none"]) == 0
     assert "records:" not in capsys.readouterr().out
+    assert (
+        json.loads((tmp_path / "s3" / "session.json").read_text(encoding="utf-8"))["operator"] == "from the environment"
+    )
 
 
 def test_a_pilot_s_report_and_export(
