@@ -58,7 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from hal.errors import DescriptionError, InputError, ShapeError
 from hal.robot import N_JOINTS, FloatArray, Kinematics, RobotDescription, load_description, rot_x, rot_y, rot_z
 from hal.robot import AngleRange as RobotAngleRange
-from hal.yamlfile import Number, load_yaml_model
+from hal.yamlfile import Number, load_yaml_model, read_yaml
 
 __all__ = [
     "ISB_NAMES",
@@ -204,13 +204,28 @@ def isb_limits_yaml(limits: IsbLimits, comment: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The angles a pilot's limits file must give: the model's defaults are a placeholder, never his range.
+LIMITED_ANGLES = ("elevation", "horizontal_rotation", "axial_rotation", "elbow")
+
+
 def load_isb_limits(path: Path | str) -> IsbLimits:
-    """Read a pilot's ISB limits from YAML (degrees).
+    """Read a pilot's ISB limits from YAML (degrees); every angle of :data:`LIMITED_ANGLES` must be given.
 
     Raises:
-        IsbLimitsError: the file is missing, not YAML, or does not match (file, line, field named).
+        IsbLimitsError: the file is missing, not YAML, not a limits file (none of the angles: one line,
+            and for a session's ``session.json`` where its limits are), does not match (file, line,
+            field named), or leaves an angle out (the placeholder would stand for his range).
     """
-    return load_yaml_model(path, IsbLimits, error=IsbLimitsError)
+    data, _ = read_yaml(path, IsbLimitsError)
+    expected = "expected " + ", ".join(LIMITED_ANGLES) + ", each {lower_deg, upper_deg} (docs/isb_limits.md)"
+    if not any(name in data for name in LIMITED_ANGLES):
+        where = "; a session's limits are in isb_limits.yaml beside its session.json" if "session_id" in data else ""
+        raise IsbLimitsError(f"{path}: not a pilot's ISB limits file: {expected}{where}")
+    limits = load_yaml_model(path, IsbLimits, error=IsbLimitsError)
+    missing = [name for name in LIMITED_ANGLES if name not in data]
+    if missing:
+        raise IsbLimitsError(f"{path}: {', '.join(missing)} not given; {expected}")
+    return limits
 
 
 # --- numba kernels (the 1 kHz tick and the trajectory integrator) ------------------------------

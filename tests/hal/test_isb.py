@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -350,3 +351,22 @@ def test_limits_file_round_trip_and_line_numbered_errors(tmp_path: Path) -> None
         load_isb_limits(typo)
     with pytest.raises(IsbLimitsError, match="file not found"):
         load_isb_limits(tmp_path / "missing.yaml")
+
+
+def test_a_limits_file_gives_every_angle_and_a_session_summary_is_told_where_its_limits_are(tmp_path: Path) -> None:
+    """Issue 28: the defaults are a placeholder, never a pilot's range; ``rom load session.json`` gets one line."""
+    part = tmp_path / "part.yaml"
+    part.write_text("elevation: {lower_deg: 0, upper_deg: 80}\n")
+    with pytest.raises(IsbLimitsError, match=r"part\.yaml: horizontal_rotation, axial_rotation, elbow not given"):
+        load_isb_limits(part)
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("{}\n")
+    with pytest.raises(IsbLimitsError, match=r"empty\.yaml: not a pilot's ISB limits file: expected elevation"):
+        load_isb_limits(empty)
+    summary = tmp_path / "session.json"
+    summary.write_text(json.dumps({"session_id": "abc", "state": "compensation", "isb_limits_deg": None}))
+    with pytest.raises(IsbLimitsError) as refused:
+        load_isb_limits(summary)
+    message = str(refused.value)
+    assert "\n" not in message
+    assert message.endswith("a session's limits are in isb_limits.yaml beside its session.json")
