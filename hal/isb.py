@@ -218,10 +218,14 @@ def load_isb_limits(path: Path | str) -> IsbLimits:
     """
     data, _ = read_yaml(path, IsbLimitsError)
     expected = "expected " + ", ".join(LIMITED_ANGLES) + ", each {lower_deg, upper_deg} (docs/isb_limits.md)"
-    if not any(name in data for name in LIMITED_ANGLES):
+    try:
+        limits = load_yaml_model(path, IsbLimits, error=IsbLimitsError)
+    except IsbLimitsError:
+        if any(name in data for name in IsbLimits.model_fields):
+            raise  # a limits file with a mistake: its line and field
+        # another kind of file (a session's session.json): one line, not one per field it has
         where = "; a session's limits are in isb_limits.yaml beside its session.json" if "session_id" in data else ""
-        raise IsbLimitsError(f"{path}: not a pilot's ISB limits file: {expected}{where}")
-    limits = load_yaml_model(path, IsbLimits, error=IsbLimitsError)
+        raise IsbLimitsError(f"{path}: not a pilot's ISB limits file: {expected}{where}") from None
     missing = [name for name in LIMITED_ANGLES if name not in data]
     if missing:
         raise IsbLimitsError(f"{path}: {', '.join(missing)} not given; {expected}")

@@ -180,7 +180,8 @@ def cmd_sessions_list(args: argparse.Namespace, console: Console) -> int:
 
     # the session and its date are what a reader looks up: never cut, the longer texts wrap instead
     table = Table(
-        Column("session", no_wrap=True), "pilot", Column("started (UTC)", no_wrap=True), "operator", "robot",
+        Column("session", no_wrap=True), Column("pilot", no_wrap=True), Column("started (UTC)", no_wrap=True),
+        "operator", "robot",
         "backend", "reached", "ended", "faults", box=None,
     )  # fmt: skip
     for row in rows:

@@ -46,7 +46,10 @@ SPEC = load_fsm_spec()
 #: The states whose mode drives the motors (fsm_spec.yaml, daror_runtime/fsm/modes.py).
 TORQUE_STATES = [state.name for state in SPEC.states if MODES[state.mode].applies_torque]
 SIGNALS = {"SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP}
-ISB_LIMITS = "elevation: {lower_deg: 0, upper_deg: 100}\nelbow: {lower_deg: 5, upper_deg: 120}\n"
+ISB_LIMITS = (
+    "elevation: {lower_deg: 0, upper_deg: 100}\nhorizontal_rotation: {lower_deg: -20, upper_deg: 165}\n"
+    "axial_rotation: {lower_deg: -75, upper_deg: 75}\nelbow: {lower_deg: 5, upper_deg: 120}\n"
+)
 
 
 def _audit(path: Path) -> list[dict[str, Any]]:

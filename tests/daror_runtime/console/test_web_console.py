@@ -742,7 +742,9 @@ def test_a_session_from_startup_to_compensation_by_clicking(
     shots.mkdir(parents=True, exist_ok=True)
     isb = tmp_path / "isb_limits.yaml"
     isb.write_text(
-        "elevation: {lower_deg: 0, upper_deg: 100}\nelbow: {lower_deg: 5, upper_deg: 120}\n", encoding="utf-8"
+        "elevation: {lower_deg: 0, upper_deg: 100}\nhorizontal_rotation: {lower_deg: -20, upper_deg: 165}\n"
+        "axial_rotation: {lower_deg: -75, upper_deg: 75}\nelbow: {lower_deg: 5, upper_deg: 120}\n",
+        encoding="utf-8",
     )
     page = Page(driver, server, shots)
     page.wait_state("startup")

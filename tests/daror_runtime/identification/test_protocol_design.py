@@ -241,7 +241,10 @@ def test_the_design_command_refuses_degenerate_limits_and_writes_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     limits = tmp_path / "narrow.yaml"
-    limits.write_text("elbow: {lower_deg: 50, upper_deg: 60}\n")
+    limits.write_text(
+        "elevation: {lower_deg: 0, upper_deg: 100}\nhorizontal_rotation: {lower_deg: -20, upper_deg: 165}\n"
+        "axial_rotation: {lower_deg: -75, upper_deg: 75}\nelbow: {lower_deg: 50, upper_deg: 60}\n"
+    )
     out = tmp_path / "p.yaml"
     code = main(["protocol", "design", "--budget-s", "120", "--limits", str(limits), "--out", str(out)])
     err = capsys.readouterr().err
