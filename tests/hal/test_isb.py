@@ -361,7 +361,9 @@ def test_a_limits_file_gives_every_angle_and_a_session_summary_is_told_where_its
         load_isb_limits(part)
     empty = tmp_path / "empty.yaml"
     empty.write_text("{}\n")
-    with pytest.raises(IsbLimitsError, match=r"empty\.yaml: elevation, horizontal_rotation, axial_rotation, elbow not given"):
+    with pytest.raises(
+        IsbLimitsError, match=r"empty\.yaml: elevation, horizontal_rotation, axial_rotation, elbow not given"
+    ):
         load_isb_limits(empty)
     summary = tmp_path / "session.json"
     summary.write_text(json.dumps({"session_id": "abc", "state": "compensation", "isb_limits_deg": None}))
