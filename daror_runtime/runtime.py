@@ -47,6 +47,7 @@ from daror_runtime.session import requests
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.events import Announcement, AnnouncementKind
 from daror_runtime.session.history import utc_now
+from daror_runtime.session.online import observe_online
 from daror_runtime.session.provenance import session_pilot, session_robot
 from daror_runtime.session.settings import SessionSettings
 from daror_runtime.session.snapshot import snapshot
@@ -429,6 +430,7 @@ class Runtime:
             core.service_reaction()
         if core.modes.identification.finished_run is not None:
             requests.collect_finished_run(core)
+        observe_online(core)  # issue 29: the indicators, every 20 ms of robot time (a comparison first)
         if core.summary_due:  # a transition: session.json is kept current (a crash leaves the last state)
             core.summary_due = False
             core.jobs.submit("write session.json", lambda: self._write_summary(durable=False))

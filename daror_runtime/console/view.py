@@ -41,6 +41,7 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
         *_model_lines(status),
         *_refused_model_lines(status),
         _support_line(status),
+        *_online_lines(status),
         _isb_line(status),
         _identification_line(status),
     ]
@@ -176,6 +177,35 @@ def _support_line(status: RuntimeStatus) -> str:
     return f"support level: {status.support_level:.2f} (delivered {status.delivered_support_level:.2f}" + (
         f"; handing over {handover:.2f} Nm held at entry)" if handover > 0 else ")"
     )
+
+
+def _joints(values: Sequence[float | None], digits: int = 2) -> str:
+    return " ".join("-" if v is None else f"{v:.{digits}f}" for v in values)
+
+
+def _online_lines(status: RuntimeStatus) -> list[str]:
+    """The online indicators per model that compensated (issue 29): the pilot's effort at rest, the
+    support delivered, the interaction while moving (docs/online.md)."""
+    lines = []
+    for entry in status.online:
+        last = entry["last_rest"]
+        rest = (
+            "no rest yet"
+            if last is None
+            else f"his effort at the last rest {_joints(last['effort_nm'])} Nm "
+            f"({last['t_end_s'] - last['t_start_s']:.1f} s at level {last['level_asked']:.2f})"
+        )
+        delivered = entry["level_delivered"]
+        lines.append(
+            f"online, {entry['model']}: {rest}; {entry['rests']} rests, RMS {_joints(entry['effort_at_rest_rms_nm'] or [None] * 4)} Nm"
+            + ("" if delivered is None else f"; support delivered {delivered:.2f}")
+        )
+        if any(n for n in entry["moving_samples"]):
+            lines.append(
+                f"  while moving: interaction RMS {_joints(entry['interaction_rms_nm'])} Nm, "
+                f"felt damping {_joints(entry['apparent_damping_nms_per_rad'])} Nms/rad"
+            )
+    return lines
 
 
 def _isb_line(status: RuntimeStatus) -> str:

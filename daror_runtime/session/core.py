@@ -42,6 +42,7 @@ from daror_runtime.session.events import AnnouncementKind, Announcements
 from daror_runtime.session.history import SessionHistory
 from daror_runtime.session.identification import abandon_run
 from daror_runtime.session.jobs import Jobs
+from daror_runtime.session.online import OnlineRecord
 from daror_runtime.session.rom import RomEnvelope
 from daror_runtime.session.settings import SessionSettings, SessionSettingsError
 from hal.interface import DriveReaction, Hal
@@ -134,9 +135,13 @@ class SessionCore:
             walls=self.walls,
         )
         stop = self.settings.safe_stop
+        bounds = LinkBounds.from_description(description)
+        #: the online indicators of every model that compensates (issue 29), observed between ticks;
+        #: a link's inertia for them: the geometric mean of the bounds (the pilot's arm is not known)
+        self.online = OnlineRecord(np.sqrt(bounds.inertia_min_kgm2 * bounds.inertia_max_kgm2))
         self.safe_stop = SafeStop(
             description,
-            LinkBounds.from_description(description),
+            bounds,
             self.dt_s,
             self.a_priori,
             hold_s=stop.hold_s,

@@ -104,6 +104,7 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
         transitions=supervisor.transitions,
         a_priori_includes_dummy_arm=core.settings.dummy_arm,
         reaction=_reaction_status(core),
+        online=core.online.as_list(),
     )
 
 

@@ -136,6 +136,8 @@ class RuntimeStatus:
     a_priori_includes_dummy_arm: bool  # the settings: what the A Priori model holds besides the robot
     notes: list[str] = field(default_factory=list)  # things the operator should know (settings vs. the world)
     reaction: ReactionStatus | None = None  # what a fault made the robot do, until the reaction ends
+    #: the online indicators per model that compensated (issue 29; daror_runtime/online/indicators.py)
+    online: list[dict[str, Any]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (``session.json``, ``status json``)."""

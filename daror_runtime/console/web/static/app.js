@@ -84,6 +84,12 @@ function render(st) {
   if (!sliderBusy) $("support").value = st.support_level;
   $("support-value").textContent = Number(st.support_level).toFixed(2);
   $("support-delivered").textContent = "delivered " + Number(st.delivered_support_level).toFixed(2);
+  // the online indicators per model (issue 29, docs/online.md): the pilot's effort at rest, the support measured
+  const nm = (v) => v.map((x) => (x === null ? "–" : Number(x).toFixed(2))).join(" ");
+  $("online").innerHTML = (st.online || []).map((o) => `<div>${esc(o.model)}: `
+    + (o.last_rest ? `his effort at the last rest <b>${nm(o.last_rest.effort_nm)}</b> Nm` : "no rest yet")
+    + `; ${o.rests} rests` + (o.level_delivered === null ? "" : `; support measured ${Number(o.level_delivered).toFixed(2)}`)
+    + (o.moving_samples.some((n) => n > 0) ? `; moving: interaction RMS ${nm(o.interaction_rms_nm)} Nm` : "") + "</div>").join("");
   // model
   const m = st.model;
   $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}`

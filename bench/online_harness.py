@@ -1,0 +1,228 @@
+"""The online indicators against the simulated pilot's truth (issue 29): a lock-step session on the plant.
+
+Used by ``bench/bench_online.py`` (the figures of docs/online.md) and by
+``tests/daror_runtime/online/test_online_closed_loop.py``. A session walks to compensation with a
+PLF+ model fitted on the scenario's simulated identification data (validated on its validation
+set, as a session would); the pilot then carries what the robot does not (``carry 1``) while he moves
+his arm to a few poses inside his limits and holds each, at each support level. Every observation
+period the simulator's truth is kept beside what the runtime measures: the pilot's own torque, the
+arm's true holding torque and the model's torque, so each rest the runtime's indicators found is
+compared with the pilot's true effort over the same window, and the model's own error there (its
+torque minus the true holding torque) is known.
+
+A model of known quality: :class:`OffsetModel` adds a known torque per joint to the model in use
+(instrumentation of the simulated bench only, through the declared test hook; nothing of it is in
+the runtime).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daror_runtime.console.world import SimWorld
+from daror_runtime.data.load import write_dataset
+from daror_runtime.data.provenance import simulated_pilot, simulated_robot, write_provenance
+from daror_runtime.data.schema import StationaryDataset
+from daror_runtime.models.files import save_model, training_summary
+from daror_runtime.models.registry import fit_model, installation_options
+from daror_runtime.online.indicators import OBSERVE_PERIOD_S
+from daror_runtime.runtime import Runtime
+from daror_runtime.session.settings import SessionSettings
+from daror_runtime.testing import session_core
+from hal.config import hal_config
+from hal.interface import open_hal
+from hal.isb import IsbLimits
+from hal.sim.scenario import load_scenario
+from hal.sim.static_dataset import generate_stationary
+
+#: The poses the pilot holds (ISB deg: elevation, horizontal rotation, axial rotation, elbow).
+POSES_DEG = ((30.0, 40.0, 0.0, 60.0), (50.0, 70.0, 10.0, 90.0), (20.0, 100.0, -10.0, 40.0), (40.0, 60.0, 20.0, 80.0))
+LEVELS = (1.0, 0.7, 0.4)
+MOVE_S = 2.0
+HOLD_S = 2.5
+
+
+def fitted_model(scenario_name: str, folder: Path) -> tuple[Path, Path]:
+    """A PLF+ model file of ``scenario_name`` fitted on its simulated training set, and its validation set.
+
+    Both data files carry the provenance of an earlier session of this simulated pilot (the gate
+    validates only on his data).
+    """
+    scenario = load_scenario(scenario_name)
+    robot = simulated_robot(scenario.description().name, scenario.name)
+    paths = {}
+    for run in ("training", "validation"):
+        points = generate_stationary(scenario, run)
+        paths[run] = folder / f"{run}.csv"
+        write_dataset(paths[run], StationaryDataset(points.q_rad, points.tau_nm, points.direction, points.t_s))
+        write_provenance(
+            paths[run], "session", robot, simulated_pilot(scenario.name), "earlier-session", run, scenario.name
+        )
+    training = StationaryDataset(*_columns(generate_stationary(scenario, "training")))
+    result = fit_model("plf+", training, scenario.description(), installation_options("plf+", dummy_arm=True))
+    model = folder / "model_plf_plus.json"
+    save_model(model, result.model, training_summary(training, paths["training"]), result.report)
+    return model, paths["validation"]
+
+
+def _columns(points: Any) -> tuple[Any, ...]:
+    return points.q_rad, points.tau_nm, points.direction, points.t_s
+
+
+class OffsetModel:
+    """``model`` plus a known torque per joint (Nm): a model of known error for the simulated bench."""
+
+    def __init__(self, model: Any, offset_nm: np.ndarray) -> None:
+        self._model = model
+        self._offset = np.asarray(offset_nm, dtype=float)
+        self.name = f"{model.name} {'+' if self._offset.sum() >= 0 else '-'} known error"
+
+    def torque(self, q_rad: np.ndarray) -> np.ndarray:
+        return np.asarray(self._model.torque(q_rad), dtype=float) + self._offset
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._model, name)
+
+
+@dataclass(frozen=True)
+class RestCheck:
+    """One rest the runtime's indicators found, beside the simulator's truth over the same window."""
+
+    model: str
+    level_asked: float
+    level_delivered: float | None
+    indicator_nm: np.ndarray  # the runtime's effort at rest, per joint
+    truth_nm: np.ndarray  # the pilot's own torque, mean over the rest
+    model_error_nm: np.ndarray  # the model's torque minus the true holding torque, mean over the rest
+
+    @property
+    def error_nm(self) -> np.ndarray:
+        """The indicator against the pilot's true effort."""
+        return self.indicator_nm - self.truth_nm
+
+    @property
+    def estimator_error_nm(self) -> np.ndarray:
+        """What the estimate adds to the model's own error at the pose."""
+        return self.error_nm - self.model_error_nm
+
+
+class SimulatedSession:
+    """A lock-step session of ``scenario_name`` walked to compensation with ``model``; truth logged as it runs."""
+
+    def __init__(self, scenario_name: str, directory: Path, model: Path, validation: Path) -> None:
+        self.hal = open_hal(hal_config("sim", source="bench", scenario=scenario_name))
+        self.runtime = Runtime(self.hal, directory, settings=SessionSettings(dummy_arm=True))
+        self.runtime.open()
+        self.world = SimWorld(self.runtime.world)  # seats the pilot
+        self.core = session_core(self.runtime)
+        self.truth: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # t, pilot, holding, model
+        self._next_t_s = -np.inf
+        self.runtime.runner.run_ticks(1)
+        self.runtime.select_model(model, validation)
+        self.runtime.runner.run_until(lambda: not self.runtime.busy, 2.0)
+        self._walk_to_compensation()
+
+    def _ok(self, ticket: Any) -> None:
+        response = self.runtime.wait(ticket)
+        if not response.accepted:
+            raise RuntimeError(f"{response.request} refused in {response.state}: {response.reason}")
+
+    def _press(self, button: str) -> None:
+        self.world.estop(button, True)
+        self.runtime.runner.pass_time(0.05)
+        self.world.estop(button, False)
+        self.runtime.runner.pass_time(0.2)
+
+    def _walk_to_compensation(self) -> None:
+        runtime = self.runtime
+        while runtime.state_name != "compensation":
+            here = runtime.state_name
+            if here == "safety_check":
+                self._press("operator")
+                self._press("pilot")
+            elif here == "settings":
+                self._ok(runtime.confirm("settings"))
+            elif here == "pilot_installation":
+                self._ok(runtime.confirm("installation"))
+            elif here == "safety_experience":
+                self._press("pilot")
+                self._ok(runtime.confirm("safety_experience"))
+            elif here == "rom_limits":
+                self._ok(runtime.set_isb_limits(IsbLimits()))
+            elif here == "operative_check":
+                self._press("operator")
+            elif here == "identification":
+                runtime.runner.run_until(lambda: runtime.at_rest, 5.0)
+            self._ok(runtime.advance())
+            runtime.runner.pass_time(0.3)
+
+    def run(self, seconds: float) -> None:
+        """Let ``seconds`` of robot time pass, the truth kept every observation period."""
+        runner, runtime, world = self.runtime.runner, self.runtime, self.world
+        compensation = self.core.modes.compensation
+        for _ in range(round(seconds / self.core.dt_s)):
+            runner.run_ticks(1)
+            sample = runtime.last_sample
+            if sample is None or sample.t_s < self._next_t_s:
+                continue
+            self._next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
+            holding, pilot = world.support_torques()
+            model = compensation.model
+            torque = np.full(4, np.nan) if model is None else np.asarray(model.torque(sample.q_rad), dtype=float)
+            self.truth.append((sample.t_s, pilot.copy(), holding.copy(), torque))
+
+    def use_offset(self, offset_nm: np.ndarray) -> str:
+        """From now on the model in use is off by ``offset_nm``; returns its label in the indicators."""
+        compensation = self.core.modes.compensation
+        compensation.model = OffsetModel(compensation.model, offset_nm)
+        return compensation.model.name
+
+    def hold_poses(
+        self, levels: tuple[float, ...] = LEVELS, poses_deg: tuple[tuple[float, ...], ...] = POSES_DEG
+    ) -> None:
+        """At each support level the pilot, carrying what the robot does not, moves to each pose and holds it."""
+        shoulder = self.runtime.shoulder
+        self.world.pilot_carries(1.0)
+        for level in levels:
+            self._ok(self.runtime.set_support(level))
+            self.run(1.5)
+            for pose in poses_deg:
+                q = shoulder.q_from_isb(np.deg2rad(pose), seed=self.runtime.last_sample.q_rad)
+                self.world.pilot_move(q, MOVE_S)
+                self.run(MOVE_S + HOLD_S)
+
+    def rest_checks(self) -> list[RestCheck]:
+        """Every rest of every model's indicators against the truth over its window."""
+        times = np.array([t for t, *_ in self.truth])
+        pilot = np.array([p for _, p, _, _ in self.truth])
+        holding = np.array([h for _, _, h, _ in self.truth])
+        model = np.array([m for *_, m in self.truth])
+        checks = []
+        for label, indicators in self.core.online.by_model.items():
+            indicators.interrupt()
+            for rest in indicators.rests:
+                window = (times >= rest.t_start_s - 1e-9) & (times <= rest.t_end_s + 1e-9)
+                checks.append(
+                    RestCheck(
+                        label,
+                        rest.level_asked,
+                        rest.level_delivered,
+                        np.array(rest.effort_nm),
+                        pilot[window].mean(axis=0),
+                        (model[window] - holding[window]).mean(axis=0),
+                    )
+                )
+        return checks
+
+    def close(self) -> None:
+        self.runtime.shutdown("bench done")
+        self.runtime.close()
+
+
+def temporary_folder() -> Path:
+    return Path(tempfile.mkdtemp(prefix="daror-online-"))

@@ -1,0 +1,93 @@
+"""The session's online indicators (issue 29): observed between ticks, one set per model that compensated.
+
+:func:`observe_online` runs in the service between ticks (in lock-step after every tick, with a
+loop of its own every service period): every :data:`~daror_runtime.online.indicators.OBSERVE_PERIOD_S`
+of robot time, while a compensation mode delivers a model's support without a fault, an entry's
+handover or a reaction, it reads the last sample and the model's torque there and observes it. Any
+other moment interrupts the indicators (a rest ends; no acceleration spans the gap). Each model
+that compensates gets its own indicators, keyed by its name and file, so a comparison of two models
+(issue 29, part 3) reads both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from daror_runtime.online.indicators import OBSERVE_PERIOD_S, OnlineIndicators
+
+if TYPE_CHECKING:
+    from daror_runtime.models.base import CompensationModel
+    from daror_runtime.session.core import SessionCore
+    from hal.robot import FloatArray
+
+
+@dataclass
+class OnlineRecord:
+    """The indicators of every model that compensated in this session, in the order they first did."""
+
+    inertia_kgm2: FloatArray
+    by_model: dict[str, OnlineIndicators] = field(default_factory=dict)
+    next_t_s: float = -np.inf  # the robot time of the next observation
+    model: object | None = None  # the model observed last (identity: a new object is a new selection)
+    label: str | None = None  # its label, the key of its indicators
+
+    def indicators_for(self, label: str) -> OnlineIndicators:
+        indicators = self.by_model.get(label)
+        if indicators is None:
+            indicators = self.by_model[label] = OnlineIndicators(self.inertia_kgm2)
+        return indicators
+
+    def interrupt(self) -> None:
+        if self.label is not None:
+            self.by_model[self.label].interrupt()
+        self.model = self.label = None
+
+    def as_list(self) -> list[dict[str, Any]]:
+        """JSON-ready, per model: ``{"model": label, ...summary}`` (``session.json``, ``status``)."""
+        return [{"model": label, **ind.summary().as_dict()} for label, ind in list(self.by_model.items())]
+
+
+def model_label(core: SessionCore, model: CompensationModel) -> str:
+    """The model's name and its file (``PLF+ (model_plf_plus.json)``) as the operator knows it."""
+    summary = core.progress.last_model
+    path = summary.get("path") if summary is not None else None
+    name = getattr(model, "name", type(model).__name__)
+    return f"{name} ({path.rsplit('/', 1)[-1]})" if isinstance(path, str) and path else str(name)
+
+
+def observe_online(core: SessionCore) -> None:
+    """Observe the last sample if it is time and compensation delivers a model's support; else interrupt."""
+    sample = core.signals.sample
+    record = core.online
+    if sample is None or sample.t_s < record.next_t_s:
+        return
+    record.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
+    compensation = core.modes.compensation
+    model = compensation.model
+    supervisor = core.supervisor
+    delivering = (
+        model is not None
+        and supervisor.state.mode == "compensation"
+        and supervisor.reaction is None
+        and not core.monitor.faulted
+        and not compensation.handover.active
+    )
+    if not delivering or model is None:
+        record.interrupt()
+        return
+    if model is not record.model or record.label is None:
+        record.interrupt()
+        record.model, record.label = model, model_label(core, model)
+    record.indicators_for(record.label).observe(
+        sample.t_s,
+        sample.q_rad,
+        compensation.torque.spring_torque_nm(sample),
+        np.asarray(model.torque(sample.q_rad), dtype=float),
+        compensation.support_level,
+    )
+
+
+__all__ = ["OnlineRecord", "model_label", "observe_online"]

@@ -1,0 +1,76 @@
+"""Issue 29, part 1: the runtime's online indicators against the simulated pilot's true effort.
+
+A lock-step session on the Dummy Arm scenario reaches compensation with a fitted PLF+ model; the
+pilot, carrying what the robot does not, holds four poses at support levels 1.0, 0.7 and 0.4, then
+again under the same model with a known error added (bench/online_harness.py). Each rest the
+runtime's indicators found is compared with the pilot's own torque over the same window.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.online_harness import SimulatedSession, fitted_model
+
+KNOWN_ERROR_NM = np.array([0.3, -0.5, 0.2, 0.4])
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimulatedSession]:
+    folder = tmp_path_factory.mktemp("online")
+    model, validation = fitted_model("exo_dummy_arm", folder)
+    simulated = SimulatedSession("exo_dummy_arm", folder / "session", model, validation)
+    simulated.hold_poses()
+    simulated.use_offset(KNOWN_ERROR_NM)
+    simulated.hold_poses(levels=(1.0,))
+    yield simulated
+    simulated.close()
+
+
+def test_the_effort_at_rest_is_the_pilot_s_true_effort_but_for_the_model_s_own_error(
+    session: SimulatedSession,
+) -> None:
+    checks = session.rest_checks()
+    plain = [c for c in checks if "known error" not in c.model]
+    offset = [c for c in checks if "known error" in c.model]
+    assert sorted({c.level_asked for c in plain}) == [0.4, 0.7, 1.0]
+    assert all(sum(c.level_asked == level for c in plain) == 4 for level in (0.4, 0.7, 1.0))  # every pose held
+    assert len(offset) == 4
+    for check in checks:
+        # what the estimate adds to the model's own error at the pose: within 0.05 Nm per joint
+        assert np.all(np.abs(check.estimator_error_nm) < 0.05), (
+            check.model,
+            check.level_asked,
+            check.estimator_error_nm,
+        )
+        # the support the springs deliver, measured, is the level asked
+        assert check.level_delivered == pytest.approx(check.level_asked, abs=0.02)
+    for check in offset:  # a model off by a known torque: the indicator is off by it (and by the model's own)
+        np.testing.assert_allclose(check.error_nm - check.model_error_nm, 0.0, atol=0.05)
+        # the model in use really was off by it (beside PLF+'s own error there, at most 0.15 Nm)
+        np.testing.assert_allclose(check.model_error_nm, KNOWN_ERROR_NM, atol=0.15)
+    # the pilot's true effort really changed with the level (the indicator follows something)
+    elbow = {level: np.mean([c.truth_nm[3] for c in plain if c.level_asked == level]) for level in (0.4, 0.7, 1.0)}
+    assert elbow[0.4] > elbow[0.7] + 0.5 > elbow[1.0] + 1.0
+
+
+def test_the_indicators_are_in_the_status_and_session_json(session: SimulatedSession) -> None:
+    status = session.runtime.status()
+    online = status["online"]
+    assert [entry["model"] for entry in online] == [
+        "PLF+ (model_plf_plus.json)",
+        "PLF+ + known error (model_plf_plus.json)",
+    ]
+    assert online[0]["rests"] == 12
+    assert online[0]["level_delivered"] == pytest.approx(0.7, abs=0.02)  # over levels 1.0, 0.7, 0.4
+    session.runtime.runner.pass_time(0.1)
+    session.core.summary_due = True
+    session.runtime.runner.pass_time(0.01)
+    document = json.loads((session.runtime.session_dir / "session.json").read_text(encoding="utf-8"))
+    assert [entry["model"] for entry in document["online"]] == [entry["model"] for entry in online]
+    assert Path(session.runtime.session_dir).is_dir()
