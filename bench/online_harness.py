@@ -30,7 +30,7 @@ from daror_runtime.data.provenance import simulated_pilot, simulated_robot, writ
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.files import save_model, training_summary
 from daror_runtime.models.registry import fit_model, installation_options
-from daror_runtime.online.indicators import OBSERVE_PERIOD_S
+from daror_runtime.online.indicators import MOVING_RAD_S, OBSERVE_PERIOD_S
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.settings import SessionSettings
 from daror_runtime.testing import session_core
@@ -120,7 +120,8 @@ class SimulatedSession:
         self.runtime.open()
         self.world = SimWorld(self.runtime.world)  # seats the pilot
         self.core = session_core(self.runtime)
-        self.truth: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # t, pilot, holding, model
+        #: every observation period: t, the pilot's torque, the true holding torque, the model's, q, the model's label
+        self.truth: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]] = []
         self._next_t_s = -np.inf
         self.runtime.runner.run_ticks(1)
         self.runtime.select_model(model, validation)
@@ -174,7 +175,8 @@ class SimulatedSession:
             holding, pilot = world.support_torques()
             model = compensation.model
             torque = np.full(4, np.nan) if model is None else np.asarray(model.torque(sample.q_rad), dtype=float)
-            self.truth.append((sample.t_s, pilot.copy(), holding.copy(), torque))
+            label = "" if model is None else str(getattr(model, "name", ""))
+            self.truth.append((sample.t_s, pilot.copy(), holding.copy(), torque, sample.q_rad.copy(), label))
 
     def use_offset(self, offset_nm: np.ndarray) -> str:
         """From now on the model in use is off by ``offset_nm``; returns its label in the indicators."""
@@ -198,10 +200,10 @@ class SimulatedSession:
 
     def rest_checks(self) -> list[RestCheck]:
         """Every rest of every model's indicators against the truth over its window."""
-        times = np.array([t for t, *_ in self.truth])
-        pilot = np.array([p for _, p, _, _ in self.truth])
-        holding = np.array([h for _, _, h, _ in self.truth])
-        model = np.array([m for *_, m in self.truth])
+        times = np.array([entry[0] for entry in self.truth])
+        pilot = np.array([entry[1] for entry in self.truth])
+        holding = np.array([entry[2] for entry in self.truth])
+        model = np.array([entry[3] for entry in self.truth])
         checks = []
         for label, indicators in self.core.online.by_model.items():
             indicators.interrupt()
@@ -218,6 +220,22 @@ class SimulatedSession:
                     )
                 )
         return checks
+
+    def moving_truth(self, model_name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Per joint: the pilot's true torque RMS while that joint moved under ``model_name`` (the
+        indicators' criterion: faster than MOVING_RAD_S from the angles), and the number of samples."""
+        rows = [entry for entry in self.truth if entry[5] == model_name]
+        times = np.array([entry[0] for entry in rows])
+        q = np.array([entry[4] for entry in rows])
+        pilot = np.array([entry[1] for entry in rows])
+        speed = (q[2:] - q[:-2]) / (times[2:] - times[:-2])[:, None]
+        contiguous = (times[2:] - times[:-2]) < 3 * OBSERVE_PERIOD_S
+        moving = (np.abs(speed) > MOVING_RAD_S) & contiguous[:, None]
+        middle = pilot[1:-1]
+        rms = np.array(
+            [np.sqrt(np.mean(middle[moving[:, j], j] ** 2)) if moving[:, j].any() else np.nan for j in range(4)]
+        )
+        return rms, moving.sum(axis=0)
 
     def close(self) -> None:
         self.runtime.shutdown("bench done")
