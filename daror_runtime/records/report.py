@@ -61,6 +61,8 @@ class SessionTrend:
     #: The model's elbow stiffness plus what it gained: his elbow's stiffness today (Nm/rad).
     elbow_stiffness_today_nm_per_rad: float | None = None
     notes: list[str] = field(default_factory=list)  # why a measure is missing
+    #: the online indicators per model that compensated (issue 29, docs/online.md), as the session kept them
+    online: list[dict[str, Any]] = field(default_factory=list)
 
 
 def _moment(parameters: dict[str, Any], link: int) -> float | None:
@@ -142,6 +144,7 @@ def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
                     if gained is None or stiffness is None
                     else stiffness + gained,
                     notes=[] if isinstance(today, ElbowToday) else [f"elbow today: {today}"],
+                    online=list(s.online or []),
                 )
             )
     return trend
@@ -179,6 +182,15 @@ def _markdown(code: str, trend: list[SessionTrend]) -> str:
             f"{number(t.elbow_stiffness_nm_per_rad, 2)} | {number(t.elbow_gained_nm_per_rad, 2)} | "
             f"{number(t.elbow_stiffness_today_nm_per_rad, 2)} | {', '.join(f'{v:g}' for v in t.support_levels) or '-'} |"
         )
+    online = [
+        f"- {t.session_id}, {entry['model']}: {entry['rests']} rests, his effort at rest RMS "
+        f"{' '.join('-' if v is None else f'{v:.2f}' for v in entry['effort_at_rest_rms_nm'] or [None] * 4)} Nm"
+        + ("" if entry["level_delivered"] is None else f", support delivered {entry['level_delivered']:.2f}")
+        for t in trend
+        for entry in t.online
+    ]
+    if online:
+        lines += ["", "Measured while he used the support (docs/online.md; against the model in use):", "", *online]
     notes = [f"- {t.session_id}: {note}" for t in trend for note in t.notes]
     if notes:
         lines += ["", "Measures missing:", "", *notes]

@@ -89,6 +89,8 @@ class SessionRecord(Base):
     support_levels: Mapped[list[Any]]  # the support levels delivered (0-1)
     session_json_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
     recorded_utc: Mapped[datetime]
+    #: the online indicators per model that compensated (issue 29, docs/online.md; migration 0003)
+    online: Mapped[list[Any] | None] = mapped_column(JSON, default=None)
 
     pilot: Mapped[PilotRecord] = relationship(back_populates="sessions")
     datasets: Mapped[list[DatasetRecord]] = relationship(back_populates="session", order_by="DatasetRecord.id")

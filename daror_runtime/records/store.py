@@ -35,7 +35,7 @@ DB_ENV = "DAROR_DB"
 DEFAULT_DB_NAME = "daror.db"
 #: The newest migration (``migrations/versions``): a database at another revision is not opened.
 #: ``tests/daror_runtime/records/test_migrations.py`` checks that it is Alembic's head.
-HEAD_REVISION = "0002"
+HEAD_REVISION = "0003"
 #: How long a writer waits for another's lock on a SQLite file (two consoles on one database), s.
 SQLITE_BUSY_TIMEOUT_S = 30.0
 _MIGRATIONS = Path(__file__).with_name("migrations")

@@ -52,16 +52,19 @@ def test_db_upgrade_on_a_new_sqlite_file(tmp_path: Path, capsys: pytest.CaptureF
         upgrade(f"sqlite:///{tmp_path / 'nowhere' / 'lab.db'}")
 
 
-def test_from_the_previous_schema_with_records_in_it(db_url: str, capsys: pytest.CaptureFixture[str]) -> None:
-    """A database at 0001 holding a pilot, a session and a model is refused until upgraded, then
-    migrated to the head with every record kept and the new column empty."""
+@pytest.mark.parametrize("previous", ["0001", "0002"])
+def test_from_the_previous_schema_with_records_in_it(
+    db_url: str, capsys: pytest.CaptureFixture[str], previous: str
+) -> None:
+    """A database at an earlier revision holding a pilot, a session and a model is refused until
+    upgraded, then migrated to the head with every record kept and the new columns empty."""
     from alembic import command
 
     from daror_runtime.records.store import _alembic_config, _engine
 
     engine = _engine(db_url)
     with engine.connect() as connection:
-        command.upgrade(_alembic_config(connection), "0001")
+        command.upgrade(_alembic_config(connection), previous)
         connection.commit()
     with engine.begin() as connection:
         connection.execute(
@@ -87,10 +90,10 @@ def test_from_the_previous_schema_with_records_in_it(db_url: str, capsys: pytest
         )
     engine.dispose()
     with pytest.raises(
-        RecordsError, match=f"schema revision 0001, this runtime's is {HEAD_REVISION}; run: daror db upgrade"
+        RecordsError, match=f"schema revision {previous}, this runtime's is {HEAD_REVISION}; run: daror db upgrade"
     ):
         open_store(db_url)
-    assert upgrade(db_url) == ("0001", HEAD_REVISION)
+    assert upgrade(db_url) == (previous, HEAD_REVISION)
     store = open_store(db_url)
     try:
         from daror_runtime.records.pilots import pilot_summaries
@@ -102,6 +105,7 @@ def test_from_the_previous_schema_with_records_in_it(db_url: str, capsys: pytest
             model = orm.query(ModelRecord).one()
             assert model.validation_rmse_per_joint_nm is None  # the new column, empty for what was there
             assert model.session.support_levels == [0.8]
+            assert model.session.online is None  # 0003's column, empty for a session recorded before
     finally:
         store.close()
     engine = create_engine(db_url)

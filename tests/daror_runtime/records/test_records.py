@@ -314,6 +314,11 @@ def test_a_pilot_s_report_and_export(
     document["history"]["started_utc"] = "2030-01-01T09:00:00+00:00"
     document["model"]["validation_rmse_nm"] = 0.9
     document["model"]["validation_rmse_per_joint_nm"] = [0.1, 0.2, 0.3, 1.7]
+    document["online"] = [  # what the runtime keeps of a compensation (issue 29)
+        {"model": "PLF+ (model_plf_plus.json)", "rests": 3, "effort_at_rest_rms_nm": [0.1, 0.9, 0.2, 0.4],
+         "level_delivered": 0.7, "last_rest": None, "moving_samples": [0, 0, 0, 0],
+         "interaction_rms_nm": [None] * 4, "apparent_damping_nms_per_rad": [None] * 4}
+    ]  # fmt: skip
     (second / "session.json").write_text(json.dumps(document), encoding="utf-8")
     for folder in (first, second):
         assert main(["sessions", "add", str(folder), "--pilot", "P-007", "--db", db_url]) == 0
@@ -330,6 +335,12 @@ def test_a_pilot_s_report_and_export(
     assert sessions[0]["notes"] == []
     assert (tmp_path / "report" / "report.png").stat().st_size > 10_000
     assert "| second |" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
+    assert sessions[-1]["online"][0]["effort_at_rest_rms_nm"] == [0.1, 0.9, 0.2, 0.4]  # kept by the records
+    assert sessions[0]["online"] == []
+    assert (
+        "- second, PLF+ (model_plf_plus.json): 3 rests, his effort at rest RMS 0.10 0.90 0.20 0.40 Nm, "
+        "support delivered 0.70" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
+    )
 
     out = tmp_path / "archive"
     assert main(["pilots", "export", "P-007", "--out", str(out), "--db", db_url]) == 0
