@@ -132,7 +132,7 @@ class OnlineIndicators:
         self._still_since_s: float | None = None
         self._current: _Accumulator | None = None
         #: the last observations (t, q, springs, model, level): speed and acceleration from the angles
-        self._history: deque[tuple[float, FloatArray, FloatArray, FloatArray, float]] = deque(maxlen=HISTORY)
+        self._history: deque[tuple[float, FloatArray, FloatArray, FloatArray, float, bool]] = deque(maxlen=HISTORY)
         # per joint sums for the RMS and the line interaction = c + b * speed
         self._n = np.zeros(N_JOINTS, dtype=int)
         self._sum_y2 = np.zeros(N_JOINTS)
@@ -165,8 +165,12 @@ class OnlineIndicators:
         springs_nm: FloatArray,
         model_nm: FloatArray,
         level_asked: float,
+        handing_over: bool = False,
     ) -> None:
         """One observation (4,) arrays: angles, the springs' torque, the model's torque at full support.
+
+        ``handing_over``: the entry's handover still adds to the support (the springs carry more
+        than the level of the model): the pilot's effort counts, the support delivered does not.
 
         Speed and acceleration come from the angles of the last observations (the drives' speed
         estimate is too noisy to tell a still arm: 0.04 rad/s median at rest in the simulator), so a
@@ -181,23 +185,25 @@ class OnlineIndicators:
         history = self._history
         if history and not 0.0 < t_s - history[-1][0] <= 3 * OBSERVE_PERIOD_S:
             self.interrupt()
-        history.append((t_s, q, springs, model, level_asked))
+        history.append((t_s, q, springs, model, level_asked, handing_over))
         if len(history) < 3:
             return
-        (t0, q0, *_), (t1, q1, springs1, model1, level1), (t2, q2, *_) = history[-3], history[-2], history[-1]
+        (t0, q0, *_), (t1, q1, springs1, model1, level1, handing1), (t2, q2, *_) = history[-3], history[-2], history[-1]
         speed = (q2 - q0) / (t2 - t0)
         acceleration = 2.0 * ((q2 - q1) / (t2 - t1) - (q1 - q0) / (t1 - t0)) / (t2 - t0)
         angles = np.array([entry[1] for entry in history])
         span_s = history[-1][0] - history[0][0]
         still = len(history) == HISTORY and float(np.ptp(angles, axis=0).max()) < STILL_RAD_S * span_s
         if still:
-            self._still(t1, q1, springs1, model1, level1)
+            self._still(t1, q1, springs1, model1, level1, handing1)
         else:
             self._end_rest()
             self._still_since_s = None
         self._moving(speed, acceleration, springs1, model1)
 
-    def _still(self, t_s: float, q: FloatArray, springs: FloatArray, model: FloatArray, level_asked: float) -> None:
+    def _still(
+        self, t_s: float, q: FloatArray, springs: FloatArray, model: FloatArray, level_asked: float, handing_over: bool
+    ) -> None:
         if self._still_since_s is None:
             self._still_since_s = t_s
         if t_s - self._still_since_s < SETTLE_S:
@@ -209,8 +215,9 @@ class OnlineIndicators:
         rest.n += 1
         rest.pose += q
         rest.effort += model - springs
-        rest.springs_dot_model += float(springs @ model)
-        rest.model_dot_model += float(model @ model)
+        if not handing_over:  # the springs carry the level of the model (plus nothing else)
+            rest.springs_dot_model += float(springs @ model)
+            rest.model_dot_model += float(model @ model)
         rest.t_end_s = t_s
 
     def _end_rest(self) -> None:

@@ -2,8 +2,7 @@
 
 :func:`observe_online` runs in the service between ticks (in lock-step after every tick, with a
 loop of its own every service period): every :data:`~daror_runtime.online.indicators.OBSERVE_PERIOD_S`
-of robot time, while a compensation mode delivers a model's support without a fault, an entry's
-handover or a reaction, it reads the last sample and the model's torque there and observes it. Any
+of robot time, while a compensation mode delivers a model's support without a fault or a reaction, it reads the last sample and the model's torque there and observes it. Any
 other moment interrupts the indicators (a rest ends; no acceleration spans the gap). Each model
 that compensates gets its own indicators, keyed by its name and file, so a comparison of two models
 (issue 29, part 3) reads both.
@@ -73,7 +72,6 @@ def observe_online(core: SessionCore) -> None:
         and supervisor.state.mode == "compensation"
         and supervisor.reaction is None
         and not core.monitor.faulted
-        and not compensation.handover.active
     )
     if not delivering or model is None:
         record.interrupt()
@@ -87,6 +85,7 @@ def observe_online(core: SessionCore) -> None:
         compensation.torque.spring_torque_nm(sample),
         np.asarray(model.torque(sample.q_rad), dtype=float),
         compensation.support_level,
+        handing_over=compensation.handover.active,
     )
 
 

@@ -804,6 +804,15 @@ def test_a_session_from_startup_to_compensation_by_clicking(
     rate = (page.js("return window.daror.rowsReceived") - before) / (time.monotonic() - t0)
     assert rate >= 20.0, rate
     assert page.js("return window.daror.referenceRows") > 0  # the model's torque is plotted in compensation
+    # the online indicators of the model in use (issue 29), on the Support card
+    try:
+        page.until(lambda: "PLF+ (plf_plus.json)" in page.text("online"), "the online indicators shown")
+    except AssertionError as exc:
+        s = runtime.snapshot()
+        raise AssertionError(
+            f"{exc}\nhandover {s.handover_nm} online {s.online} reaction {s.reaction} faults {s.faults}"
+        ) from None
+    assert " rests" in page.text("online")
     page.shot("web_console_compensation")
     assert "compensation" in page.text("log")
     # a second browser window sees the same state and log

@@ -39,7 +39,9 @@ def test_the_effort_at_rest_is_the_pilot_s_true_effort_but_for_the_model_s_own_e
     plain = [c for c in checks if "known error" not in c.model]
     offset = [c for c in checks if "known error" in c.model]
     assert sorted({c.level_asked for c in plain}) == [0.4, 0.7, 1.0]
-    assert all(sum(c.level_asked == level for c in plain) == 4 for level in (0.4, 0.7, 1.0))  # every pose held
+    # every pose held at every level; at 1.0 also the rest at the entry, while the handover still adds support
+    assert [sum(c.level_asked == level for c in plain) for level in (0.4, 0.7, 1.0)] == [4, 4, 5]
+    assert plain[0].level_delivered is None  # the handover's support is no measure of what the model's level delivers
     assert len(offset) == 4
     for check in checks:
         # what the estimate adds to the model's own error at the pose: within 0.05 Nm per joint
@@ -49,7 +51,8 @@ def test_the_effort_at_rest_is_the_pilot_s_true_effort_but_for_the_model_s_own_e
             check.estimator_error_nm,
         )
         # the support the springs deliver, measured, is the level asked
-        assert check.level_delivered == pytest.approx(check.level_asked, abs=0.02)
+        if check is not plain[0]:
+            assert check.level_delivered == pytest.approx(check.level_asked, abs=0.02)
     for check in offset:  # a model off by a known torque: the indicator is off by it (and by the model's own)
         np.testing.assert_allclose(check.error_nm - check.model_error_nm, 0.0, atol=0.05)
         # the model in use really was off by it (beside PLF+'s own error there, at most 0.15 Nm)
@@ -66,7 +69,7 @@ def test_the_indicators_are_in_the_status_and_session_json(session: SimulatedSes
         "PLF+ (model_plf_plus.json)",
         "PLF+ + known error (model_plf_plus.json)",
     ]
-    assert online[0]["rests"] == 12
+    assert online[0]["rests"] == 13
     assert online[0]["level_delivered"] == pytest.approx(0.7, abs=0.02)  # over levels 1.0, 0.7, 0.4
     session.runtime.runner.pass_time(0.1)
     session.core.summary_due = True
