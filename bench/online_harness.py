@@ -30,6 +30,9 @@ from daror_runtime.data.provenance import simulated_pilot, simulated_robot, writ
 from daror_runtime.data.schema import StationaryDataset
 from daror_runtime.models.files import save_model, training_summary
 from daror_runtime.models.registry import fit_model, installation_options
+from daror_runtime.online.drift import MEASURE_S as DRIFT_MEASURE_S
+from daror_runtime.online.drift import SETTLE_S as DRIFT_SETTLE_S
+from daror_runtime.online.drift import DriftResult
 from daror_runtime.online.indicators import MOVING_RAD_S, OBSERVE_PERIOD_S
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.settings import SessionSettings
@@ -109,6 +112,20 @@ class RestCheck:
     def estimator_error_nm(self) -> np.ndarray:
         """What the estimate adds to the model's own error at the pose."""
         return self.error_nm - self.model_error_nm
+
+
+@dataclass(frozen=True)
+class DriftCheck:
+    """One drift test beside the simulator's truth: the model's true error where the arm was held."""
+
+    result: DriftResult
+    model_error_nm: np.ndarray  # the model's torque minus the true holding torque over the test's measure
+    held_drift_deg: float  # how far the arm moved once held (the catch's bumplessness), any joint
+
+    @property
+    def error_nm(self) -> np.ndarray:
+        """The test's unsupported torque against the model's true error there."""
+        return np.array(self.result.unsupported_nm) - self.model_error_nm
 
 
 class SimulatedSession:
@@ -236,6 +253,43 @@ class SimulatedSession:
             [np.sqrt(np.mean(middle[moving[:, j], j] ** 2)) if moving[:, j].any() else np.nan for j in range(4)]
         )
         return rms, moving.sum(axis=0)
+
+    def drift_tests(self, poses_deg: tuple[tuple[float, ...], ...] = POSES_DEG) -> list[DriftCheck]:
+        """At each pose: the pilot holds the arm there, the drift test starts and he relaxes at once;
+        after the catch and the measure, ``advance`` returns to compensation and he takes his arm back."""
+        runtime, world, shoulder = self.runtime, self.world, self.runtime.shoulder
+        checks = []
+        for pose in poses_deg:
+            world.pilot_stiffness(1.0)
+            world.pilot_carries(1.0)
+            q = shoulder.q_from_isb(np.deg2rad(pose), seed=runtime.last_sample.q_rad)
+            world.pilot_move(q, MOVE_S)
+            self.run(MOVE_S + 1.5)
+            before = len(self.core.online.drift_tests)
+            self._ok(runtime.drift_test())
+            world.pilot_carries(0.0)  # he relaxes: his muscles slack, he holds nothing
+            world.pilot_stiffness(0.0)
+            start = len(self.truth)
+            self.run(2.5)
+            if len(self.core.online.drift_tests) != before + 1:
+                raise RuntimeError(f"no drift test result at {pose}: {self.core.drift and self.core.drift.phase}")
+            result = self.core.online.drift_tests[-1]
+            window = self.truth[start:]
+            caught_t = result.t_start_s + result.drift_s
+            measured = [
+                e for e in window if caught_t + DRIFT_SETTLE_S <= e[0] <= caught_t + DRIFT_SETTLE_S + DRIFT_MEASURE_S
+            ]
+            model_error = np.mean([e[3] - e[2] for e in measured], axis=0)
+            held = np.array([e[4] for e in window if e[0] >= caught_t + 0.05])
+            checks.append(
+                DriftCheck(result, model_error, float(np.rad2deg(np.abs(held - held[0]).max())) if len(held) else 0.0)
+            )
+            self._ok(runtime.advance())  # back to compensation
+            world.pilot_stiffness(1.0)
+            world.pilot_carries(1.0)
+            world.pilot_hold_here()
+            self.run(0.5)
+        return checks
 
     def close(self) -> None:
         self.runtime.shutdown("bench done")

@@ -45,6 +45,7 @@ from daror_runtime.logs import flush_logs, set_session_id, set_session_pilot
 from daror_runtime.runner import LoopRunner
 from daror_runtime.session import requests
 from daror_runtime.session.core import RequestRefusedError, SessionCore
+from daror_runtime.session.drift import request_drift_test, service_drift
 from daror_runtime.session.events import Announcement, AnnouncementKind
 from daror_runtime.session.history import utc_now
 from daror_runtime.session.online import observe_online
@@ -363,6 +364,13 @@ class Runtime:
         """Set the compensation support level in [0, 1] (the delivered level ramps to it)."""
         return requests.set_support(self._core, level)
 
+    def drift_test(self) -> Ticket:
+        """Start a drift test (issue 29, docs/online.md): the model alone holds the relaxed arm, the
+        session catches it after at most 1 s or 3 deg and measures the torque the model missed there.
+        Refused (with the reason) outside state compensation, below support level 1, with the arm
+        moving or near a limit."""
+        return request_drift_test(self._core)
+
     def rom_start(self) -> Ticket:
         """Start recording the pilot's range of motion (in a state that needs the ISB limits recorded)."""
         return requests.rom_start(self._core)
@@ -431,6 +439,8 @@ class Runtime:
         if core.modes.identification.finished_run is not None:
             requests.collect_finished_run(core)
         observe_online(core)  # issue 29: the indicators, every 20 ms of robot time (a comparison first)
+        if core.drift is not None:
+            service_drift(core)  # issue 29: a drift test under way: the catch, the hold's measure
         if core.summary_due:  # a transition: session.json is kept current (a crash leaves the last state)
             core.summary_due = False
             core.jobs.submit("write session.json", lambda: self._write_summary(durable=False))

@@ -112,6 +112,7 @@ class ConsoleSession:
             "confirm": lambda a: self._answer(runtime.confirm(a[0])),
             "pilot": self._name_pilot,
             "support": lambda a: self._answer(runtime.set_support(a[0])),
+            "drift": lambda a: self._answer(runtime.drift_test()),
             "rom": self._rom,
             "identify": self._identify,
             "train": self._train,

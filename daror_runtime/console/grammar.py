@@ -380,6 +380,16 @@ COMMANDS: tuple[CommandSpec, ...] = (
         _support,
     ),
     CommandSpec(
+        "drift",
+        "drift",
+        "drift test: the model alone holds the relaxed arm; caught after 1 s or 3 deg, the torque it missed measured",
+        GROUPS[1],
+        _no_args("drift"),
+        "In state compensation at support 1.0, the arm still and 8 deg inside every limit, the pilot relaxed "
+        "(he holds nothing). The session catches the arm by reverting to training (a bumpless hold); advance "
+        "returns to compensation. docs/online.md.",
+    ),
+    CommandSpec(
         "rom",
         "rom start | rom stop | rom load FILE | rom last",
         "record the pilot's range of motion, load it from a file, or take his last from the lab's records",

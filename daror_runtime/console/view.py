@@ -200,6 +200,15 @@ def _online_lines(status: RuntimeStatus) -> list[str]:
             f"online, {entry['model']}: {rest}; {entry['rests']} rests, RMS {_joints(entry['effort_at_rest_rms_nm'] or [None] * 4)} Nm"
             + ("" if delivered is None else f"; support delivered {delivered:.2f}")
         )
+        tests = entry.get("drift_tests") or []
+        if tests:
+            last = tests[-1]
+            worst = [max(abs(test["unsupported_nm"][j]) for test in tests) for j in range(len(last["unsupported_nm"]))]
+            lines.append(
+                f"  drift tests: {len(tests)}; the last: unsupported torque {_joints(last['unsupported_nm'])} Nm, "
+                f"drift {_joints(last['drift_deg'], 1)} deg in {last['drift_s']:.2f} s ({last['why_caught']}); "
+                f"the largest over all: {_joints(worst)} Nm"
+            )
         if any(n for n in entry["moving_samples"]):
             lines.append(
                 f"  while moving: interaction RMS {_joints(entry['interaction_rms_nm'])} Nm, "

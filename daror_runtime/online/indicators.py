@@ -153,6 +153,10 @@ class OnlineIndicators:
         self._still_since_s = None
         self._history.clear()
 
+    def still_for_s(self, t_s: float) -> float:
+        """How long the arm has been still at ``t_s`` (s; 0 while it moves), judged from the angles."""
+        return 0.0 if self._still_since_s is None else max(t_s - self._still_since_s, 0.0)
+
     @property
     def rests(self) -> list[Rest]:
         """Every rest so far (at most :data:`MAX_RESTS`, the newest kept), oldest first."""

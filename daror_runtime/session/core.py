@@ -33,6 +33,7 @@ from daror_runtime.fsm.supervisor import FsmSupervisor, Response
 from daror_runtime.loop import ControlLoop
 from daror_runtime.models.base import CompensationModel
 from daror_runtime.models.linear import APModel
+from daror_runtime.online.drift import DriftTest
 from daror_runtime.safety.faults import FaultKind
 from daror_runtime.safety.limits import SafetyLimits
 from daror_runtime.safety.lowering import plan_lowering
@@ -139,6 +140,7 @@ class SessionCore:
         #: the online indicators of every model that compensates (issue 29), observed between ticks;
         #: a link's inertia for them: the geometric mean of the bounds (the pilot's arm is not known)
         self.online = OnlineRecord(np.sqrt(bounds.inertia_min_kgm2 * bounds.inertia_max_kgm2))
+        self.drift: DriftTest | None = None  # the drift test under way or the last one (issue 29, part 2)
         self.safe_stop = SafeStop(
             description,
             bounds,

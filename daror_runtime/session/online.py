@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from daror_runtime.online.drift import DriftPhase, DriftResult
 from daror_runtime.online.indicators import OBSERVE_PERIOD_S, OnlineIndicators
 
 if TYPE_CHECKING:
@@ -30,6 +31,7 @@ class OnlineRecord:
     inertia_kgm2: FloatArray
     by_model: dict[str, OnlineIndicators] = field(default_factory=dict)
     next_t_s: float = -np.inf  # the robot time of the next observation
+    drift_tests: list[DriftResult] = field(default_factory=list)  # every drift test (part 2), oldest first
     model: object | None = None  # the model observed last (identity: a new object is a new selection)
     label: str | None = None  # its label, the key of its indicators
 
@@ -46,7 +48,17 @@ class OnlineRecord:
 
     def as_list(self) -> list[dict[str, Any]]:
         """JSON-ready, per model: ``{"model": label, ...summary}`` (``session.json``, ``status``)."""
-        return [{"model": label, **ind.summary().as_dict()} for label, ind in list(self.by_model.items())]
+        entries = []
+        drift_tests = list(self.drift_tests)
+        labels = list(self.by_model.items())
+        for label in dict.fromkeys(test.model for test in drift_tests):  # a model only drift-tested
+            if label not in self.by_model:
+                labels.append((label, OnlineIndicators(self.inertia_kgm2)))
+        for label, indicators in labels:
+            entry = {"model": label, **indicators.summary().as_dict()}
+            entry["drift_tests"] = [test.as_dict() for test in drift_tests if test.model == label]
+            entries.append(entry)
+        return entries
 
 
 def model_label(core: SessionCore, model: CompensationModel) -> str:
@@ -62,6 +74,9 @@ def observe_online(core: SessionCore) -> None:
     sample = core.signals.sample
     record = core.online
     if sample is None or sample.t_s < record.next_t_s:
+        return
+    if core.drift is not None and core.drift.phase in (DriftPhase.DRIFTING, DriftPhase.CATCHING):
+        record.interrupt()  # the relaxed arm in a drift test is no rest and no motion of the pilot's
         return
     record.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
     compensation = core.modes.compensation

@@ -89,7 +89,9 @@ function render(st) {
   $("online").innerHTML = (st.online || []).map((o) => `<div>${esc(o.model)}: `
     + (o.last_rest ? `his effort at the last rest <b>${nm(o.last_rest.effort_nm)}</b> Nm` : "no rest yet")
     + `; ${o.rests} rests` + (o.level_delivered === null ? "" : `; support measured ${Number(o.level_delivered).toFixed(2)}`)
-    + (o.moving_samples.some((n) => n > 0) ? `; moving: interaction RMS ${nm(o.interaction_rms_nm)} Nm` : "") + "</div>").join("");
+    + (o.moving_samples.some((n) => n > 0) ? `; moving: interaction RMS ${nm(o.interaction_rms_nm)} Nm` : "")
+    + ((o.drift_tests || []).length ? `; drift tests ${o.drift_tests.length}, the last: unsupported <b>${nm(o.drift_tests[o.drift_tests.length - 1].unsupported_nm)}</b> Nm` : "")
+    + "</div>").join("");
   // model
   const m = st.model;
   $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}`
