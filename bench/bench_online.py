@@ -55,7 +55,15 @@ def measure(scenario: str) -> dict[str, object]:
         per_call_us = (time.perf_counter() - started) / calls * 1e6
     finally:
         session.close()
-    return {"checks": checks, "moving": moving, "wall_s": wall_s, "observe_us": per_call_us}
+    drifting = SimulatedSession(scenario, folder / "drift", model, validation)
+    try:
+        drifting.run(0.5)
+        plain = drifting.drift_tests()
+        drifting.use_offset(KNOWN_ERROR_NM)
+        drift = [*plain, *drifting.drift_tests()]
+    finally:
+        drifting.close()
+    return {"checks": checks, "moving": moving, "wall_s": wall_s, "observe_us": per_call_us, "drift": drift}
 
 
 def table(results: dict[str, dict[str, object]]) -> list[str]:
@@ -87,6 +95,20 @@ def table(results: dict[str, dict[str, object]]) -> list[str]:
                 f"| {scenario} | {name} | {' '.join(f'{v:.2f}' for v in truth)} | "
                 f"{' '.join(f'{v:.2f}' for v in estimate)} | {' '.join(str(int(n)) for n in samples)} |"
             )
+    lines += [
+        "",
+        "| pilot | model | caught | drift (deg) | unsupported torque (Nm) | the model's true error there (Nm) | "
+        "moved once held (deg) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for scenario, result in results.items():
+        for check in result["drift"]:  # type: ignore[attr-defined]
+            r = check.result
+            lines.append(
+                f"| {scenario} | {r.model.split(' (')[0]} | {r.why_caught}, {r.drift_s:.2f} s | "
+                f"{' '.join(f'{v:.2f}' for v in r.drift_deg)} | {' '.join(f'{v:.3f}' for v in r.unsupported_nm)} | "
+                f"{' '.join(f'{v:.3f}' for v in check.model_error_nm)} | {check.held_drift_deg:.3f} |"
+            )
     return lines
 
 
@@ -101,8 +123,29 @@ def bench_online_indicators(quick: bool) -> list[BenchFigure]:
         delivered.append(float(max(abs(c.level_delivered - c.level_asked) for c in checks if c.level_delivered)))
         observe.append(float(result["observe_us"]))  # type: ignore[arg-type]
         walls.append(float(result["wall_s"]))  # type: ignore[arg-type]
+    drift_errors = [
+        float(np.max(np.abs(check.error_nm)))
+        for result in results.values()
+        for check in result["drift"]  # type: ignore[attr-defined]
+    ]
+    held = [check.held_drift_deg for result in results.values() for check in result["drift"]]  # type: ignore[attr-defined]
     n = len(results)
     return [
+        BenchFigure(
+            "drift test: unsupported torque against the model's true error (largest, any joint)",
+            float(np.median(drift_errors)),
+            max(drift_errors),
+            "Nm",
+            len(drift_errors),
+        ),
+        BenchFigure(
+            "drift test: the arm moved once caught (largest)",
+            float(np.median(held)),
+            max(held),
+            "deg",
+            len(held),
+            target=1.0,
+        ),
         BenchFigure(
             "effort at rest: what the estimate adds to the model's error (largest, any joint)",
             float(np.median(added)),
