@@ -131,7 +131,9 @@ class DriftCheck:
 class SimulatedSession:
     """A lock-step session of ``scenario_name`` walked to compensation with ``model``; truth logged as it runs."""
 
-    def __init__(self, scenario_name: str, directory: Path, model: Path, validation: Path) -> None:
+    def __init__(
+        self, scenario_name: str, directory: Path, model: Path, validation: Path, a_priori_first: bool = False
+    ) -> None:
         self.hal = open_hal(hal_config("sim", source="bench", scenario=scenario_name))
         self.runtime = Runtime(self.hal, directory, settings=SessionSettings(dummy_arm=True))
         self.runtime.open()
@@ -141,9 +143,17 @@ class SimulatedSession:
         self.truth: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]] = []
         self._next_t_s = -np.inf
         self.runtime.runner.run_ticks(1)
-        self.runtime.select_model(model, validation)
-        self.runtime.runner.run_until(lambda: not self.runtime.busy, 2.0)
+        self._model, self._validation = model, validation
+        self._a_priori_first = a_priori_first  # as session.txt: the A Priori model confirmed, the model selected later
+        if not a_priori_first:
+            self._select()
         self._walk_to_compensation()
+
+    def _select(self) -> None:
+        self.runtime.select_model(self._model, self._validation)
+        self.runtime.runner.run_until(lambda: not self.runtime.busy, 2.0)
+        if self.runtime.model_in_use is None or not self.runtime.model_in_use.validated:
+            raise RuntimeError(f"the model was not validated: {self.runtime.status()['model_refused']}")
 
     def _ok(self, ticket: Any) -> None:
         response = self.runtime.wait(ticket)
@@ -172,9 +182,13 @@ class SimulatedSession:
                 self._ok(runtime.confirm("safety_experience"))
             elif here == "rom_limits":
                 self._ok(runtime.set_isb_limits(IsbLimits()))
+                if self._a_priori_first:
+                    self._ok(runtime.confirm("a_priori_model"))
             elif here == "operative_check":
                 self._press("operator")
             elif here == "identification":
+                if self._a_priori_first and (runtime.model_in_use is None or not runtime.model_in_use.validated):
+                    self._select()
                 runtime.runner.run_until(lambda: runtime.at_rest, 5.0)
             self._ok(runtime.advance())
             runtime.runner.pass_time(0.3)
@@ -290,6 +304,28 @@ class SimulatedSession:
             world.pilot_hold_here()
             self.run(0.5)
         return checks
+
+    def blind_comparison(self, pairs: int, block_s: float, seed: int) -> dict[str, Any]:
+        """A blind comparison of the model in use with the A Priori model, the simulated pilot moving
+        between two poses in every block and rating it himself; returns the verdict."""
+        runtime, world, shoulder = self.runtime, self.world, self.runtime.shoulder
+        world.pilot_stiffness(1.0)
+        world.pilot_carries(1.0)
+        poses = [shoulder.q_from_isb(np.deg2rad(p), seed=runtime.last_sample.q_rad) for p in POSES_DEG[:2]]
+        self._ok(runtime.compare(pairs, block_s, seed))
+        for _ in range(2 * pairs):
+            while runtime.status()["comparison"]["phase"] != "rating":
+                for pose in poses:  # his task in every block: to one pose, hold it, to the other
+                    world.pilot_move(pose, MOVE_S)
+                    self.run(MOVE_S + 1.5)
+                    if runtime.status()["comparison"]["phase"] == "rating":
+                        break
+            self._ok(runtime.rate(None))
+        self.run(0.1)
+        comparison = runtime.status()["comparison"]
+        if "verdict" not in comparison:
+            raise RuntimeError(f"no verdict: {comparison}")
+        return comparison["verdict"]
 
     def close(self) -> None:
         self.runtime.shutdown("bench done")

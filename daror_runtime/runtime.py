@@ -44,6 +44,7 @@ from daror_runtime.fsm.supervisor import Response, Ticket
 from daror_runtime.logs import flush_logs, set_session_id, set_session_pilot
 from daror_runtime.runner import LoopRunner
 from daror_runtime.session import requests
+from daror_runtime.session.compare import request_compare, request_rating, service_compare
 from daror_runtime.session.core import RequestRefusedError, SessionCore
 from daror_runtime.session.drift import request_drift_test, service_drift
 from daror_runtime.session.events import Announcement, AnnouncementKind
@@ -371,6 +372,16 @@ class Runtime:
         moving or near a limit."""
         return request_drift_test(self._core)
 
+    def compare(self, pairs: int = 8, block_s: float = 20.0, seed: int | None = None) -> Ticket:
+        """Start a blind comparison of the validated model in use with the confirmed A Priori model
+        (issue 29, docs/online.md): ``pairs`` pairs of blocks of ``block_s`` s, in a balanced random
+        order (``seed``; None: drawn) the console does not show, each rated by the pilot (:meth:`rate`)."""
+        return request_compare(self._core, pairs, block_s, seed)
+
+    def rate(self, rating: float | None) -> Ticket:
+        """The pilot's rating (0-10) of the comparison's block just ended; None: the simulated pilot rates."""
+        return request_rating(self._core, rating)
+
     def rom_start(self) -> Ticket:
         """Start recording the pilot's range of motion (in a state that needs the ISB limits recorded)."""
         return requests.rom_start(self._core)
@@ -441,6 +452,8 @@ class Runtime:
         observe_online(core)  # issue 29: the indicators, every 20 ms of robot time (a comparison first)
         if core.drift is not None:
             service_drift(core)  # issue 29: a drift test under way: the catch, the hold's measure
+        if core.compare is not None:
+            service_compare(core)  # issue 29: a blind comparison's blocks
         if core.summary_due:  # a transition: session.json is kept current (a crash leaves the last state)
             core.summary_due = False
             core.jobs.submit("write session.json", lambda: self._write_summary(durable=False))

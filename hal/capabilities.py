@@ -210,6 +210,12 @@ class SimulatedWorld(Protocol):
         """
         ...
 
+    def pilot_rating(self, effort_nm: float) -> float:
+        """The simulated pilot's rating (0-10, one decimal) of a support under which his own mean effort
+        was ``effort_nm`` (the sum over joints of his torque's magnitude, Nm): less effort, a better
+        rating, with a person's noise (a blind comparison's rater, issue 29)."""
+        ...
+
 
 class BackendBatch(NamedTuple):
     """What a backend hands a lock-step batch: its compiled tick, its state and where its readings are.

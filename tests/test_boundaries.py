@@ -525,7 +525,7 @@ def test_the_session_never_imports_the_console_or_the_runtime() -> None:
 #: The facade: the operator's requests, the typed status, the session's lifecycle, read-only facts.
 FACADE = {
     # what the session is
-    "session_id", "session_dir", "operator", "drift_test", "settings", "spec", "description", "shoulder", "rate_hz", "lock_step", "world",
+    "session_id", "session_dir", "operator", "drift_test", "compare", "rate", "settings", "spec", "description", "shoulder", "rate_hz", "lock_step", "world",
     "state_name", "last_sample", "torque_reference_nm", "model_in_use", "drain_announcements", "on_transition",
     # lifecycle; who drives the loop (lock-step ticks or its own thread: daror_runtime/runner.py)
     "open", "shutdown", "close", "runner", "busy", "jobs_pending", "at_rest", "arm_held", "wait",

@@ -113,6 +113,8 @@ class ConsoleSession:
             "pilot": self._name_pilot,
             "support": lambda a: self._answer(runtime.set_support(a[0])),
             "drift": lambda a: self._answer(runtime.drift_test()),
+            "compare": lambda a: self._answer(runtime.compare(a[0], a[1])),
+            "rate": lambda a: self._answer(runtime.rate(a[0])),
             "rom": self._rom,
             "identify": self._identify,
             "train": self._train,

@@ -165,6 +165,24 @@ def _support(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     return (number("support LEVEL", args[0], 0.0, 1.0),)
 
 
+def _compare(args: list[str], context: ParseContext) -> tuple[Any, ...]:
+    usage = "compare a_priori [PAIRS] [SECONDS]"
+    if not args or args[0] != "a_priori" or len(args) > 3:
+        raise _usage(usage)
+    pairs = number("compare PAIRS", args[1], 2.0, 30.0) if len(args) > 1 else 8.0
+    if pairs != int(pairs):
+        raise CommandError(f"compare PAIRS: a whole number of pairs, got {args[1]!r}")
+    seconds = number("compare SECONDS", args[2], 5.0, 120.0) if len(args) > 2 else 20.0
+    return (int(pairs), seconds)
+
+
+def _rate(args: list[str], context: ParseContext) -> tuple[Any, ...]:
+    _arity("rate N | rate sim", args, 1)
+    if args[0] == "sim":
+        return (None,)
+    return (number("rate N", args[0], 0.0, 10.0),)
+
+
 def _rom(args: list[str], context: ParseContext) -> tuple[Any, ...]:
     usage = "rom start | rom stop | rom load FILE | rom last"
     if args in (["start"], ["stop"], ["last"]):
@@ -380,6 +398,23 @@ COMMANDS: tuple[CommandSpec, ...] = (
         _support,
     ),
     CommandSpec(
+        "compare",
+        "compare a_priori [PAIRS] [SECONDS]",
+        "blind comparison: the validated model in use against the A Priori model, in rated blocks",
+        GROUPS[1],
+        _compare,
+        "In state compensation, with the A Priori model confirmed for this pilot. PAIRS pairs of blocks (default 8, "
+        "2-30) of SECONDS each (default 20, 5-120), in a balanced random order the console does not show; after "
+        "each block: rate N. The verdict (ratings, indicators, paired tests) at the end. docs/online.md.",
+    ),
+    CommandSpec(
+        "rate",
+        "rate N | rate sim",
+        "the pilot's rating (0-10) of the comparison's block just ended (sim: the simulated pilot rates)",
+        GROUPS[1],
+        _rate,
+    ),
+    CommandSpec(
         "drift",
         "drift",
         "drift test: the model alone holds the relaxed arm; caught after 1 s or 3 deg, the torque it missed measured",
@@ -571,6 +606,9 @@ def completion_words(context: ParseContext) -> dict[str, Any]:
         "confirm": checklists,
         "pilot": None,
         "support": None,
+        "drift": None,
+        "compare": {"a_priori": None},
+        "rate": {"sim": None},
         "rom": {"start": None, "stop": None, "load": None, "last": None},
         "identify": {"training": None, "validation": None, "stop": None},
         "train": {kind: None for kind in _session_kinds()},

@@ -42,6 +42,7 @@ def render_status(status: RuntimeStatus, steps: Sequence[Step], notes: Sequence[
         *_refused_model_lines(status),
         _support_line(status),
         *_online_lines(status),
+        *_comparison_lines(status),
         _isb_line(status),
         _identification_line(status),
     ]
@@ -215,6 +216,21 @@ def _online_lines(status: RuntimeStatus) -> list[str]:
                 f"felt damping {_joints(entry['apparent_damping_nms_per_rad'])} Nms/rad"
             )
     return lines
+
+
+def _comparison_lines(status: RuntimeStatus) -> list[str]:
+    """A blind comparison's progress (never which model a block has) or its verdict (issue 29)."""
+    comparison = status.comparison
+    if comparison is None:
+        return []
+    if "verdict_text" in comparison:
+        return [comparison["verdict_text"]]
+    if "why_stopped" in comparison:
+        return [f"blind comparison stopped: {comparison['why_stopped']}"]
+    return [
+        f"blind comparison: block {comparison['block']} of {comparison['blocks']} ({comparison['phase']}; "
+        f"{comparison['rated']} rated; the model is not shown)"
+    ]
 
 
 def _isb_line(status: RuntimeStatus) -> str:

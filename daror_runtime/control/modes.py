@@ -179,6 +179,34 @@ class Compensation:
             raise ControlSettingError(f"compensation damping must be a finite number >= 0 Nms/rad, got {value!r}")
         self._damping = float(value)
 
+    def switch_model(self, model: CompensationModel, damping_nms_per_rad: float, sample: Sample) -> None:
+        """Hand the support over to ``model`` (with its damping) as at the mode's entry: bumpless.
+
+        Set between ticks, in compensation, with the tick's ``sample``. The reference starts at the
+        torque the springs carry and moves to ``model``'s at the support's ramp, never dipping below
+        what held the arm until the pilot moves it (the entry's :class:`Handover`); the new damping
+        ramps in likewise. A blind comparison of two approved models switches with it (issue 29).
+
+        Raises:
+            ControlSettingError: a damping that is not a finite number >= 0.
+            ControlError: ``model``'s torque at the sample's pose is not finite.
+        """
+        if isinstance(damping_nms_per_rad, bool) or not (
+            math.isfinite(damping_nms_per_rad) and damping_nms_per_rad >= 0.0
+        ):
+            raise ControlSettingError(f"compensation damping must be >= 0 Nms/rad, got {damping_nms_per_rad!r}")
+        target = self._level * np.asarray(model.torque(sample.q_rad), dtype=float)
+        if target.shape != (self.torque.n_joints,) or not np.all(np.isfinite(target)):
+            raise ControlError(f"compensation model {model.name!r} returned {target.tolist()} at the switch's pose")
+        self.model = model
+        self._reading_error = model.reading_error_tracker() if self.torque.regulates_reading_error else None
+        if self._reading_error is not None:
+            self._reading_error.reset(sample.q_rad)
+        self.handover.start(sample, self.torque.spring_torque_nm(sample), target)
+        if damping_nms_per_rad != self._damping:
+            self._damping = float(damping_nms_per_rad)
+            self._damping_weight = 0.0  # it ramps in, as after a reset
+
     @property
     def support_level(self) -> float:
         """The support level set by the operator, in [0, 1]."""

@@ -16,7 +16,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
@@ -49,6 +49,9 @@ from daror_runtime.session.settings import SessionSettings, SessionSettingsError
 from hal.interface import DriveReaction, Hal
 from hal.isb import IsbLimits, Shoulder, UnreachablePoseError, monitor_isb_function
 from hal.robot import FloatArray, RobotDescription
+
+if TYPE_CHECKING:
+    from daror_runtime.session.compare import CompareRun
 
 log = structlog.get_logger(__name__)
 
@@ -141,6 +144,9 @@ class SessionCore:
         #: a link's inertia for them: the geometric mean of the bounds (the pilot's arm is not known)
         self.online = OnlineRecord(np.sqrt(bounds.inertia_min_kgm2 * bounds.inertia_max_kgm2))
         self.drift: DriftTest | None = None  # the drift test under way or the last one (issue 29, part 2)
+        #: the operator confirmed the A Priori model for this pilot in this session (rom_limits' checklist)
+        self.a_priori_confirmed = False
+        self.compare: CompareRun | None = None  # the blind comparison under way or the last one (part 3)
         self.safe_stop = SafeStop(
             description,
             bounds,

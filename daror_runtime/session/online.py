@@ -63,6 +63,8 @@ class OnlineRecord:
 
 def model_label(core: SessionCore, model: CompensationModel) -> str:
     """The model's name and its file (``PLF+ (model_plf_plus.json)``) as the operator knows it."""
+    if model is core.a_priori:
+        return "A Priori (the robot description)"
     summary = core.progress.last_model
     path = summary.get("path") if summary is not None else None
     name = getattr(model, "name", type(model).__name__)
@@ -77,6 +79,9 @@ def observe_online(core: SessionCore) -> None:
         return
     if core.drift is not None and core.drift.phase in (DriftPhase.DRIFTING, DriftPhase.CATCHING):
         record.interrupt()  # the relaxed arm in a drift test is no rest and no motion of the pilot's
+        return
+    if core.compare is not None and core.compare.phase in ("block", "rating"):
+        record.interrupt()  # a blind comparison keeps its own per block; these would name the block's model
         return
     record.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
     compensation = core.modes.compensation

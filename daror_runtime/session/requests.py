@@ -109,6 +109,7 @@ def _use_a_priori(core: SessionCore, supervisor: FsmSupervisor) -> Response | No
             f"the validated model {selected.name} ({selected.kind}) is in use; the A Priori model is not needed",
         )
     core.modes.compensation.model = core.a_priori
+    core.a_priori_confirmed = True  # for this pilot, this session (a blind comparison may use it again)
     # not validated on this pilot: its error moves a limp arm, slowly (docs/safety.md)
     core.modes.compensation.damping_nms_per_rad = core.settings.unvalidated_model_damping_nms_per_rad
     core.progress.last_model = a_priori_summary(core)

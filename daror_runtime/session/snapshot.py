@@ -105,6 +105,7 @@ def snapshot(core: SessionCore) -> RuntimeStatus:
         a_priori_includes_dummy_arm=core.settings.dummy_arm,
         reaction=_reaction_status(core),
         online=core.online.as_list(),
+        comparison=None if core.compare is None else core.compare.status(),
     )
 
 

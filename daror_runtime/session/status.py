@@ -138,6 +138,8 @@ class RuntimeStatus:
     reaction: ReactionStatus | None = None  # what a fault made the robot do, until the reaction ends
     #: the online indicators per model that compensated (issue 29; daror_runtime/online/indicators.py)
     online: list[dict[str, Any]] = field(default_factory=list)
+    #: a blind comparison's progress (never the block's model) and, once done, its verdict (issue 29)
+    comparison: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (``session.json``, ``status json``)."""

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from hal.capabilities import PLANT_FAULT_KINDS
 from hal.errors import HalError
 from hal.isb import Shoulder
@@ -22,6 +24,12 @@ if TYPE_CHECKING:
     from hal.sim.backend import SimHal
 
 __all__ = ["PlantWorld"]
+
+#: The simulated pilot's ratings (issue 29's blind comparison): 9 with no effort of his own, one
+#: point less per 0.5 Nm of mean effort (summed over the joints), a person's scatter of half a point.
+RATING_AT_NO_EFFORT = 9.0
+RATING_PER_NM = 2.0
+RATING_NOISE = 0.5
 
 
 class PlantWorld:
@@ -34,6 +42,7 @@ class PlantWorld:
     def __init__(self, hal: SimHal) -> None:
         self.hal = hal
         self._pilot: SimulatedPilot | None = None
+        self._ratings: np.random.Generator | None = None  # the simulated pilot's scatter when he rates
 
     # --- what the world is ----------------------------------------------------------------------
 
@@ -144,6 +153,15 @@ class PlantWorld:
     def remove_rest_support(self) -> None:
         """Take the rest support away (the arm hangs in the robot alone again)."""
         self.hal.plant.place_rest_support(None)
+
+    def pilot_rating(self, effort_nm: float) -> float:
+        """His rating (0-10, one decimal): :data:`RATING_AT_NO_EFFORT` less :data:`RATING_PER_NM` per Nm of
+        his mean effort, plus a person's scatter (normal, :data:`RATING_NOISE` of a point; the
+        scenario's seed)."""
+        if self._ratings is None:
+            self._ratings = np.random.default_rng(self.hal.scenario.seed + 29)
+        noise = float(self._ratings.normal(0.0, RATING_NOISE))
+        return round(float(np.clip(RATING_AT_NO_EFFORT - RATING_PER_NM * effort_nm + noise, 0.0, 10.0)), 1)
 
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         """``(holding, pilot)`` now, (4,) Nm: the plant's true holding torque and the pilot's torque."""
