@@ -146,6 +146,7 @@ def record_session(store: Store, directory: Path | str, pilot: str | None = None
         record.faults = list(history.get("faults") or [])
         record.support_levels = list(history.get("support_levels") or [])
         record.online = list(document.get("online") or []) or None
+        record.comparison = (document.get("comparison") or {}).get("verdict")
         record.session_json_sha256 = file_sha256(directory / "session.json")
         orm.flush()
         counts["datasets"] = _record_datasets(orm, record, directory)

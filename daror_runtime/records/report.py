@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from daror_runtime.data.checksum import file_sha256
+from daror_runtime.online.compare import verdict_text
 from daror_runtime.records.measured import ElbowToday, MeasureError, elbow_today
 from daror_runtime.records.pilots import load_pilot
 from daror_runtime.records.schema import ModelRecord, RangeOfMotionRecord, SessionRecord
@@ -63,6 +64,7 @@ class SessionTrend:
     notes: list[str] = field(default_factory=list)  # why a measure is missing
     #: the online indicators per model that compensated (issue 29, docs/online.md), as the session kept them
     online: list[dict[str, Any]] = field(default_factory=list)
+    comparison: dict[str, Any] | None = None  # a blind comparison's verdict (issue 29)
 
 
 def _moment(parameters: dict[str, Any], link: int) -> float | None:
@@ -145,6 +147,7 @@ def pilot_trend(store: Store, code: str) -> list[SessionTrend]:
                     else stiffness + gained,
                     notes=[] if isinstance(today, ElbowToday) else [f"elbow today: {today}"],
                     online=list(s.online or []),
+                    comparison=s.comparison,
                 )
             )
     return trend
@@ -191,6 +194,9 @@ def _markdown(code: str, trend: list[SessionTrend]) -> str:
     ]
     if online:
         lines += ["", "Measured while he used the support (docs/online.md; against the model in use):", "", *online]
+    compared = [f"- {t.session_id}: {verdict_text(t.comparison)}" for t in trend if t.comparison]
+    if compared:
+        lines += ["", "Blind comparisons (docs/online.md):", "", *compared]
     notes = [f"- {t.session_id}: {note}" for t in trend for note in t.notes]
     if notes:
         lines += ["", "Measures missing:", "", *notes]

@@ -91,6 +91,8 @@ class SessionRecord(Base):
     recorded_utc: Mapped[datetime]
     #: the online indicators per model that compensated (issue 29, docs/online.md; migration 0003)
     online: Mapped[list[Any] | None] = mapped_column(JSON, default=None)
+    #: its blind comparison's verdict, if it made one (issue 29, part 3; migration 0003)
+    comparison: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
 
     pilot: Mapped[PilotRecord] = relationship(back_populates="sessions")
     datasets: Mapped[list[DatasetRecord]] = relationship(back_populates="session", order_by="DatasetRecord.id")

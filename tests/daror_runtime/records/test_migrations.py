@@ -105,7 +105,8 @@ def test_from_the_previous_schema_with_records_in_it(
             model = orm.query(ModelRecord).one()
             assert model.validation_rmse_per_joint_nm is None  # the new column, empty for what was there
             assert model.session.support_levels == [0.8]
-            assert model.session.online is None  # 0003's column, empty for a session recorded before
+            assert model.session.online is None  # 0003's columns, empty for a session recorded before
+            assert model.session.comparison is None
     finally:
         store.close()
     engine = create_engine(db_url)

@@ -319,6 +319,11 @@ def test_a_pilot_s_report_and_export(
          "level_delivered": 0.7, "last_rest": None, "moving_samples": [0, 0, 0, 0],
          "interaction_rms_nm": [None] * 4, "apparent_damping_nms_per_rad": [None] * 4}
     ]  # fmt: skip
+    document["comparison"] = {"phase": "done", "verdict": {
+        "models": ["PLF+ (model_plf_plus.json)", "A Priori (the robot description)"], "pairs": 6,
+        "ratings": {"mean": {"PLF+ (model_plf_plus.json)": 7.9, "A Priori (the robot description)": 0.1},
+                    "mean_difference": 7.8, "p_paired_t": 2e-8, "p_wilcoxon": 0.03},
+        "preferred": "PLF+ (model_plf_plus.json)", "blocks": []}}  # fmt: skip
     (second / "session.json").write_text(json.dumps(document), encoding="utf-8")
     for folder in (first, second):
         assert main(["sessions", "add", str(folder), "--pilot", "P-007", "--db", db_url]) == 0
@@ -337,6 +342,10 @@ def test_a_pilot_s_report_and_export(
     assert "| second |" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
     assert sessions[-1]["online"][0]["effort_at_rest_rms_nm"] == [0.1, 0.9, 0.2, 0.4]  # kept by the records
     assert sessions[0]["online"] == []
+    assert sessions[-1]["comparison"]["preferred"] == "PLF+ (model_plf_plus.json)"
+    assert "- second: blind comparison over 6 pairs: the pilot preferred PLF+" in (
+        tmp_path / "report" / "report.md"
+    ).read_text(encoding="utf-8")
     assert (
         "- second, PLF+ (model_plf_plus.json): 3 rests, his effort at rest RMS 0.10 0.90 0.20 0.40 Nm, "
         "support delivered 0.70" in (tmp_path / "report" / "report.md").read_text(encoding="utf-8")

@@ -91,7 +91,10 @@ function render(st) {
     + `; ${o.rests} rests` + (o.level_delivered === null ? "" : `; support measured ${Number(o.level_delivered).toFixed(2)}`)
     + (o.moving_samples.some((n) => n > 0) ? `; moving: interaction RMS ${nm(o.interaction_rms_nm)} Nm` : "")
     + ((o.drift_tests || []).length ? `; drift tests ${o.drift_tests.length}, the last: unsupported <b>${nm(o.drift_tests[o.drift_tests.length - 1].unsupported_nm)}</b> Nm` : "")
-    + "</div>").join("");
+    + "</div>").join("")
+    + (st.comparison ? `<div>${st.comparison.verdict_text ? esc(st.comparison.verdict_text)
+      : st.comparison.why_stopped ? "blind comparison stopped: " + esc(st.comparison.why_stopped)
+      : `blind comparison: block ${st.comparison.block} of ${st.comparison.blocks} (${esc(st.comparison.phase)}; ${st.comparison.rated} rated; the model is not shown)`}</div>` : "");
   // model
   const m = st.model;
   $("model").innerHTML = m ? `<b>${esc(m.name)}</b> (${esc(m.kind)}) — ${m.validated ? "validated, RMSE " + m.validation_rmse_nm.toFixed(3) + " Nm" : "approved: " + esc(m.approved_by)}`

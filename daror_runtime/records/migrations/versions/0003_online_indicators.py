@@ -1,4 +1,4 @@
-"""A session's online indicators per model (issue 29: the pilot's effort at rest, the support delivered).
+"""A session's online indicators per model and its blind comparison's verdict (issue 29).
 
 Revision ID: 0003
 Revises: 0002
@@ -21,8 +21,10 @@ depends_on = None
 def upgrade() -> None:
     with op.batch_alter_table("sessions") as batch:
         batch.add_column(sa.Column("online", sa.JSON(), nullable=True))
+        batch.add_column(sa.Column("comparison", sa.JSON(), nullable=True))
 
 
 def downgrade() -> None:
     with op.batch_alter_table("sessions") as batch:
+        batch.drop_column("comparison")
         batch.drop_column("online")
