@@ -13,6 +13,7 @@ Run alone: ``python bench/bench_online.py`` prints the table of docs/online.md.
 
 from __future__ import annotations
 
+import statistics
 import sys
 import time
 
@@ -63,7 +64,26 @@ def measure(scenario: str) -> dict[str, object]:
         drift = [*plain, *drifting.drift_tests()]
     finally:
         drifting.close()
-    return {"checks": checks, "moving": moving, "wall_s": wall_s, "observe_us": per_call_us, "drift": drift}
+    compared = SimulatedSession(scenario, folder / "compare", model, validation, a_priori_first=True)
+    try:
+        start_t = compared.runtime.last_sample.t_s
+        started = time.perf_counter()
+        verdict = compared.blind_comparison(pairs=8, block_s=20.0, seed=29)
+        comparison = {
+            "verdict": verdict,
+            "robot_s": compared.runtime.last_sample.t_s - start_t,
+            "wall_s": time.perf_counter() - started,
+        }
+    finally:
+        compared.close()
+    return {
+        "checks": checks,
+        "moving": moving,
+        "wall_s": wall_s,
+        "observe_us": per_call_us,
+        "drift": drift,
+        "comparison": comparison,
+    }
 
 
 def table(results: dict[str, dict[str, object]]) -> list[str]:
@@ -109,6 +129,20 @@ def table(results: dict[str, dict[str, object]]) -> list[str]:
                 f"{' '.join(f'{v:.2f}' for v in r.drift_deg)} | {' '.join(f'{v:.3f}' for v in r.unsupported_nm)} | "
                 f"{' '.join(f'{v:.3f}' for v in check.model_error_nm)} | {check.held_drift_deg:.3f} |"
             )
+    lines += [
+        "",
+        "| pilot | pairs of 20 s blocks | preferred | mean ratings | paired t p | Wilcoxon p | robot time (s) | wall (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for scenario, result in results.items():
+        c = result["comparison"]
+        v = c["verdict"]  # type: ignore[index]
+        means = ", ".join(f"{name.split(' (')[0]} {value:.2f}" for name, value in v["ratings"]["mean"].items())
+        lines.append(
+            f"| {scenario} | {v['pairs']} | {(v['preferred'] or 'none').split(' (')[0]} | {means} | "
+            f"{v['ratings']['p_paired_t']:.2g} | {v['ratings']['p_wilcoxon']:.2g} | {c['robot_s']:.1f} | "  # type: ignore[index]
+            f"{c['wall_s']:.1f} |"  # type: ignore[index]
+        )
     return lines
 
 
@@ -129,8 +163,26 @@ def bench_online_indicators(quick: bool) -> list[BenchFigure]:
         for check in result["drift"]  # type: ignore[attr-defined]
     ]
     held = [check.held_drift_deg for result in results.values() for check in result["drift"]]  # type: ignore[attr-defined]
+    robot = [float(r["comparison"]["robot_s"]) for r in results.values()]  # type: ignore[index]
+    p_values = [float(r["comparison"]["verdict"]["ratings"]["p_paired_t"]) for r in results.values()]  # type: ignore[index]
     n = len(results)
     return [
+        BenchFigure(
+            "blind comparison PLF+ against A Priori: robot time to the verdict",
+            statistics.median(robot),
+            max(robot),
+            "s",
+            n,
+            target=600.0,
+        ),
+        BenchFigure(
+            "blind comparison: paired t p (the pilot preferred PLF+)",
+            statistics.median(p_values),
+            max(p_values),
+            "",
+            n,
+            target=0.05,
+        ),
         BenchFigure(
             "drift test: unsupported torque against the model's true error (largest, any joint)",
             float(np.median(drift_errors)),
