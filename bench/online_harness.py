@@ -32,7 +32,7 @@ from daror_runtime.models.files import save_model, training_summary
 from daror_runtime.models.registry import fit_model, installation_options
 from daror_runtime.online.drift import MEASURE_S as DRIFT_MEASURE_S
 from daror_runtime.online.drift import SETTLE_S as DRIFT_SETTLE_S
-from daror_runtime.online.drift import DriftResult
+from daror_runtime.online.drift import DriftResult, corrected_effort
 from daror_runtime.online.indicators import MOVING_RAD_S, OBSERVE_PERIOD_S
 from daror_runtime.runtime import Runtime
 from daror_runtime.session.settings import SessionSettings
@@ -102,11 +102,17 @@ class RestCheck:
     indicator_nm: np.ndarray  # the runtime's effort at rest, per joint
     truth_nm: np.ndarray  # the pilot's own torque, mean over the rest
     model_error_nm: np.ndarray  # the model's torque minus the true holding torque, mean over the rest
+    corrected_nm: np.ndarray | None = None  # the indicator less a drift test's measure near the pose (None: none)
 
     @property
     def error_nm(self) -> np.ndarray:
         """The indicator against the pilot's true effort."""
         return self.indicator_nm - self.truth_nm
+
+    @property
+    def corrected_error_nm(self) -> np.ndarray | None:
+        """The indicator corrected by a drift test near the pose, against the pilot's true effort."""
+        return None if self.corrected_nm is None else self.corrected_nm - self.truth_nm
 
     @property
     def estimator_error_nm(self) -> np.ndarray:
@@ -238,8 +244,10 @@ class SimulatedSession:
         checks = []
         for label, indicators in self.core.online.by_model.items():
             indicators.interrupt()
+            tests = [test for test in self.core.online.drift_tests if test.model == label]
             for rest in indicators.rests:
                 window = (times >= rest.t_start_s - 1e-9) & (times <= rest.t_end_s + 1e-9)
+                corrected = corrected_effort(rest.pose_rad, rest.effort_nm, tests)
                 checks.append(
                     RestCheck(
                         label,
@@ -248,6 +256,7 @@ class SimulatedSession:
                         np.array(rest.effort_nm),
                         pilot[window].mean(axis=0),
                         (model[window] - holding[window]).mean(axis=0),
+                        None if corrected is None else np.array(corrected[0]),
                     )
                 )
         return checks
@@ -272,6 +281,9 @@ class SimulatedSession:
         """At each pose: the pilot holds the arm there, the drift test starts and he relaxes at once;
         after the catch and the measure, ``advance`` returns to compensation and he takes his arm back."""
         runtime, world, shoulder = self.runtime, self.world, self.runtime.shoulder
+        if self.core.modes.compensation.delivered_support_level != 1.0:
+            self._ok(runtime.set_support(1.0))  # the test is of the model's whole support
+            self.run(2.5)
         checks = []
         for pose in poses_deg:
             world.pilot_stiffness(1.0)

@@ -194,7 +194,12 @@ def _online_lines(status: RuntimeStatus) -> list[str]:
             "no rest yet"
             if last is None
             else f"his effort at the last rest {_joints(last['effort_nm'])} Nm "
-            f"({last['t_end_s'] - last['t_start_s']:.1f} s at level {last['level_asked']:.2f})"
+            f"({last['t_end_s'] - last['t_start_s']:.1f} s at level {last['level_asked']:.2f}"
+            + (
+                f"; {_joints(last['effort_corrected_nm'])} Nm less the model's error a drift test measured there)"
+                if last.get("effort_corrected_nm")
+                else ")"
+            )
         )
         delivered = entry["level_delivered"]
         lines.append(

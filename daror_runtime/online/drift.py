@@ -17,6 +17,7 @@ This module is the test's bookkeeping on observations (plain numpy); the session
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
@@ -35,6 +36,10 @@ MARGIN_DEG = 8.0
 SETTLE_S = 0.5
 #: The springs are averaged over this (s).
 MEASURE_S = 0.5
+
+
+#: A rest within this of a drift test's caught pose (deg, every joint) is corrected by its unsupported torque.
+CORRECTION_RADIUS_DEG = 5.0
 
 
 class DriftPhase(StrEnum):
@@ -150,7 +155,29 @@ class DriftTest:
         self.why_abandoned = why
 
 
+def corrected_effort(
+    pose_rad: Sequence[float], effort_nm: Sequence[float], tests: Sequence[DriftResult]
+) -> tuple[tuple[float, ...], DriftResult] | None:
+    """The pilot's effort at a rest less the model's error the nearest drift test measured there.
+
+    The at-rest indicator is his effort plus the model's error at the pose (docs/online.md); a drift
+    test of the same model within :data:`CORRECTION_RADIUS_DEG` of the rest's pose (every joint)
+    measured that error, so subtracting it leaves his effort. None: no test near enough.
+    """
+    pose = np.asarray(pose_rad, dtype=float)
+    best: tuple[float, DriftResult] | None = None
+    for test in tests:
+        distance = float(np.rad2deg(np.abs(np.asarray(test.caught_pose_rad) - pose).max()))
+        if distance <= CORRECTION_RADIUS_DEG and (best is None or distance < best[0]):
+            best = (distance, test)
+    if best is None:
+        return None
+    test = best[1]
+    return tuple(float(e - u) for e, u in zip(effort_nm, test.unsupported_nm, strict=True)), test
+
+
 __all__ = [
+    "CORRECTION_RADIUS_DEG",
     "DRIFT_MAX_DEG",
     "DRIFT_MAX_S",
     "MARGIN_DEG",
@@ -159,4 +186,5 @@ __all__ = [
     "DriftPhase",
     "DriftResult",
     "DriftTest",
+    "corrected_effort",
 ]

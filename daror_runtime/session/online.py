@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from daror_runtime.online.drift import DriftPhase, DriftResult
+from daror_runtime.online.drift import DriftPhase, DriftResult, corrected_effort
 from daror_runtime.online.indicators import OBSERVE_PERIOD_S, OnlineIndicators
 
 if TYPE_CHECKING:
@@ -55,8 +55,16 @@ class OnlineRecord:
             if label not in self.by_model:
                 labels.append((label, OnlineIndicators(self.inertia_kgm2)))
         for label, indicators in labels:
-            entry = {"model": label, **indicators.summary().as_dict()}
-            entry["drift_tests"] = [test.as_dict() for test in drift_tests if test.model == label]
+            summary = indicators.summary()
+            entry = {"model": label, **summary.as_dict()}
+            own = [test for test in drift_tests if test.model == label]
+            entry["drift_tests"] = [test.as_dict() for test in own]
+            last = summary.last_rest
+            corrected = None if last is None else corrected_effort(last.pose_rad, last.effort_nm, own)
+            if entry["last_rest"] is not None:  # his effort less the model's error a drift test measured there
+                entry["last_rest"]["effort_corrected_nm"] = (
+                    None if corrected is None else [round(v, 4) for v in corrected[0]]
+                )
             entries.append(entry)
         return entries
 
