@@ -133,31 +133,36 @@ def models(tmp_path_factory: pytest.TempPathFactory, exo_dummy_arm: Scenario) ->
     return files
 
 
-#: Seconds the longest files took in one run of the whole suite on two workers (2026-11-29, load ~2;
-#: the sum of each file's tests, from ``pytest -n 2 --dist loadfile --junitxml``; the README's and the
-#: CAN sessions' from a fresh-clone ``make test``'s durations after D200). A scheduling hint only: a
-#: stale figure costs balance, never a result.
+#: Seconds the longest files took in one run of the whole suite on two workers (2026-11-29, 15:27 UTC,
+#: at 5df0455: the sum of each file's tests, from ``pytest -n 2 --dist loadgroup --junitxml`` in a fresh
+#: clone). A scheduling hint only: a stale figure costs balance, never a result.
 LONG_FILES_S = {
-    "test_hazard_mutations.py": 127,
-    "test_readme_transcript.py": 100,
-    "test_residual_hysteresis.py": 47,
-    "test_web_console.py": 36,
-    "test_canopen_hil.py": 35,
-    "test_hal_contract.py": 35,
-    "test_fault_reactions.py": 29,
-    "test_hpsearch.py": 29,
-    "test_protocol_design.py": 28,
-    "test_console_operator.py": 25,
-    "test_demo_session.py": 25,
-    "test_signal_map.py": 25,
-    "test_neural.py": 24,
-    "test_residual_learned.py": 19,
-    "test_session_safety.py": 15,
-    "test_canopen_robot_golden.py": 15,
-    "test_boundaries.py": 14,
-    "test_canopen_interop_lockstep.py": 12,
-    "test_returning_pilot.py": 12,
-    "test_records.py": 9,
+    "test_hazard_mutations.py": 120,
+    "test_readme_transcript.py": 110,
+    "test_residual_hysteresis.py": 53,
+    "test_hal_contract.py": 46,
+    "test_canopen_hil.py": 39,
+    "test_web_console.py": 39,
+    "test_fault_reactions.py": 35,
+    "test_hpsearch.py": 33,
+    "test_protocol_design.py": 32,
+    "test_console_operator.py": 28,
+    "test_residual_learned.py": 22,
+    "test_neural.py": 21,
+    "test_returning_pilot.py": 19,
+    "test_canopen_robot_golden.py": 19,
+    "test_session_safety.py": 19,
+    "test_boundaries.py": 17,
+    "test_signal_map.py": 16,
+    "test_yaml_hostile.py": 16,
+    "test_canopen_interop_lockstep.py": 15,
+    "test_signals.py": 13,
+    "test_residual_scale.py": 12,
+    "test_demo_session.py": 12,
+    "test_session_loop.py": 10,
+    "test_residual_cli.py": 10,
+    "test_records.py": 10,
+    "test_fsm_properties.py": 9,
 }
 
 
