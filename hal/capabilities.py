@@ -210,6 +210,11 @@ class SimulatedWorld(Protocol):
         """
         ...
 
+    def pilot_torque_nm(self) -> FloatArray:
+        """The pilot's torque (4,) Nm as the plant's last step computed it: a read, never an evaluation
+        (safe beside a running loop, unlike :meth:`support_torques`)."""
+        ...
+
     def pilot_rating(self, effort_nm: float) -> float:
         """The simulated pilot's rating (0-10, one decimal) of a support under which his own mean effort
         was ``effort_nm`` (the sum over joints of his torque's magnitude, Nm): less effort, a better

@@ -162,6 +162,11 @@ class Compensation:
         self._damping_weight = 1.0  # ramps in after a reset: the damping never steps the reference
         self._speed = np.zeros(torque.n_joints)  # the joints' speed, low-passed for the damping (rad/s)
         self.last_reference_nm: FloatArray = np.zeros(torque.n_joints)
+        #: (model, sample, the model's torque there) of the last tick that delivered the model: what the
+        #: session's online indicators read between ticks. One tuple, replaced whole (atomic under the
+        #: GIL): a reader on another thread never calls the model, whose compiled kernel may own a
+        #: scratch buffer the tick is using (a neural model's), and never sees a torque of another pose.
+        self.last_model_torque: tuple[CompensationModel, Sample, FloatArray] | None = None
 
     @property
     def damping_nms_per_rad(self) -> float:
@@ -202,7 +207,8 @@ class Compensation:
         self._reading_error = model.reading_error_tracker() if self.torque.regulates_reading_error else None
         if self._reading_error is not None:
             self._reading_error.reset(sample.q_rad)
-        self.handover.start(sample, self.torque.spring_torque_nm(sample), target)
+        held_nm = self.torque.spring_torque_nm(sample)  # what carries the arm now: the handover starts there
+        self.handover.start(sample, held_nm, target)
         if damping_nms_per_rad != self._damping:
             self._damping = float(damping_nms_per_rad)
             self._damping_weight = 0.0  # it ramps in, as after a reset
@@ -239,6 +245,7 @@ class Compensation:
         if model is None:
             raise ControlError("no compensation model is approved for this pilot: compensation cannot start")
         self.torque.reset(sample)
+        self.last_model_torque = None
         self._level = self._target
         target = self._level * np.asarray(model.torque(sample.q_rad), dtype=float)
         if target.shape != (self.torque.n_joints,) or not np.all(np.isfinite(target)):
@@ -274,6 +281,7 @@ class Compensation:
                 else max(self._target, self._level - step)
             )
         model_torque = model.torque(sample.q_rad)
+        self.last_model_torque = (model, sample, model_torque)
         try:
             tau_ref = model_torque * self._level  # an (n,) float array; the kernel checks shape and finiteness
         except TypeError:

@@ -249,23 +249,25 @@ def service_compare(core: SessionCore) -> None:
         _stop(core, run, f"the state changed to {supervisor.state.name}")
         return
     compensation = core.modes.compensation
-    if run.phase != ComparePhase.BLOCK or sample.t_s < run.next_t_s:
+    seen = compensation.last_model_torque  # what the last tick computed: the model is never called here
+    if run.phase != ComparePhase.BLOCK or seen is None or seen[1].t_s < run.next_t_s:
         return
-    run.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
-    model = compensation.model
+    _, observed, torque = seen
+    run.next_t_s = observed.t_s + OBSERVE_PERIOD_S - 1e-9
     indicators = run.indicators
-    if model is None or indicators is None:
+    if indicators is None:
         return
     indicators.observe(
-        sample.t_s,
-        sample.q_rad,
-        compensation.torque.spring_torque_nm(sample),
-        np.asarray(model.torque(sample.q_rad), dtype=float),
+        observed.t_s,
+        observed.q_rad,
+        compensation.torque.spring_torque_nm(observed),
+        np.asarray(torque, dtype=float),
         compensation.support_level,
+        handing_over=compensation.handover.active,
     )
     world = core.hal.world
     if world is not None:  # a simulation: the pilot's own effort, for his rating (the truth, never the runtime's)
-        _, pilot = world.support_torques()
+        pilot = world.pilot_torque_nm()  # read as the plant's last step left it: nothing evaluated here
         run.effort_sum_nm += float(np.abs(pilot).sum())
         run.effort_samples += 1
     block = run.block

@@ -80,29 +80,32 @@ def model_label(core: SessionCore, model: CompensationModel) -> str:
 
 
 def observe_online(core: SessionCore) -> None:
-    """Observe the last sample if it is time and compensation delivers a model's support; else interrupt."""
-    sample = core.signals.sample
+    """Observe the last tick that delivered a model's support, if it is time; else interrupt.
+
+    What is observed is what that tick computed (:attr:`Compensation.last_model_torque`): this runs
+    on the service's thread while the loop may be in a tick, and never calls the model itself.
+    """
+    compensation = core.modes.compensation
+    seen = compensation.last_model_torque
     record = core.online
-    if sample is None or sample.t_s < record.next_t_s:
+    if seen is None:
         return
+    model, sample, torque = seen
+    if sample.t_s < record.next_t_s:
+        return
+    record.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
     if core.drift is not None and core.drift.phase in (DriftPhase.DRIFTING, DriftPhase.CATCHING):
         record.interrupt()  # the relaxed arm in a drift test is no rest and no motion of the pilot's
         return
     if core.compare is not None and core.compare.phase in ("block", "rating"):
         record.interrupt()  # a blind comparison keeps its own per block; these would name the block's model
         return
-    record.next_t_s = sample.t_s + OBSERVE_PERIOD_S - 1e-9
-    compensation = core.modes.compensation
-    model = compensation.model
     supervisor = core.supervisor
-    delivering = (
-        model is not None
-        and supervisor.state.mode == "compensation"
-        and supervisor.reaction is None
-        and not core.monitor.faulted
-    )
-    if not delivering or model is None:
-        record.interrupt()
+    delivering = supervisor.state.mode == "compensation" and supervisor.reaction is None and not core.monitor.faulted
+    latest = core.signals.sample
+    stale = latest is not None and latest.t_s - sample.t_s > 3 * OBSERVE_PERIOD_S
+    if not delivering or stale:
+        record.interrupt()  # not delivering now, or the last tick that did is long past
         return
     if model is not record.model or record.label is None:
         record.interrupt()
@@ -111,7 +114,7 @@ def observe_online(core: SessionCore) -> None:
         sample.t_s,
         sample.q_rad,
         compensation.torque.spring_torque_nm(sample),
-        np.asarray(model.torque(sample.q_rad), dtype=float),
+        np.asarray(torque, dtype=float),
         compensation.support_level,
         handing_over=compensation.handover.active,
     )

@@ -154,6 +154,10 @@ class PlantWorld:
         """Take the rest support away (the arm hangs in the robot alone again)."""
         self.hal.plant.place_rest_support(None)
 
+    def pilot_torque_nm(self) -> FloatArray:
+        """The seated pilot's torque of the plant's last step (a copy; nothing is evaluated)."""
+        return self.pilot.torque_nm
+
     def pilot_rating(self, effort_nm: float) -> float:
         """His rating (0-10, one decimal): :data:`RATING_AT_NO_EFFORT` less :data:`RATING_PER_NM` per Nm of
         his mean effort, plus a person's scatter (normal, :data:`RATING_NOISE` of a point; the

@@ -112,6 +112,9 @@ class CanSimWorld:
     def support_torques(self) -> tuple[FloatArray, FloatArray]:
         return self._plant.support_torques()
 
+    def pilot_torque_nm(self) -> FloatArray:
+        return self._plant.pilot_torque_nm()
+
     def pilot_rating(self, effort_nm: float) -> float:
         return self._plant.pilot_rating(effort_nm)
 

@@ -87,3 +87,33 @@ def test_the_indicators_are_in_the_status_and_session_json(session: SimulatedSes
     document = json.loads((session.runtime.session_dir / "session.json").read_text(encoding="utf-8"))
     assert [entry["model"] for entry in document["online"]] == [entry["model"] for entry in online]
     assert Path(session.runtime.session_dir).is_dir()
+
+
+def test_the_indicators_never_call_the_model_beside_the_tick(session: SimulatedSession) -> None:
+    """The service may run on its own thread while the tick evaluates the model, whose compiled kernel
+    can own a scratch buffer (a neural model's): the indicators read what the tick computed instead.
+    In lock-step every tick calls the model once; observing adds no call."""
+    compensation = session.core.modes.compensation
+    model = compensation.model
+    calls = []
+
+    class Counting:
+        def __init__(self, inner: object) -> None:
+            self._inner = inner
+            self.name = getattr(inner, "name", "model")
+
+        def torque(self, q_rad: np.ndarray) -> np.ndarray:
+            calls.append(1)
+            return self._inner.torque(q_rad)  # type: ignore[attr-defined]
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self._inner, name)
+
+    compensation.model = Counting(model)  # type: ignore[assignment]
+    try:
+        before = session.core.online.by_model
+        session.runtime.runner.run_ticks(500)
+        assert len(calls) == 500  # one per tick: none from the 25 observations between them
+        assert before is session.core.online.by_model
+    finally:
+        compensation.model = model
