@@ -46,6 +46,7 @@ PAIRS = 8
 class ComparePhase(StrEnum):
     BLOCK = "block"  # the pilot uses the block's model (handed over at its start)
     RATING = "rating"  # waiting for his rating
+    JUDGING = "judging"  # every block rated: the verdict is computed outside the tick
     DONE = "done"
     STOPPED = "stopped"
 
@@ -190,24 +191,28 @@ def request_rating(core: SessionCore, rating: float | None) -> Ticket:
 
 
 def _finish(core: SessionCore, run: CompareRun) -> None:
-    """Every block rated: the verdict, its files, the support back to the validated model."""
-    run.phase = ComparePhase.DONE
+    """Every block rated (at a tick boundary): the support back to the validated model; the verdict,
+    its files and its announcement in a job (scipy's tests never run in the tick)."""
     compensation = core.modes.compensation
     sample = core.signals.sample
     if compensation.model is not run.models[0] and sample is not None:
         compensation.switch_model(run.models[0], run.dampings_nms_per_rad[0], sample)
-    verdict = run.comparison.verdict()
-    run.verdict = verdict
-    text = verdict_text(verdict)
-    log.info("blind comparison", **{k: v for k, v in verdict.items() if k != "blocks"})
-    core.announcements.announce(AnnouncementKind.SESSION, text + "; the validated model supports him again", core.t_s())
     directory = core.session_dir
 
-    def write() -> None:
+    def judge() -> None:
+        verdict = run.comparison.verdict()
+        text = verdict_text(verdict)
         write_text_atomic(directory / "comparison.json", json.dumps(verdict, indent=2) + "\n")
         write_text_atomic(directory / "comparison.md", _markdown(verdict, text))
+        run.verdict = verdict
+        run.phase = ComparePhase.DONE
+        log.info("blind comparison", **{k: v for k, v in verdict.items() if k != "blocks"})
+        core.announcements.announce(
+            AnnouncementKind.SESSION, text + "; the validated model supports him again", core.t_s()
+        )
 
-    core.jobs.submit("write the comparison", write)
+    run.phase = ComparePhase.JUDGING
+    core.jobs.submit("judge the blind comparison", judge)
 
 
 def _markdown(verdict: dict[str, Any], text: str) -> str:
@@ -236,7 +241,7 @@ def _stop(core: SessionCore, run: CompareRun, why: str) -> None:
 def service_compare(core: SessionCore) -> None:
     """Between ticks: a block's time and indicators; a stop for what ends it."""
     run = core.compare
-    if run is None or run.phase in (ComparePhase.DONE, ComparePhase.STOPPED):
+    if run is None or run.phase in (ComparePhase.JUDGING, ComparePhase.DONE, ComparePhase.STOPPED):
         return
     supervisor = core.supervisor
     sample = core.signals.sample
