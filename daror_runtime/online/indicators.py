@@ -86,6 +86,20 @@ class _Accumulator:
     level_asked: float = 0.0
     t_end_s: float = 0.0
 
+    def rest(self) -> Rest | None:
+        """The rest these sums make, or None while it is shorter than :data:`MIN_REST_S`."""
+        if self.n == 0 or self.t_end_s - self.t_start_s < MIN_REST_S:
+            return None
+        delivered = self.springs_dot_model / self.model_dot_model if self.model_dot_model > 1e-9 else None
+        return Rest(
+            self.t_start_s,
+            self.t_end_s,
+            tuple(float(v) for v in self.pose / self.n),
+            tuple(float(v) for v in self.effort / self.n),
+            self.level_asked,
+            delivered,
+        )
+
 
 @dataclass(frozen=True)
 class OnlineSummary:
@@ -225,26 +239,16 @@ class OnlineIndicators:
         rest.t_end_s = t_s
 
     def _end_rest(self) -> None:
-        rest, self._current = self._current, None
-        if rest is None or rest.n == 0 or rest.t_end_s - rest.t_start_s < MIN_REST_S:
+        current, self._current = self._current, None
+        rest = None if current is None else current.rest()
+        if current is None or rest is None:
             return
-        effort = rest.effort / rest.n
-        delivered = rest.springs_dot_model / rest.model_dot_model if rest.model_dot_model > 1e-9 else None
-        self._rests.append(
-            Rest(
-                rest.t_start_s,
-                rest.t_end_s,
-                tuple(float(v) for v in rest.pose / rest.n),
-                tuple(float(v) for v in effort),
-                rest.level_asked,
-                delivered,
-            )
-        )
+        self._rests.append(rest)
         del self._rests[:-MAX_RESTS]
         self._rest_total += 1
-        self._effort_sq += effort * effort
-        self._springs_dot_model += rest.springs_dot_model
-        self._model_dot_model += rest.model_dot_model
+        self._effort_sq += np.square(rest.effort_nm)
+        self._springs_dot_model += current.springs_dot_model
+        self._model_dot_model += current.model_dot_model
 
     def _moving(self, speed: FloatArray, acceleration: FloatArray, springs: FloatArray, model: FloatArray) -> None:
         interaction = model - springs + self._inertia * acceleration
@@ -267,19 +271,10 @@ class OnlineIndicators:
         count = self._rest_total
         springs_dot_model, model_dot_model = self._springs_dot_model, self._model_dot_model
         current = self._current
-        if current is not None and current.n and current.t_end_s - current.t_start_s >= MIN_REST_S:
-            effort = current.effort / current.n
-            rests.append(
-                Rest(
-                    current.t_start_s,
-                    current.t_end_s,
-                    tuple(float(v) for v in current.pose / current.n),
-                    tuple(float(v) for v in effort),
-                    current.level_asked,
-                    current.springs_dot_model / current.model_dot_model if current.model_dot_model > 1e-9 else None,
-                )
-            )
-            effort_sq += effort * effort
+        in_progress = None if current is None else current.rest()
+        if current is not None and in_progress is not None:  # a rest in progress counts once long enough
+            rests.append(in_progress)
+            effort_sq += np.square(in_progress.effort_nm)
             count += 1
             springs_dot_model += current.springs_dot_model
             model_dot_model += current.model_dot_model
